@@ -1,0 +1,1 @@
+"""Drums: middleware-aware monitoring for distributed robots."""
