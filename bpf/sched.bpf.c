@@ -1,0 +1,169 @@
+// On-CPU time, run-queue latency and context switches of every thread, from the scheduler's own
+// tracepoints. One hash entry per thread holds everything, so a context switch costs two lookups
+// and no atomics: an entry is only written by the CPU that switches its thread in or out.
+//
+// Task offsets (TASK_PID_OFF, TASK_TGID_OFF, TASK_COMM_OFF, TASK_STATE_OFF) come from BTF.
+#include "drums.h"
+
+// Run-queue latency histogram: slot i counts waits of [2^i, 2^(i+1)) microseconds (slot 0 also
+// takes waits under 1 us); the last slot takes everything longer.
+#define RUNQ_SLOTS 24
+#define TASK_DEAD 0x80  // include/linux/sched.h, unchanged since 4.14
+
+#define DROP_THREAD 0
+#define DROP_PROCESS 1
+
+struct sched_t {
+    u64 oncpu_ns;
+    u64 runq_ns;
+    u64 runq_waits;
+    u64 voluntary;
+    u64 involuntary;
+    u32 runq_hist[RUNQ_SLOTS];
+};
+
+struct thread_sched_t {
+    u32 tgid;
+    u32 pad;
+    u64 enqueued_at;  // when the thread became runnable; 0 while running or sleeping
+    char comm[16];
+    struct sched_t s;
+};
+
+// pid_max is 32768 on small systems and 4M on large ones; 65536 live threads covers a robot.
+BPF_HASH(thread_sched, u32, struct thread_sched_t, 65536);
+// Threads that exited, folded per process until the process is reaped.
+BPF_HASH(exited_sched, u32, struct sched_t, 16384);
+// When the current task of each CPU was switched in.
+BPF_PERCPU_ARRAY(switched_in_at, u64, 1);
+BPF_ARRAY(dropped, u64, 2);
+
+static __always_inline void count_drop(int which)
+{
+    u64 *d = dropped.lookup(&which);
+    if (d)
+        __sync_fetch_and_add(d, 1);
+}
+
+static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task)
+{
+    struct thread_sched_t *t = thread_sched.lookup(&tid);
+    if (t)
+        return t;
+    struct thread_sched_t fresh = {};
+    bpf_probe_read_kernel(&fresh.tgid, 4, (void *)(task + TASK_TGID_OFF));
+    bpf_probe_read_kernel(fresh.comm, sizeof(fresh.comm), (void *)(task + TASK_COMM_OFF));
+    if (thread_sched.insert(&tid, &fresh) != 0) {
+        count_drop(DROP_THREAD);
+        return 0;
+    }
+    return thread_sched.lookup(&tid);
+}
+
+static __always_inline void fold(struct sched_t *into, struct sched_t *from)
+{
+    into->oncpu_ns += from->oncpu_ns;
+    into->runq_ns += from->runq_ns;
+    into->runq_waits += from->runq_waits;
+    into->voluntary += from->voluntary;
+    into->involuntary += from->involuntary;
+#pragma unroll
+    for (int i = 0; i < RUNQ_SLOTS; i++)
+        into->runq_hist[i] += from->runq_hist[i];
+}
+
+// The last switch-out of an exiting thread: fold all it did into its process and free its entry.
+static __always_inline void thread_died(u32 tid, struct thread_sched_t *t)
+{
+    struct sched_t zero = {};
+    u32 tgid = t->tgid;
+    struct sched_t *p = exited_sched.lookup_or_try_init(&tgid, &zero);
+    if (p)
+        fold(p, &t->s);
+    else
+        count_drop(DROP_PROCESS);
+    thread_sched.delete(&tid);
+}
+
+static __always_inline void enqueued(u32 tid, u64 task, u64 now)
+{
+    struct thread_sched_t *t = thread_entry(tid, task);
+    if (t)
+        t->enqueued_at = now;
+}
+
+// sched:sched_switch (preempt, prev, next[, prev_state])
+int on_switch(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 now = bpf_ktime_get_ns();
+    int zero = 0;
+    u64 *since = switched_in_at.lookup(&zero);
+    if (!since)
+        return 0;
+    u64 prev = ctx->args[1], next = ctx->args[2];
+    u32 prev_tid = 0, next_tid = 0;
+    bpf_probe_read_kernel(&prev_tid, 4, (void *)(prev + TASK_PID_OFF));
+    bpf_probe_read_kernel(&next_tid, 4, (void *)(next + TASK_PID_OFF));
+#ifdef SWITCH_HAS_PREV_STATE
+    unsigned int state = (unsigned int)ctx->args[3];  // kernel >= 5.18
+#else
+    unsigned int state = 0;
+    bpf_probe_read_kernel(&state, 4, (void *)(prev + TASK_STATE_OFF));
+#endif
+    bool preempt = ctx->args[0] & 1;
+
+    if (prev_tid) {  // tid 0 is the idle task
+        struct thread_sched_t *t = thread_entry(prev_tid, prev);
+        if (t) {
+            if (*since)
+                t->s.oncpu_ns += now - *since;
+            // The kernel's own rule for nvcsw/nivcsw (kernel/sched/core.c, __schedule).
+            if (!preempt && state)
+                t->s.voluntary++;
+            else
+                t->s.involuntary++;
+            if (state == 0)
+                t->enqueued_at = now;  // still runnable: it waits on the run queue from now
+            if (state & TASK_DEAD)
+                thread_died(prev_tid, t);
+        }
+    }
+    if (next_tid) {
+        struct thread_sched_t *t = thread_sched.lookup(&next_tid);
+        if (t && t->enqueued_at) {
+            u64 waited = now - t->enqueued_at;
+            t->enqueued_at = 0;
+            t->s.runq_ns += waited;
+            t->s.runq_waits++;
+            u32 slot = bpf_log2l(waited / 1000) - 1;  // [2^slot, 2^(slot+1)) us; slot 0 is [0, 2)
+            if (slot >= RUNQ_SLOTS)
+                slot = RUNQ_SLOTS - 1;
+            t->s.runq_hist[slot]++;
+        }
+    }
+    *since = now;
+    return 0;
+}
+
+// sched:sched_wakeup and sched:sched_wakeup_new (task): the task is now on a run queue.
+int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 task = ctx->args[0];
+    u32 tid = 0;
+    bpf_probe_read_kernel(&tid, 4, (void *)(task + TASK_PID_OFF));
+    if (tid)
+        enqueued(tid, task, bpf_ktime_get_ns());
+    return 0;
+}
+
+// sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
+int on_task_free(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 task = ctx->args[0];
+    u32 pid = 0, tgid = 0;
+    bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
+    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
+    if (pid == tgid)
+        exited_sched.delete(&tgid);
+    return 0;
+}

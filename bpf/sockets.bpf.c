@@ -1,0 +1,354 @@
+// Bytes, calls and errors of every TCP, UDP and unix socket, per socket and per thread.
+//
+// Kernel struct offsets arrive as -D flags read from the running kernel's BTF (drums/kernel/btf.py),
+// never from the installed headers, which may belong to another kernel. DRUMS_ATTACH picks the
+// attach path chosen by drums/probes/sockets.py: 1 = sock_send/recv_length raw tracepoints
+// (kernel >= 6.6, every socket family), 2 = fexit, 3 = kprobes (TCP and UDP only).
+#include "drums.h"
+
+#define CLASS_TCP 0
+#define CLASS_UDP 1
+#define CLASS_UNIX 2
+#define CLASS_OTHER 3
+#define NCLASSES 4
+
+#define DROP_SOCKET 0
+#define DROP_THREAD 1
+
+struct traffic_t {
+    u64 sent_bytes;
+    u64 sent_calls;
+    u64 recv_bytes;
+    u64 recv_calls;
+    u64 send_errors;
+    u64 recv_errors;
+};
+
+// One per socket (keyed by its struct sock address); identity is read once, at first use.
+struct socket_traffic_t {
+    u64 ino;          // socket inode: tells a reused struct sock from the socket that held it before
+    u32 tgid;         // process that first used the socket
+    u32 netns;
+    u16 family;
+    u16 protocol;
+    u16 type;
+    u16 lport;        // host byte order
+    u16 rport;        // host byte order
+    u16 klass;
+    u32 pad;
+    u8 laddr[16];     // IPv4 addresses use the first 4 bytes
+    u8 raddr[16];
+    struct traffic_t t;
+};
+
+struct thread_traffic_t {
+    u32 tgid;
+    u32 pad;
+    struct traffic_t by_class[NCLASSES];
+};
+
+struct process_traffic_t {
+    struct traffic_t by_class[NCLASSES];
+};
+
+// Sized for the benchmark's 10,000 open sockets with room for churn; a full map is counted.
+BPF_HASH(socket_traffic, u64, struct socket_traffic_t, 32768);
+// One entry per live thread that used a socket.
+BPF_HASH(thread_traffic, u32, struct thread_traffic_t, 32768);
+// Traffic of threads that exited, kept per process until the process is reaped.
+BPF_HASH(exited_traffic, u32, struct process_traffic_t, 16384);
+BPF_ARRAY(dropped, u64, 2);
+
+static __always_inline u16 classify(u16 family, u16 protocol)
+{
+    if (family == AF_UNIX)
+        return CLASS_UNIX;
+    if (family == AF_INET || family == AF_INET6) {
+        if (protocol == IPPROTO_TCP)
+            return CLASS_TCP;
+        if (protocol == IPPROTO_UDP || protocol == IPPROTO_UDPLITE)
+            return CLASS_UDP;
+    }
+    return CLASS_OTHER;
+}
+
+static __always_inline u64 socket_ino(u64 sk)
+{
+    u64 sock = 0, ino = 0;
+    bpf_probe_read_kernel(&sock, sizeof(sock), (void *)(sk + SK_SOCKET_OFF));
+    if (sock)
+        bpf_probe_read_kernel(&ino, sizeof(ino), (void *)(sock + SOCKET_INO_OFF));
+    return ino;
+}
+
+static __always_inline void read_identity(struct socket_traffic_t *s, u64 sk)
+{
+    u64 net = 0;
+    bpf_probe_read_kernel(&s->family, 2, (void *)(sk + SK_FAMILY_OFF));
+    bpf_probe_read_kernel(&s->protocol, 2, (void *)(sk + SK_PROTOCOL_OFF));
+    bpf_probe_read_kernel(&s->type, 2, (void *)(sk + SK_TYPE_OFF));
+    bpf_probe_read_kernel(&s->lport, 2, (void *)(sk + SK_NUM_OFF));
+    u16 dport = 0;
+    bpf_probe_read_kernel(&dport, 2, (void *)(sk + SK_DPORT_OFF));
+    s->rport = ntohs(dport);
+    bpf_probe_read_kernel(&net, sizeof(net), (void *)(sk + SK_NET_OFF));
+    if (net)
+        bpf_probe_read_kernel(&s->netns, 4, (void *)(net + NET_INUM_OFF));
+    if (s->family == AF_INET) {
+        bpf_probe_read_kernel(s->laddr, 4, (void *)(sk + SK_RCV_SADDR_OFF));
+        bpf_probe_read_kernel(s->raddr, 4, (void *)(sk + SK_DADDR_OFF));
+    } else if (s->family == AF_INET6) {
+        bpf_probe_read_kernel(s->laddr, 16, (void *)(sk + SK_V6_RCV_SADDR_OFF));
+        bpf_probe_read_kernel(s->raddr, 16, (void *)(sk + SK_V6_DADDR_OFF));
+    }
+    s->klass = classify(s->family, s->protocol);
+}
+
+static __always_inline void count_drop(int which)
+{
+    u64 *d = dropped.lookup(&which);
+    if (d)
+        __sync_fetch_and_add(d, 1);
+}
+
+static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid)
+{
+    struct socket_traffic_t *s = socket_traffic.lookup(&sk);
+    if (s) {
+        // TCP entries are deleted when the connection closes; other sockets are freed without a
+        // tracepoint, so a recycled struct sock is recognised by its new inode.
+        if (s->klass == CLASS_TCP)
+            return s;
+        u64 ino = socket_ino(sk);
+        if (ino == s->ino)
+            return s;
+        socket_traffic.delete(&sk);
+    }
+    struct socket_traffic_t fresh = {};
+    fresh.tgid = tgid;
+    fresh.ino = socket_ino(sk);
+    read_identity(&fresh, sk);
+    if (socket_traffic.insert(&sk, &fresh) != 0) {
+        count_drop(DROP_SOCKET);
+        return 0;
+    }
+    return socket_traffic.lookup(&sk);
+}
+
+static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 klass_hint)
+{
+    if (ret == -EAGAIN || ret == -EINTR)
+        return;  // non-blocking polls and interrupted calls are not failures of the socket
+    if (!is_send && ret >= 0 && (flags & MSG_PEEK))
+        return;  // the bytes will be counted when they are really read
+    u64 id = bpf_get_current_pid_tgid();
+    u32 tid = (u32)id, tgid = id >> 32;
+
+    struct socket_traffic_t *s = socket_entry(sk, tgid);
+    u16 klass = s ? s->klass : klass_hint;
+    u64 bytes = ret > 0 ? ret : 0;
+    if (s) {
+        // Atomic: threads of a process may share a socket.
+        if (ret < 0) {
+            __sync_fetch_and_add(is_send ? &s->t.send_errors : &s->t.recv_errors, 1);
+        } else if (is_send) {
+            __sync_fetch_and_add(&s->t.sent_bytes, bytes);
+            __sync_fetch_and_add(&s->t.sent_calls, 1);
+        } else {
+            __sync_fetch_and_add(&s->t.recv_bytes, bytes);
+            __sync_fetch_and_add(&s->t.recv_calls, 1);
+        }
+    }
+
+    struct thread_traffic_t *th = thread_traffic.lookup(&tid);
+    if (!th) {
+        struct thread_traffic_t fresh = {};
+        fresh.tgid = tgid;
+        if (thread_traffic.insert(&tid, &fresh) != 0) {
+            count_drop(DROP_THREAD);
+            return;
+        }
+        th = thread_traffic.lookup(&tid);
+        if (!th)
+            return;
+    }
+    if (klass >= NCLASSES)
+        return;
+    // Plain adds: only this thread writes its entry, and it runs on one CPU at a time.
+    struct traffic_t *t = &th->by_class[klass];
+    if (ret < 0) {
+        if (is_send)
+            t->send_errors++;
+        else
+            t->recv_errors++;
+    } else if (is_send) {
+        t->sent_bytes += bytes;
+        t->sent_calls++;
+    } else {
+        t->recv_bytes += bytes;
+        t->recv_calls++;
+    }
+}
+
+#if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT
+// sock:sock_send_length / sock_recv_length (sk, ret, flags), kernel >= 6.6.
+int on_send(struct bpf_raw_tracepoint_args *ctx)
+{
+    count(ctx->args[0], (int)ctx->args[1], (int)ctx->args[2], 1, CLASS_OTHER);
+    return 0;
+}
+
+int on_recv(struct bpf_raw_tracepoint_args *ctx)
+{
+    count(ctx->args[0], (int)ctx->args[1], (int)ctx->args[2], 0, CLASS_OTHER);
+    return 0;
+}
+#endif
+
+#if DRUMS_ATTACH == ATTACH_FENTRY
+// fexit sees arguments and return value together: no per-call state to keep.
+KRETFUNC_PROBE(tcp_sendmsg, struct sock *sk, struct msghdr *msg, size_t size, int ret)
+{
+    count((u64)sk, ret, 0, 1, CLASS_TCP);
+    return 0;
+}
+
+KFUNC_PROBE(tcp_cleanup_rbuf, struct sock *sk, int copied)
+{
+    if (copied > 0)
+        count((u64)sk, copied, 0, 0, CLASS_TCP);
+    return 0;
+}
+
+KRETFUNC_PROBE(udp_sendmsg, struct sock *sk, struct msghdr *msg, size_t len, int ret)
+{
+    count((u64)sk, ret, 0, 1, CLASS_UDP);
+    return 0;
+}
+
+KRETFUNC_PROBE(udp_recvmsg, struct sock *sk, struct msghdr *msg, size_t len, int flags,
+               int *addr_len, int ret)
+{
+    count((u64)sk, ret, flags, 0, CLASS_UDP);
+    return 0;
+}
+#endif
+
+#if DRUMS_ATTACH == ATTACH_KPROBE
+// A kprobe sees the arguments, its kretprobe the result: the socket waits here in between.
+struct call_t {
+    u64 sk;
+    int flags;
+};
+BPF_HASH(calls, u32, struct call_t, 4096);
+
+static __always_inline void remember(u64 sk, int flags)
+{
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    struct call_t c = {.sk = sk, .flags = flags};
+    calls.update(&tid, &c);
+}
+
+static __always_inline void finish(struct pt_regs *ctx, int is_send, u16 klass)
+{
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    struct call_t *c = calls.lookup(&tid);
+    if (!c)
+        return;
+    count(c->sk, (int)PT_REGS_RC(ctx), c->flags, is_send, klass);
+    calls.delete(&tid);
+}
+
+int enter_tcp_sendmsg(struct pt_regs *ctx, struct sock *sk)
+{
+    remember((u64)sk, 0);
+    return 0;
+}
+
+int exit_tcp_sendmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 1, CLASS_TCP);
+    return 0;
+}
+
+int enter_tcp_cleanup_rbuf(struct pt_regs *ctx, struct sock *sk, int copied)
+{
+    if (copied > 0)
+        count((u64)sk, copied, 0, 0, CLASS_TCP);
+    return 0;
+}
+
+int enter_udp_sendmsg(struct pt_regs *ctx, struct sock *sk)
+{
+    remember((u64)sk, 0);
+    return 0;
+}
+
+int exit_udp_sendmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 1, CLASS_UDP);
+    return 0;
+}
+
+int enter_udp_recvmsg(struct pt_regs *ctx, struct sock *sk, void *msg, size_t len, int flags)
+{
+    remember((u64)sk, flags);
+    return 0;
+}
+
+int exit_udp_recvmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 0, CLASS_UDP);
+    return 0;
+}
+#endif
+
+// sock:inet_sock_set_state (sk, oldstate, newstate): a TCP socket that reaches CLOSE is done;
+// its entry goes before the struct sock can be reused. Its bytes stay in the thread totals.
+int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 sk = ctx->args[0];
+    if ((int)ctx->args[2] == TCP_CLOSE)
+        socket_traffic.delete(&sk);
+    return 0;
+}
+
+// sched:sched_process_exit (task, group_dead) runs in the exiting thread: fold its traffic into
+// its process so that the process totals never go backwards.
+int on_thread_exit(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 id = bpf_get_current_pid_tgid();
+    u32 tid = (u32)id, tgid = id >> 32;
+    struct thread_traffic_t *th = thread_traffic.lookup(&tid);
+    if (!th)
+        return 0;
+    struct process_traffic_t zero = {};
+    struct process_traffic_t *p = exited_traffic.lookup_or_try_init(&tgid, &zero);
+    if (p) {
+#pragma unroll
+        for (int i = 0; i < NCLASSES; i++) {
+            p->by_class[i].sent_bytes += th->by_class[i].sent_bytes;
+            p->by_class[i].sent_calls += th->by_class[i].sent_calls;
+            p->by_class[i].recv_bytes += th->by_class[i].recv_bytes;
+            p->by_class[i].recv_calls += th->by_class[i].recv_calls;
+            p->by_class[i].send_errors += th->by_class[i].send_errors;
+            p->by_class[i].recv_errors += th->by_class[i].recv_errors;
+        }
+    } else {
+        count_drop(DROP_THREAD);
+    }
+    thread_traffic.delete(&tid);
+    return 0;
+}
+
+// sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
+int on_task_free(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 task = ctx->args[0];
+    u32 pid = 0, tgid = 0;
+    bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
+    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
+    if (pid == tgid)
+        exited_traffic.delete(&tgid);
+    return 0;
+}

@@ -1,0 +1,188 @@
+"""Pinned BPF objects, read through libbpf without bcc or its compiler.
+
+The loader (drums.kernel.loader) compiles and attaches the probes, then pins their maps and links
+under /sys/fs/bpf/drums. The long-running agent only opens those pins and reads the maps in
+batches, so it never maps LLVM into its address space.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import os
+import struct
+from functools import lru_cache
+
+from drums.errors import KernelError, ProbeError
+
+BPFFS = "/sys/fs/bpf"
+PIN_ROOT = os.path.join(BPFFS, "drums")
+PERCPU_TYPES = {5, 6, 10}  # BPF_MAP_TYPE_PERCPU_HASH, PERCPU_ARRAY, LRU_PERCPU_HASH
+_BATCH = 4096
+
+
+class _MapInfo(ctypes.Structure):
+    # The head of struct bpf_map_info (include/uapi/linux/bpf.h); the kernel fills what fits.
+    _fields_ = [
+        ("type", ctypes.c_uint32),
+        ("id", ctypes.c_uint32),
+        ("key_size", ctypes.c_uint32),
+        ("value_size", ctypes.c_uint32),
+        ("max_entries", ctypes.c_uint32),
+        ("map_flags", ctypes.c_uint32),
+        ("name", ctypes.c_char * 16),
+    ]
+
+
+@lru_cache(maxsize=1)
+def libbpf() -> ctypes.CDLL:
+    path = ctypes.util.find_library("bpf") or "libbpf.so.1"
+    try:
+        lib = ctypes.CDLL(path, use_errno=True)
+    except OSError:
+        raise KernelError("libbpf is not installed (Debian/Ubuntu: apt-get install libbpf1)") from None
+    lib.bpf_obj_get.argtypes = [ctypes.c_char_p]
+    lib.bpf_obj_pin.argtypes = [ctypes.c_int, ctypes.c_char_p]
+    lib.bpf_map_lookup_elem.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+    lib.bpf_map_delete_elem.argtypes = [ctypes.c_int, ctypes.c_void_p]
+    lib.bpf_map_get_next_key.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+    lib.bpf_map_lookup_batch.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                                         ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32), ctypes.c_void_p]
+    lib.bpf_obj_get_info_by_fd.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32)]
+    return lib
+
+
+def _check(ret: int, what: str) -> int:
+    if ret < 0:
+        err = ctypes.get_errno() or -ret
+        raise ProbeError(f"{what}: {os.strerror(err)}")
+    return ret
+
+
+def pin(fd: int, path: str) -> None:
+    _check(libbpf().bpf_obj_pin(fd, path.encode()), f"pin {path}")
+
+
+def possible_cpus() -> int:
+    """Per-CPU map values hold one slot for every possible CPU, not only the online ones."""
+    with open("/sys/devices/system/cpu/possible") as f:
+        count = 0
+        for part in f.read().strip().split(","):
+            lo, _, hi = part.partition("-")
+            count += int(hi or lo) - int(lo) + 1
+        return count
+
+
+class PinnedMap:
+    """A BPF map opened from its pin; iterated in batches of raw (key, value) bytes."""
+
+    def __init__(self, path: str):
+        self._init(_check(libbpf().bpf_obj_get(path.encode()), f"open {path}"), path)
+
+    @classmethod
+    def from_fd(cls, fd: int, name: str) -> "PinnedMap":
+        """A map held by a bcc object in this process (attach paths that cannot be pinned)."""
+        m = cls.__new__(cls)
+        m._init(os.dup(fd), name)
+        return m
+
+    def _init(self, fd: int, path: str) -> None:
+        self.path = path
+        self.fd = fd
+        info = _MapInfo()
+        size = ctypes.c_uint32(ctypes.sizeof(info))
+        _check(libbpf().bpf_obj_get_info_by_fd(self.fd, ctypes.byref(info), ctypes.byref(size)), "map info")
+        self.type = info.type
+        self.key_size = info.key_size
+        self.max_entries = info.max_entries
+        self.ncpus = possible_cpus() if info.type in PERCPU_TYPES else 1
+        # The kernel rounds each per-CPU value up to 8 bytes.
+        self.value_size = (info.value_size + 7) // 8 * 8 if self.ncpus > 1 else info.value_size
+        self.value_stride = self.value_size * self.ncpus
+        self._batch_ok = True
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def read(self) -> tuple[bytes, bytes, int]:
+        """All entries as (keys, values, count): contiguous buffers, as the kernel returned them."""
+        if self._batch_ok:
+            try:
+                return self._read_batch()
+            except ProbeError:
+                # Array maps before kernel 5.6 and some map types have no batch operations.
+                self._batch_ok = False
+        return self._read_each()
+
+    def _read_batch(self) -> tuple[bytes, bytes, int]:
+        lib = libbpf()
+        keys, values, total = [], [], 0
+        kbuf = ctypes.create_string_buffer(self.key_size * _BATCH)
+        vbuf = ctypes.create_string_buffer(self.value_stride * _BATCH)
+        token = ctypes.create_string_buffer(max(self.key_size, 8))
+        token_next = ctypes.create_string_buffer(max(self.key_size, 8))
+        first = True
+        while True:
+            count = ctypes.c_uint32(_BATCH)
+            ret = lib.bpf_map_lookup_batch(self.fd, None if first else token, token_next, kbuf, vbuf,
+                                           ctypes.byref(count), None)
+            err = ctypes.get_errno() if ret < 0 else 0
+            if ret < 0 and err != errno.ENOENT:
+                raise ProbeError(f"batch read of {self.path}: {os.strerror(err)}")
+            n = count.value
+            if n:
+                keys.append(kbuf.raw[: n * self.key_size])
+                values.append(vbuf.raw[: n * self.value_stride])
+                total += n
+            if ret < 0:  # ENOENT: that was the last batch
+                break
+            ctypes.memmove(token, token_next, len(token))
+            first = False
+        return b"".join(keys), b"".join(values), total
+
+    def _read_each(self) -> tuple[bytes, bytes, int]:
+        lib = libbpf()
+        keys, values = [], []
+        prev = None
+        key = ctypes.create_string_buffer(self.key_size)
+        value = ctypes.create_string_buffer(self.value_stride)
+        while lib.bpf_map_get_next_key(self.fd, prev, key) == 0:
+            if lib.bpf_map_lookup_elem(self.fd, key, value) == 0:
+                keys.append(key.raw)
+                values.append(value.raw)
+            prev = ctypes.create_string_buffer(key.raw, self.key_size)
+        return b"".join(keys), b"".join(values), len(keys)
+
+    def delete(self, keys: list[bytes]) -> None:
+        """Delete entries; one that is already gone is not an error."""
+        lib = libbpf()
+        for key in keys:
+            lib.bpf_map_delete_elem(self.fd, key)
+
+    def lookup(self, key: bytes) -> bytes | None:
+        value = ctypes.create_string_buffer(self.value_stride)
+        if libbpf().bpf_map_lookup_elem(self.fd, key, value) != 0:
+            return None
+        return value.raw
+
+
+def sum_percpu(values: bytes, fmt: str, ncpus: int) -> list[tuple]:
+    """Fold per-CPU values into one tuple per entry by summing each field across CPUs."""
+    size = struct.calcsize(fmt)
+    stride = (size + 7) // 8 * 8
+    rows = []
+    for base in range(0, len(values), stride * ncpus):
+        acc = None
+        for cpu in range(ncpus):
+            fields = struct.unpack_from(fmt, values, base + cpu * stride)
+            acc = list(fields) if acc is None else [a + b for a, b in zip(acc, fields)]
+        rows.append(tuple(acc))
+    return rows

@@ -1,0 +1,102 @@
+"""What this kernel and host offer to the probes, detected once and without side effects.
+
+Probes pick their attach path from these facts (drums.probes.bpf.choose_path); `drums doctor`
+prints them. The one check that must load a program, fentry, runs only when asked for.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import platform
+from dataclasses import dataclass
+from functools import cached_property
+
+from drums.errors import KernelError
+from drums.kernel.btf import VMLINUX_BTF, Btf
+
+TRACEFS = "/sys/kernel/tracing"
+HEADERS_CACHE = "/var/cache/drums/kernel-headers"  # made by scripts/setup.sh for custom kernels
+
+
+@dataclass
+class Features:
+    """Lazily evaluated facts about the running kernel; tests build one with fixed values."""
+
+    root_dir: str = "/"
+
+    def _path(self, path: str) -> str:
+        return os.path.join(self.root_dir, path.lstrip("/"))
+
+    @cached_property
+    def kernel_release(self) -> str:
+        return platform.release()
+
+    @cached_property
+    def btf(self) -> Btf | None:
+        try:
+            return Btf.load(self._path(VMLINUX_BTF))
+        except KernelError:
+            return None
+
+    @cached_property
+    def privileged(self) -> bool:
+        # CAP_BPF and CAP_PERFMON would do; root is what this checks, and what setup documents.
+        return os.geteuid() == 0
+
+    @cached_property
+    def tracefs(self) -> bool:
+        return os.path.isdir(self._path(f"{TRACEFS}/events"))
+
+    @cached_property
+    def bpffs(self) -> bool:
+        return _is_mount_of_type(self._path("/proc/mounts"), "/sys/fs/bpf", "bpf")
+
+    @cached_property
+    def bcc(self) -> bool:
+        return importlib.util.find_spec("bcc") is not None
+
+    @cached_property
+    def kernel_headers(self) -> str | None:
+        """Where bcc finds kernel headers: the running kernel's own, or setup's merged tree."""
+        candidates = [os.environ.get("BCC_KERNEL_SOURCE", ""),
+                      f"/lib/modules/{self.kernel_release}/build", HEADERS_CACHE]
+        for path in candidates:
+            if path and os.path.isdir(self._path(os.path.join(path, "include"))):
+                return path
+        return None
+
+    @cached_property
+    def kprobes(self) -> bool:
+        # CONFIG_KPROBES registers this PMU; without it no kprobe can attach.
+        return os.path.isdir(self._path("/sys/bus/event_source/devices/kprobe"))
+
+    def tracepoint(self, event: str) -> bool:
+        """Whether a raw tracepoint exists: from BTF when present, else from tracefs."""
+        if self.btf is not None:
+            return self.btf.tracepoint_args(event) is not None
+        category_events = self._path(f"{TRACEFS}/events")
+        return any(os.path.isdir(os.path.join(category_events, c, event))
+                   for c in _listdir(category_events))
+
+    @cached_property
+    def fentry(self) -> bool:
+        """BPF trampolines: only loading one tells (a kernel may refuse them with EPERM)."""
+        if not (self.bcc and self.btf is not None and self.privileged):
+            return False
+        from drums.kernel.loader import can_load_fentry
+        return can_load_fentry(self.kernel_headers)
+
+
+def _listdir(path: str) -> list[str]:
+    try:
+        return os.listdir(path)
+    except OSError:
+        return []
+
+
+def _is_mount_of_type(mounts: str, target: str, fstype: str) -> bool:
+    try:
+        with open(mounts) as f:
+            return any(line.split()[1:3] == [target, fstype] for line in f)
+    except OSError:
+        return False

@@ -1,0 +1,123 @@
+"""Compiles a probe's BPF C with bcc, attaches it and pins its maps and links in bpffs.
+
+bcc keeps LLVM in the process that compiles (about 100 MB), so the agent runs this module as a
+short-lived child (`python -m drums.kernel.loader`, a JSON request on stdin, a JSON answer on
+stdout) and afterwards only reads the pins. Attachments that the kernel cannot pin (kprobes made
+through perf events) are loaded in the agent itself instead; see drums.probes.bpf.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import asdict, dataclass
+
+from drums.errors import ProbeError
+from drums.kernel import bpffs
+
+BPF_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bpf")
+PINNABLE = {"raw_tracepoint", "fentry"}
+
+
+@dataclass
+class LoadRequest:
+    source: str  # file name under bpf/
+    cflags: list[str]
+    attachments: list[tuple[str, str, str]]  # (kind, target, function)
+    maps: list[str]
+    pin_dir: str
+    headers: str | None = None
+
+
+def _compile(req: LoadRequest):
+    if req.headers:
+        os.environ["BCC_KERNEL_SOURCE"] = req.headers
+    try:
+        from bcc import BPF
+    except ImportError:
+        raise ProbeError("bcc is not installed (Debian/Ubuntu: apt-get install python3-bpfcc)") from None
+    path = os.path.join(BPF_DIR, req.source)
+    try:
+        return BPF(src_file=path.encode(), cflags=req.cflags + [f"-I{BPF_DIR}"])
+    except Exception as e:  # bcc raises bare Exception for compile and verifier errors
+        raise ProbeError(f"{req.source}: {str(e).splitlines()[0] if str(e) else 'failed to load'}") from None
+
+
+def attach(req: LoadRequest):
+    """Compile and attach in this process; returns the bcc object and the attachment fds."""
+    b = _compile(req)
+    fds = []
+    try:
+        for kind, target, fn in req.attachments:
+            if kind == "raw_tracepoint":
+                b.attach_raw_tracepoint(tp=target.encode(), fn_name=fn.encode())
+                fds.append(b.raw_tracepoint_fds[target.encode()])
+            elif kind == "kprobe":
+                b.attach_kprobe(event=target.encode(), fn_name=fn.encode())
+            elif kind == "kretprobe":
+                b.attach_kretprobe(event=target.encode(), fn_name=fn.encode())
+            elif kind == "fentry":
+                pass  # bcc attached KFUNC_PROBE/KRETFUNC_PROBE functions when it loaded them
+            else:
+                raise ProbeError(f"unknown attach kind {kind}")
+    except ProbeError:
+        raise
+    except Exception as e:
+        raise ProbeError(f"attach {kind} {target}: {e}") from None
+    if any(kind == "fentry" for kind, _, _ in req.attachments):
+        fds.extend(list(b.kfunc_entry_fds.values()) + list(b.kfunc_exit_fds.values()))
+    return b, fds
+
+
+def load_and_pin(req: LoadRequest) -> None:
+    """Attach, then pin every map and link under req.pin_dir, replacing what was there."""
+    b, link_fds = attach(req)
+    tmp = req.pin_dir + "-partial"  # bpffs refuses names with dots
+    shutil.rmtree(tmp, ignore_errors=True)
+    os.makedirs(tmp)
+    for name in req.maps:
+        bpffs.pin(b[name.encode()].map_fd, os.path.join(tmp, name))
+    for i, fd in enumerate(link_fds):
+        bpffs.pin(fd, os.path.join(tmp, f"link{i}"))
+    shutil.rmtree(req.pin_dir, ignore_errors=True)
+    os.rename(tmp, req.pin_dir)
+
+
+def load_in_child(req: LoadRequest, timeout: float = 60) -> None:
+    """Run load_and_pin in a child process so that LLVM never enters the agent."""
+    proc = subprocess.run([sys.executable, "-m", "drums.kernel.loader"], input=json.dumps(asdict(req)),
+                          capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != 0:
+        lines = [line for line in proc.stdout.splitlines() + proc.stderr.splitlines() if line.strip()]
+        raise ProbeError(lines[-1] if lines else f"loader exited with {proc.returncode}")
+
+
+def can_load_fentry(headers: str | None) -> bool:
+    """Whether the kernel accepts a BPF trampoline (some refuse them with EPERM)."""
+    if headers:
+        os.environ["BCC_KERNEL_SOURCE"] = headers
+    try:
+        from bcc import BPF
+        b = BPF(text=b"KFUNC_PROBE(do_nanosleep) { return 0; }")
+        b.cleanup()
+        return True
+    except Exception:
+        return False
+
+
+def main() -> int:
+    try:
+        data = json.load(sys.stdin)
+        req = LoadRequest(**data)
+        req.attachments = [tuple(a) for a in req.attachments]
+        load_and_pin(req)
+    except ProbeError as e:
+        print(e)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,199 @@
+"""TCP sockets and their tcp_info, read over NETLINK_SOCK_DIAG (what `ss -ti` shows).
+
+The fallback for per-connection byte counts without eBPF, and the source of smoothed RTT and retransmits.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import socket
+import struct
+from dataclasses import dataclass
+
+from drums.errors import KernelError
+
+# include/net/tcp_states.h. Request sockets are reported as SYN_RECV, never as NEW_SYN_RECV.
+TCP_STATES = {
+    1: "ESTABLISHED",
+    2: "SYN_SENT",
+    3: "SYN_RECV",
+    4: "FIN_WAIT1",
+    5: "FIN_WAIT2",
+    6: "TIME_WAIT",
+    7: "CLOSE",
+    8: "CLOSE_WAIT",
+    9: "LAST_ACK",
+    10: "LISTEN",
+    11: "CLOSING",
+}
+ALL_STATES = sum(1 << state for state in TCP_STATES)
+
+NETLINK_SOCK_DIAG = 4
+SOCK_DIAG_BY_FAMILY = 20
+NLMSG_ERROR, NLMSG_DONE = 2, 3
+NLM_F_REQUEST, NLM_F_DUMP = 0x1, 0x300
+INET_DIAG_INFO = 2
+
+_NLMSGHDR = struct.Struct("=IHHII")  # len, type, flags, seq, pid
+_RTATTR = struct.Struct("=HH")  # len, type
+_ERRNO = struct.Struct("=i")
+# struct inet_diag_req_v2: family, protocol, ext, pad, states, then an all-zero inet_diag_sockid.
+_REQUEST = struct.Struct("=BBBxI48x")
+# struct inet_diag_msg (include/uapi/linux/inet_diag.h): ports and addresses are in network order,
+# the cookie is two host-order u32 (low half first), and timer, retrans, if, expires and queues are skipped.
+_DIAG_MSG = struct.Struct("=BBxx2s2s16s16s4xII12xII")
+_ADDRESS_SIZE = {socket.AF_INET: 4, socket.AF_INET6: 16}
+
+# (TcpConnection field, offset in struct tcp_info, format) per include/uapi/linux/tcp.h. The kernel
+# copies only the tcp_info it knows, so a field past the end of an older kernel's reply reads as 0.
+_TCP_INFO_FIELDS = (
+    ("retransmits", 2, "B"),  # tcpi_retransmits: consecutive RTO retransmits now outstanding
+    ("srtt_us", 68, "I"),  # tcpi_rtt
+    ("rttvar_us", 72, "I"),  # tcpi_rttvar
+    ("total_retrans", 100, "I"),  # tcpi_total_retrans
+    ("bytes_acked", 120, "Q"),  # tcpi_bytes_acked, Linux 4.1
+    ("bytes_received", 128, "Q"),  # tcpi_bytes_received, Linux 4.1
+    ("segs_out", 136, "I"),  # tcpi_segs_out, Linux 4.2
+    ("segs_in", 140, "I"),  # tcpi_segs_in, Linux 4.2
+    ("bytes_sent", 200, "Q"),  # tcpi_bytes_sent (retransmits included), Linux 4.19
+)
+_TCP_INFO = tuple((name, offset, struct.Struct("=" + fmt)) for name, offset, fmt in _TCP_INFO_FIELDS)
+
+_RECV_SIZE = 1 << 16  # the kernel fills at most 32 KiB of dump per read, so one read never truncates
+
+
+@dataclass(frozen=True)
+class TcpConnection:
+    """One TCP socket; its tcp_info fields are 0 where the kernel gave none (TIME_WAIT, SYN_RECV).
+
+    bytes_acked and bytes_received count sequence space as the kernel does: the connecting end's SYN
+    adds 1 to its bytes_acked, and a FIN adds 1 to bytes_acked of its sender and bytes_received of its
+    receiver. bytes_sent counts data only, retransmits included.
+    """
+
+    family: int
+    state: int
+    local_address: str
+    local_port: int
+    remote_address: str
+    remote_port: int
+    inode: int
+    uid: int
+    cookie: int
+    bytes_sent: int = 0
+    bytes_acked: int = 0
+    bytes_received: int = 0
+    segs_out: int = 0
+    segs_in: int = 0
+    srtt_us: int = 0
+    rttvar_us: int = 0
+    total_retrans: int = 0
+    retransmits: int = 0
+
+
+def dump_tcp(states: int = ALL_STATES) -> list[TcpConnection]:
+    """Every IPv4 and IPv6 TCP socket of this network namespace whose state bit is set in `states`."""
+    try:
+        sock = socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
+    except OSError as e:
+        raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
+    with sock:
+        return _dump(sock, socket.AF_INET, states) + _dump(sock, socket.AF_INET6, states)
+
+
+def _dump(sock: socket.socket, family: int, states: int) -> list[TcpConnection]:
+    body = _REQUEST.pack(family, socket.IPPROTO_TCP, 1 << (INET_DIAG_INFO - 1), states)
+    header = _NLMSGHDR.pack(_NLMSGHDR.size + len(body), SOCK_DIAG_BY_FAMILY, NLM_F_REQUEST | NLM_F_DUMP, 1, 0)
+    try:
+        sock.send(header + body)
+        connections = []
+        while True:
+            data, _, flags, _ = sock.recvmsg(_RECV_SIZE)
+            if flags & socket.MSG_TRUNC:
+                raise KernelError(f"a sock_diag reply did not fit in {_RECV_SIZE} bytes")
+            batch, done = _parse(data)
+            connections += batch
+            if done:
+                return connections
+    except OSError as e:
+        raise KernelError(f"reading TCP sockets over NETLINK_SOCK_DIAG failed: {e.strerror}") from None
+
+
+def parse_messages(data: bytes) -> list[TcpConnection]:
+    """Decode the sock_diag messages in one netlink read.
+
+    Malformed or truncated input raises KernelError rather than returning part of a dump: a
+    connection missing from a dump would look closed, and its counters would be folded away.
+    """
+    return _parse(data)[0]
+
+
+def _parse(data: bytes) -> tuple[list[TcpConnection], bool]:
+    """The connections in `data`, and whether the dump ended in it (NLMSG_DONE)."""
+    connections = []
+    offset = 0
+    while offset < len(data):
+        if len(data) - offset < _NLMSGHDR.size:
+            raise KernelError(f"truncated netlink header at byte {offset} of a sock_diag reply")
+        length, kind, _, _, _ = _NLMSGHDR.unpack_from(data, offset)
+        if length < _NLMSGHDR.size or offset + length > len(data):
+            raise KernelError(f"bad netlink message length {length} at byte {offset} of a sock_diag reply")
+        payload = data[offset + _NLMSGHDR.size : offset + length]
+        if kind in (NLMSG_ERROR, NLMSG_DONE):
+            # NLMSG_ERROR with 0 is an ACK; NLMSG_DONE of a dump carries the error that ended it, if any.
+            err = -_ERRNO.unpack_from(payload)[0] if len(payload) >= _ERRNO.size else 0
+            if err:
+                raise KernelError(f"the kernel refused the sock_diag request: {_strerror(err)}")
+            if kind == NLMSG_DONE:
+                return connections, True
+        elif kind == SOCK_DIAG_BY_FAMILY:
+            connections.append(_connection(payload))
+        offset += _align(length)
+    return connections, False
+
+
+def _connection(payload: bytes) -> TcpConnection:
+    if len(payload) < _DIAG_MSG.size:
+        raise KernelError(f"truncated inet_diag_msg ({len(payload)} bytes) in a sock_diag reply")
+    family, state, sport, dport, src, dst, cookie_lo, cookie_hi, uid, inode = _DIAG_MSG.unpack_from(payload)
+    if family not in _ADDRESS_SIZE:
+        raise KernelError(f"unexpected address family {family} in a sock_diag reply")
+    size = _ADDRESS_SIZE[family]
+    info = _attributes(payload[_align(_DIAG_MSG.size) :]).get(INET_DIAG_INFO, b"")
+    counters = {name: fmt.unpack_from(info, at)[0] for name, at, fmt in _TCP_INFO
+                if at + fmt.size <= len(info)}
+    return TcpConnection(
+        family=family,
+        state=state,
+        local_address=socket.inet_ntop(family, src[:size]),
+        local_port=int.from_bytes(sport, "big"),
+        remote_address=socket.inet_ntop(family, dst[:size]),
+        remote_port=int.from_bytes(dport, "big"),
+        inode=inode,
+        uid=uid,
+        cookie=cookie_hi << 32 | cookie_lo,
+        **counters,
+    )
+
+
+def _attributes(data: bytes) -> dict[int, bytes]:
+    """The netlink attributes (struct rtattr) of one message, by type."""
+    attrs = {}
+    offset = 0
+    while len(data) - offset >= _RTATTR.size:
+        length, kind = _RTATTR.unpack_from(data, offset)
+        if length < _RTATTR.size or offset + length > len(data):
+            raise KernelError(f"bad attribute length {length} in a sock_diag reply")
+        attrs[kind] = data[offset + _RTATTR.size : offset + length]
+        offset += _align(length)
+    return attrs
+
+
+def _align(length: int) -> int:
+    return (length + 3) & ~3
+
+
+def _strerror(err: int) -> str:
+    if err == errno.ENOENT:
+        return "no TCP diag handler (is the tcp_diag module available?)"
+    return os.strerror(err)

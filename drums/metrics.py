@@ -1,0 +1,47 @@
+"""Metric declarations and the snapshot every exporter reads.
+
+Each probe declares its metrics once, here-shaped: the Prometheus exporter, the README table and
+later the HTTP API, the ZeroMQ stream and `drums top` all read the same Snapshot.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+COUNTER, GAUGE, HISTOGRAM, INFO = "counter", "gauge", "histogram", "info"
+
+
+@dataclass(frozen=True)
+class Metric:
+    name: str  # full Prometheus name, base units, `_total` on counters
+    kind: str
+    help: str
+    labels: tuple[str, ...] = ()
+    buckets: tuple[float, ...] = ()  # upper bounds, for histograms; +Inf is implied
+
+    def __post_init__(self):
+        if self.kind == COUNTER and not self.name.endswith("_total"):
+            raise ValueError(f"counter {self.name} must end in _total")
+        if self.kind == INFO and not self.name.endswith("_info"):
+            raise ValueError(f"info metric {self.name} must end in _info")
+
+
+@dataclass
+class Histogram:
+    """Cumulative bucket counts matching Metric.buckets (without +Inf), sum and count."""
+
+    cumulative: list[int]
+    sum: float
+    count: int
+
+
+@dataclass
+class Snapshot:
+    """What the agent knows at one instant: metric -> [(label values, value)]."""
+
+    series: dict[Metric, list[tuple[tuple[str, ...], object]]] = field(default_factory=dict)
+
+    def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
+        self.series.setdefault(metric, []).append((labels, value))
+
+    def values(self, metric: Metric) -> dict[tuple[str, ...], object]:
+        return dict(self.series.get(metric, ()))

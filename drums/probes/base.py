@@ -1,0 +1,34 @@
+"""What every probe is: a named source of metric series with a visible attach status."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from drums.metrics import Metric, Snapshot
+
+
+@dataclass
+class ProbeStatus:
+    attached: bool = False
+    attach_type: str = "none"  # raw_tracepoint, kprobe, fentry, psutil, proc, sock_diag, none
+    reason: str = ""  # why it is not attached, or what a fallback lacks
+    map_fill: dict[str, float] = field(default_factory=dict)  # map name -> used fraction
+    dropped: int = 0  # events lost because a map was full
+
+
+class Probe:
+    """Subclasses set `name` and `metrics`, and implement start/collect/stop."""
+
+    name = ""
+    metrics: tuple[Metric, ...] = ()
+
+    def __init__(self):
+        self.status = ProbeStatus()
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def collect(self, snap: Snapshot) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        pass

@@ -1,0 +1,169 @@
+"""The common life of a BPF probe: choose an attach path, load it once, read its pinned maps.
+
+A probe lists its attach paths in order of preference; the first one this kernel offers wins
+(`choose_path`). Loaded programs and maps are pinned under /sys/fs/bpf/drums/<probe>-<stamp>, where
+the stamp changes with the C source, the path and the boot: an agent that restarts finds its
+pins and starts without compiling anything.
+"""
+from __future__ import annotations
+
+import glob
+import hashlib
+import os
+import shutil
+from dataclasses import dataclass
+from typing import Callable
+
+from drums.errors import KernelError, ProbeError
+from drums.kernel import bpffs, loader
+from drums.kernel.btf import Btf
+from drums.kernel.features import Features
+from drums.probes.base import Probe
+
+# Values of DRUMS_ATTACH in bpf/drums.h.
+ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3}
+
+
+@dataclass(frozen=True)
+class AttachPath:
+    name: str  # raw_tracepoint, fentry or kprobe: also the value of the probe's attach_type
+    attachments: tuple[tuple[str, str, str], ...]  # (kind, kernel target, BPF function)
+    requires: Callable[[Features], str | None]  # why this kernel cannot use the path, or None
+    serves: str  # which kernels this path is for, for the README and `drums doctor`
+
+
+def needs_tracepoints(*events: str) -> Callable[[Features], str | None]:
+    def check(f: Features) -> str | None:
+        missing = [e for e in events if not f.tracepoint(e)]
+        return f"no tracepoint {', '.join(missing)}" if missing else None
+    return check
+
+
+def needs_fentry(f: Features) -> str | None:
+    return None if f.fentry else "the kernel refuses BPF trampolines (fentry/fexit)"
+
+
+def needs_kprobes(f: Features) -> str | None:
+    return None if f.kprobes else "kprobes are not available (CONFIG_KPROBES unset)"
+
+
+def choose_path(paths: tuple[AttachPath, ...], features: Features) -> tuple[AttachPath | None, list[str]]:
+    """The first usable path, and why each path before it was passed over."""
+    reasons = []
+    for path in paths:
+        why = path.requires(features)
+        if why is None:
+            return path, reasons
+        reasons.append(f"{path.name}: {why}")
+    return None, reasons
+
+
+def common_requirements(features: Features) -> list[str]:
+    """What every BPF probe needs, whatever its path."""
+    problems = []
+    if not features.privileged:
+        problems.append("not root (BPF needs CAP_BPF and CAP_PERFMON)")
+    if not features.bpffs:
+        problems.append("bpffs is not mounted at /sys/fs/bpf (mount -t bpf bpf /sys/fs/bpf)")
+    if features.btf is None:
+        problems.append("no kernel BTF at /sys/kernel/btf/vmlinux (CONFIG_DEBUG_INFO_BTF)")
+    return problems
+
+
+def _boot_id() -> str:
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            return f.read().strip()
+    except OSError:
+        return ""
+
+
+class BpfProbe(Probe):
+    """Subclasses set source, maps and paths, give their BTF offsets, and decode their maps."""
+
+    source = ""
+    maps: tuple[str, ...] = ()
+    paths: tuple[AttachPath, ...] = ()
+
+    def __init__(self, features: Features, pin_root: str = bpffs.PIN_ROOT):
+        super().__init__()
+        self.features = features
+        self.pin_root = pin_root
+        self.opened: dict[str, bpffs.PinnedMap] = {}
+        self._in_process = None  # the bcc object, for paths the kernel cannot pin
+
+    def offsets(self, btf: Btf) -> dict[str, int]:
+        """-D definitions for the C code: kernel struct offsets and tracepoint shapes."""
+        raise NotImplementedError
+
+    def _stamp(self, path: AttachPath) -> str:
+        h = hashlib.sha256()
+        for name in (self.source, "drums.h"):
+            with open(os.path.join(loader.BPF_DIR, name), "rb") as f:
+                h.update(f.read())
+        h.update(f"{path.name}\0{self.features.kernel_release}\0{_boot_id()}".encode())
+        return h.hexdigest()[:16]
+
+    def start(self) -> None:
+        problems = common_requirements(self.features)
+        if problems:
+            raise KernelError("; ".join(problems))
+        path, reasons = choose_path(self.paths, self.features)
+        if path is None:
+            raise KernelError("no attach path: " + "; ".join(reasons))
+        pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
+        if path.name in loader.PINNABLE:
+            if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):
+                self._remove_pins()
+                loader.load_in_child(self._request(path, pin_dir))
+            self.opened = {m: bpffs.PinnedMap(os.path.join(pin_dir, m)) for m in self.maps}
+        else:
+            self._in_process, _ = loader.attach(self._request(path, pin_dir))
+            self.opened = {m: bpffs.PinnedMap.from_fd(self._in_process[m.encode()].map_fd, m)
+                           for m in self.maps}
+        self.status.attached = True
+        self.status.attach_type = path.name
+        self.status.reason = ""
+
+    def _request(self, path: AttachPath, pin_dir: str) -> loader.LoadRequest:
+        defines = dict(self.offsets(self.features.btf), DRUMS_ATTACH=ATTACH_DEFINES[path.name])
+        return loader.LoadRequest(
+            source=self.source,
+            cflags=[f"-D{k}={v}" for k, v in sorted(defines.items())],
+            attachments=list(path.attachments),
+            maps=list(self.maps),
+            pin_dir=pin_dir,
+            headers=self.features.kernel_headers,
+        )
+
+    def read(self, name: str) -> tuple[bytes, bytes, int]:
+        m = self.opened[name]
+        keys, values, count = m.read()
+        self.status.map_fill[name] = count / m.max_entries if m.max_entries else 0.0
+        return keys, values, count
+
+    def stop(self) -> None:
+        for m in self.opened.values():
+            m.close()
+        self.opened = {}
+        if self._in_process is not None:
+            self._in_process.cleanup()
+            self._in_process = None
+        self.status.attached = False
+
+    def unload(self) -> None:
+        """Stop and remove this probe's pins, which detaches its programs."""
+        self.stop()
+        self._remove_pins()
+
+    def _remove_pins(self) -> None:
+        for old in glob.glob(os.path.join(self.pin_root, f"{self.name}-*")):
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def offset_defines(btf: Btf, fields: dict[str, tuple[str, str]]) -> dict[str, int]:
+    """NAME -> byte offset, for each NAME: (struct, member path)."""
+    try:
+        return {name: btf.field(s, p).offset for name, (s, p) in fields.items()}
+    except KernelError as e:
+        raise ProbeError(str(e)) from None

@@ -1,0 +1,155 @@
+"""Host-wide CPU, memory, filesystem, disk, network and load metrics, read through psutil.
+
+Needs no BPF and no privileges, so it is the probe that still reports when every kernel probe fails.
+"""
+from __future__ import annotations
+
+import psutil
+
+from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.probes.base import Probe, ProbeStatus
+
+CPU_SECONDS = Metric("drums_host_cpu_seconds_total", COUNTER, "CPU time spent in each mode, all CPUs", ("mode",))
+MEMORY_TOTAL = Metric("drums_host_memory_total_bytes", GAUGE, "Physical memory")
+MEMORY_AVAILABLE = Metric(
+    "drums_host_memory_available_bytes", GAUGE, "Memory that can be given to processes without swapping"
+)
+MEMORY_USED = Metric("drums_host_memory_used_bytes", GAUGE, "Memory in use, excluding buffers and page cache")
+SWAP_TOTAL = Metric("drums_host_swap_total_bytes", GAUGE, "Swap space")
+SWAP_USED = Metric("drums_host_swap_used_bytes", GAUGE, "Swap space in use")
+FS_LABELS = ("mountpoint", "fstype")
+FS_SIZE = Metric("drums_host_filesystem_size_bytes", GAUGE, "Size of a mounted filesystem", FS_LABELS)
+FS_FREE = Metric(
+    "drums_host_filesystem_free_bytes", GAUGE, "Space an unprivileged user can still write", FS_LABELS
+)
+DISK_READ_BYTES = Metric("drums_host_disk_read_bytes_total", COUNTER, "Bytes read from a block device", ("device",))
+DISK_WRITTEN_BYTES = Metric(
+    "drums_host_disk_written_bytes_total", COUNTER, "Bytes written to a block device", ("device",)
+)
+DISK_READS = Metric("drums_host_disk_reads_total", COUNTER, "Completed reads from a block device", ("device",))
+DISK_WRITES = Metric("drums_host_disk_writes_total", COUNTER, "Completed writes to a block device", ("device",))
+NET_RECEIVED_BYTES = Metric(
+    "drums_host_network_received_bytes_total", COUNTER, "Bytes received on an interface", ("interface",)
+)
+NET_SENT_BYTES = Metric("drums_host_network_sent_bytes_total", COUNTER, "Bytes sent on an interface", ("interface",))
+NET_RECEIVED_PACKETS = Metric(
+    "drums_host_network_received_packets_total", COUNTER, "Packets received on an interface", ("interface",)
+)
+NET_SENT_PACKETS = Metric(
+    "drums_host_network_sent_packets_total", COUNTER, "Packets sent on an interface", ("interface",)
+)
+NET_RECEIVE_ERRORS = Metric(
+    "drums_host_network_receive_errors_total", COUNTER, "Receive errors on an interface", ("interface",)
+)
+NET_TRANSMIT_ERRORS = Metric(
+    "drums_host_network_transmit_errors_total", COUNTER, "Transmit errors on an interface", ("interface",)
+)
+NET_RECEIVE_DROPS = Metric(
+    "drums_host_network_receive_drops_total", COUNTER, "Received packets dropped on an interface", ("interface",)
+)
+NET_TRANSMIT_DROPS = Metric(
+    "drums_host_network_transmit_drops_total", COUNTER, "Outgoing packets dropped on an interface", ("interface",)
+)
+LOAD = Metric("drums_host_load", GAUGE, "Run queue load average over a period", ("period",))
+
+# Linux counts guest time inside user and guest_nice inside nice; exporting them as modes too would
+# make the modes add up to more than the elapsed CPU time.
+_CPU_MODES = ("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal")
+
+
+def _cpu(snap: Snapshot) -> None:
+    times = psutil.cpu_times()
+    for mode in _CPU_MODES:
+        snap.add(CPU_SECONDS, (mode,), getattr(times, mode))
+
+
+def _memory(snap: Snapshot) -> None:
+    mem, swap = psutil.virtual_memory(), psutil.swap_memory()
+    snap.add(MEMORY_TOTAL, (), mem.total)
+    snap.add(MEMORY_AVAILABLE, (), mem.available)
+    snap.add(MEMORY_USED, (), mem.used)
+    snap.add(SWAP_TOTAL, (), swap.total)
+    snap.add(SWAP_USED, (), swap.used)
+
+
+def _filesystems(snap: Snapshot) -> None:
+    # all=False leaves out filesystems without a device (proc, sysfs, tmpfs, cgroup...). A mountpoint
+    # mounted over is listed twice; statvfs sees the top one, which is listed last.
+    for part in {p.mountpoint: p for p in psutil.disk_partitions(all=False)}.values():
+        try:
+            usage = psutil.disk_usage(part.mountpoint)
+        except OSError:  # e.g. a stale network mount; the other filesystems are still worth reporting
+            continue
+        labels = (part.mountpoint, part.fstype)
+        snap.add(FS_SIZE, labels, usage.total)
+        snap.add(FS_FREE, labels, usage.free)
+
+
+def _disks(snap: Snapshot) -> None:
+    # Partitions are listed next to their disk, so summing over devices counts their I/O twice.
+    for device, io in psutil.disk_io_counters(perdisk=True).items():
+        snap.add(DISK_READ_BYTES, (device,), io.read_bytes)
+        snap.add(DISK_WRITTEN_BYTES, (device,), io.write_bytes)
+        snap.add(DISK_READS, (device,), io.read_count)
+        snap.add(DISK_WRITES, (device,), io.write_count)
+
+
+def _network(snap: Snapshot) -> None:
+    for nic, io in psutil.net_io_counters(pernic=True).items():
+        snap.add(NET_RECEIVED_BYTES, (nic,), io.bytes_recv)
+        snap.add(NET_SENT_BYTES, (nic,), io.bytes_sent)
+        snap.add(NET_RECEIVED_PACKETS, (nic,), io.packets_recv)
+        snap.add(NET_SENT_PACKETS, (nic,), io.packets_sent)
+        snap.add(NET_RECEIVE_ERRORS, (nic,), io.errin)
+        snap.add(NET_TRANSMIT_ERRORS, (nic,), io.errout)
+        snap.add(NET_RECEIVE_DROPS, (nic,), io.dropin)
+        snap.add(NET_TRANSMIT_DROPS, (nic,), io.dropout)
+
+
+def _load(snap: Snapshot) -> None:
+    for period, value in zip(("1m", "5m", "15m"), psutil.getloadavg()):
+        snap.add(LOAD, (period,), value)
+
+
+_READERS = (_cpu, _memory, _filesystems, _disks, _network, _load)
+
+
+class HostProbe(Probe):
+    name = "host"
+    metrics = (
+        CPU_SECONDS,
+        MEMORY_TOTAL,
+        MEMORY_AVAILABLE,
+        MEMORY_USED,
+        SWAP_TOTAL,
+        SWAP_USED,
+        FS_SIZE,
+        FS_FREE,
+        DISK_READ_BYTES,
+        DISK_WRITTEN_BYTES,
+        DISK_READS,
+        DISK_WRITES,
+        NET_RECEIVED_BYTES,
+        NET_SENT_BYTES,
+        NET_RECEIVED_PACKETS,
+        NET_SENT_PACKETS,
+        NET_RECEIVE_ERRORS,
+        NET_TRANSMIT_ERRORS,
+        NET_RECEIVE_DROPS,
+        NET_TRANSMIT_DROPS,
+        LOAD,
+    )
+
+    def start(self) -> None:
+        self.status = ProbeStatus(attached=True, attach_type="psutil")
+
+    def collect(self, snap: Snapshot) -> None:
+        # One unreadable source (no disks, a /proc file hidden by a container) must not cost the
+        # others; what was skipped is kept in status.reason so it stays visible.
+        failed = []
+        for read in _READERS:
+            try:
+                read(snap)
+            except (OSError, NotImplementedError, psutil.Error) as exc:
+                failed.append(f"{read.__name__[1:]}: {exc}")
+        self.status.reason = "; ".join(failed)

@@ -1,0 +1,79 @@
+"""Memory, threads, file descriptors and storage I/O of the processes the agent chose, via psutil.
+
+Only the chosen PIDs are read, since the agent may watch a thousand processes on a small robot computer.
+"""
+from __future__ import annotations
+
+from typing import Iterable
+
+import psutil
+
+from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.probes.base import Probe, ProbeStatus
+
+LABELS = ("pid", "process")
+RESIDENT_MEMORY = Metric("drums_process_resident_memory_bytes", GAUGE, "Resident set size", LABELS)
+UNIQUE_MEMORY = Metric(
+    "drums_process_unique_memory_bytes", GAUGE, "Memory freed if the process exited (USS)", LABELS
+)
+THREADS = Metric("drums_process_threads", GAUGE, "Threads in the process", LABELS)
+OPEN_FDS = Metric("drums_process_open_fds", GAUGE, "Open file descriptors", LABELS)
+READ_BYTES = Metric(
+    "drums_process_read_bytes_total", COUNTER, "Bytes the process caused to be read from storage", LABELS
+)
+WRITTEN_BYTES = Metric(
+    "drums_process_written_bytes_total", COUNTER, "Bytes the process caused to be written to storage", LABELS
+)
+START_TIME = Metric("drums_process_start_time_seconds", GAUGE, "Process start time, Unix seconds", LABELS)
+
+
+class ProcessProbe(Probe):
+    name = "process"
+    metrics = (RESIDENT_MEMORY, UNIQUE_MEMORY, THREADS, OPEN_FDS, READ_BYTES, WRITTEN_BYTES, START_TIME)
+
+    def __init__(self):
+        super().__init__()
+        self._pids: frozenset[int] = frozenset()
+        self._procs: dict[int, psutil.Process] = {}
+
+    def start(self) -> None:
+        self.status = ProbeStatus(attached=True, attach_type="psutil")
+
+    def set_pids(self, pids: Iterable[int]) -> None:
+        self._pids = frozenset(pids)
+        for pid in self._procs.keys() - self._pids:
+            del self._procs[pid]
+
+    def collect(self, snap: Snapshot) -> None:
+        for pid in self._pids:
+            try:
+                labels, values = self._read(pid)
+            except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
+                self._procs.pop(pid, None)
+                continue
+            for metric, value in values:
+                snap.add(metric, labels, value)
+
+    def _read(self, pid: int) -> tuple[tuple[str, str], list[tuple[Metric, float]]]:
+        proc = self._procs.get(pid)
+        if proc is None:
+            proc = self._procs[pid] = psutil.Process(pid)
+        with proc.oneshot():
+            # memory_full_info reads smaps_rollup for USS and includes RSS, so one call gives both.
+            mem = proc.memory_full_info()
+            io = proc.io_counters()
+            labels = (str(pid), proc.name())
+            values = [
+                (RESIDENT_MEMORY, mem.rss),
+                (UNIQUE_MEMORY, mem.uss),
+                (THREADS, proc.num_threads()),
+                (OPEN_FDS, proc.num_fds()),
+                (READ_BYTES, io.read_bytes),
+                (WRITTEN_BYTES, io.write_bytes),
+                (START_TIME, proc.create_time()),
+            ]
+        # The cached object keeps the create_time of the process it was made for. Checking it after the
+        # reads also catches a PID reused while they ran; the new owner gets a fresh object next time.
+        if not proc.is_running():
+            raise psutil.NoSuchProcess(pid)
+        return labels, values

@@ -1,0 +1,203 @@
+"""Bytes, calls and errors of every TCP, UDP and unix socket (bpf/sockets.bpf.c), exported per
+socket, per process and per thread.
+
+Per-process totals include threads that exited and sockets that closed, so they never go
+backwards; a closed socket's own series simply ends.
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+from drums.kernel.btf import Btf
+from drums.metrics import COUNTER, Metric, Snapshot
+from drums.netfmt import endpoint
+from drums.probes.bpf import AttachPath, BpfProbe, needs_fentry, needs_kprobes, needs_tracepoints, offset_defines
+from drums.proctable import ProcessTable
+
+PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
+_COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
+_HELP = {
+    "sent_bytes": "Bytes sent",
+    "send_calls": "Successful send calls",
+    "received_bytes": "Bytes received",
+    "receive_calls": "Successful receive calls",
+    "send_errors": "Send calls that failed (not counting EAGAIN and EINTR)",
+    "receive_errors": "Receive calls that failed (not counting EAGAIN and EINTR)",
+}
+SOCKET_LABELS = ("pid", "process", "protocol", "local", "remote", "netns", "inode")
+PROCESS_LABELS = ("pid", "process", "protocol")
+THREAD_LABELS = ("pid", "tid", "protocol")
+
+SOCKET = {c: Metric(f"drums_socket_{c}_total", COUNTER, f"{_HELP[c]} on this socket", SOCKET_LABELS)
+          for c in _COUNTS}
+PROCESS = {c: Metric(f"drums_process_socket_{c}_total", COUNTER,
+                     f"{_HELP[c]} by this process on sockets of this protocol, closed ones included",
+                     PROCESS_LABELS) for c in _COUNTS}
+THREAD = {c: Metric(f"drums_thread_socket_{c}_total", COUNTER,
+                    f"{_HELP[c]} by this thread on sockets of this protocol", THREAD_LABELS)
+          for c in ("sent_bytes", "received_bytes")}
+
+# Map layouts, as in bpf/sockets.bpf.c.
+_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6Q")
+_THREAD_VALUE = struct.Struct("<II24Q")
+_PROCESS_VALUE = struct.Struct("<24Q")
+_U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
+
+SEND_RECV = ("sock_send_length", "sock_recv_length")
+LIFECYCLE = (
+    ("raw_tracepoint", "inet_sock_set_state", "on_tcp_state"),
+    ("raw_tracepoint", "sched_process_exit", "on_thread_exit"),
+    ("raw_tracepoint", "sched_process_free", "on_task_free"),
+)
+_LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_exit", "sched_process_free")
+
+
+@dataclass
+class SocketCounts:
+    """One socket as the kernel counted it."""
+
+    sk: int
+    inode: int
+    pid: int
+    netns: int
+    protocol: str
+    local: str
+    remote: str
+    counts: tuple[int, ...]  # in _COUNTS order
+
+
+def decode_sockets(keys: bytes, values: bytes) -> list[SocketCounts]:
+    out = []
+    for (sk,), v in zip(_U64.iter_unpack(keys), _SOCKET_VALUE.iter_unpack(values)):
+        ino, tgid, netns, family, _proto, _type, lport, rport, klass, _pad, laddr, raddr, *t = v
+        sent_bytes, sent_calls, recv_bytes, recv_calls, send_err, recv_err = t
+        out.append(SocketCounts(
+            sk=sk, inode=ino, pid=tgid, netns=netns,
+            protocol=PROTOCOLS[klass] if klass < len(PROTOCOLS) else "other",
+            local=endpoint(family, laddr, lport), remote=endpoint(family, raddr, rport),
+            counts=(sent_bytes, sent_calls, recv_bytes, recv_calls, send_err, recv_err),
+        ))
+    return out
+
+
+def _by_class(flat: tuple[int, ...]) -> list[tuple[int, ...]]:
+    """24 counters -> 4 protocol classes x 6 counts, reordered to _COUNTS."""
+    rows = []
+    for i in range(len(PROTOCOLS)):
+        sb, sc, rb, rc, se, re_ = flat[6 * i: 6 * i + 6]
+        rows.append((sb, sc, rb, rc, se, re_))
+    return rows
+
+
+class SocketsProbe(BpfProbe):
+    name = "sockets"
+    source = "sockets.bpf.c"
+    maps = ("socket_traffic", "thread_traffic", "exited_traffic", "dropped")
+    metrics = tuple(SOCKET.values()) + tuple(PROCESS.values()) + tuple(THREAD.values())
+    paths = (
+        AttachPath("raw_tracepoint",
+                   tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv")))
+                   + LIFECYCLE,
+                   needs_tracepoints(*SEND_RECV, *_LIFECYCLE_EVENTS),
+                   "Linux >= 6.6: every socket family, one event per send and receive call"),
+        AttachPath("fentry", (("fentry", "", ""),) + LIFECYCLE,
+                   lambda f: needs_fentry(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
+                   "Linux 5.5 to 6.5 with BTF and BPF trampolines: TCP and UDP only"),
+        AttachPath("kprobe",
+                   (("kprobe", "tcp_sendmsg", "enter_tcp_sendmsg"),
+                    ("kretprobe", "tcp_sendmsg", "exit_tcp_sendmsg"),
+                    ("kprobe", "tcp_cleanup_rbuf", "enter_tcp_cleanup_rbuf"),
+                    ("kprobe", "udp_sendmsg", "enter_udp_sendmsg"),
+                    ("kretprobe", "udp_sendmsg", "exit_udp_sendmsg"),
+                    ("kprobe", "udp_recvmsg", "enter_udp_recvmsg"),
+                    ("kretprobe", "udp_recvmsg", "exit_udp_recvmsg")) + LIFECYCLE,
+                   lambda f: needs_kprobes(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
+                   "older kernels with kprobes (Ubuntu 20.04/22.04, Jetson): TCP and UDP only"),
+    )
+
+    def __init__(self, features, proctable: ProcessTable, **kw):
+        super().__init__(features, **kw)
+        self.proctable = proctable
+        self._last_counts: dict[int, tuple[int, ...]] = {}
+
+    def offsets(self, btf: Btf) -> dict[str, int]:
+        d = offset_defines(btf, {
+            "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
+            "SK_NUM_OFF": ("sock", "__sk_common.skc_num"),
+            "SK_DPORT_OFF": ("sock", "__sk_common.skc_dport"),
+            "SK_DADDR_OFF": ("sock", "__sk_common.skc_daddr"),
+            "SK_RCV_SADDR_OFF": ("sock", "__sk_common.skc_rcv_saddr"),
+            "SK_V6_DADDR_OFF": ("sock", "__sk_common.skc_v6_daddr"),
+            "SK_V6_RCV_SADDR_OFF": ("sock", "__sk_common.skc_v6_rcv_saddr"),
+            "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
+            "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
+            "SK_TYPE_OFF": ("sock", "sk_type"),
+            "SK_SOCKET_OFF": ("sock", "sk_socket"),
+            "NET_INUM_OFF": ("net", "ns.inum"),
+            "TASK_PID_OFF": ("task_struct", "pid"),
+            "TASK_TGID_OFF": ("task_struct", "tgid"),
+        })
+        # The socket's inode sits right after struct socket in struct socket_alloc.
+        d["SOCKET_INO_OFF"] = (btf.field("socket_alloc", "vfs_inode").offset
+                               + btf.field("inode", "i_ino").offset)
+        return d
+
+    def collect(self, snap: Snapshot) -> None:
+        pt = self.proctable
+        keys, values, _ = self.read("socket_traffic")
+        sockets = decode_sockets(keys, values)
+        stale = self._stale(sockets)
+        if stale:
+            self.opened["socket_traffic"].delete([_U64.pack(sk) for sk in stale])
+        for s in sockets:
+            if s.sk in stale:
+                continue
+            labels = (str(s.pid), pt.name(s.pid), s.protocol, s.local, s.remote, str(s.netns), str(s.inode))
+            for c, value in zip(_COUNTS, s.counts):
+                snap.add(SOCKET[c], labels, value)
+
+        per_process: dict[int, list[list[int]]] = {}
+        keys, values, _ = self.read("exited_traffic")
+        for (tgid,), flat in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
+            if pt.alive(tgid):
+                per_process[tgid] = [list(row) for row in _by_class(flat)]
+        keys, values, _ = self.read("thread_traffic")
+        for (tid,), (tgid, _pad, *flat) in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
+            if not pt.alive(tgid):
+                continue
+            rows = _by_class(tuple(flat))
+            acc = per_process.setdefault(tgid, [[0] * len(_COUNTS) for _ in PROTOCOLS])
+            for klass, row in enumerate(rows):
+                if not any(row):
+                    continue
+                acc[klass] = [a + b for a, b in zip(acc[klass], row)]
+                labels = (str(tgid), str(tid), PROTOCOLS[klass])
+                snap.add(THREAD["sent_bytes"], labels, row[0])
+                snap.add(THREAD["received_bytes"], labels, row[2])
+        for tgid, rows in per_process.items():
+            for klass, row in enumerate(rows):
+                if any(row):
+                    labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
+                    for c, value in zip(_COUNTS, row):
+                        snap.add(PROCESS[c], labels, value)
+        _, values, _ = self.read("dropped")
+        self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
+
+    def _stale(self, sockets: list[SocketCounts]) -> set[int]:
+        """Entries of sockets that are gone: their process exited, or (for sockets the kernel
+        frees without a tracepoint) the process no longer holds the inode. Only sockets idle since
+        the last collect are checked, which keeps the /proc reads few."""
+        stale = set()
+        inodes_of: dict[int, set[int]] = {}
+        last, self._last_counts = self._last_counts, {s.sk: s.counts for s in sockets}
+        for s in sockets:
+            if not self.proctable.alive(s.pid):
+                stale.add(s.sk)
+            elif s.protocol != "tcp" and last.get(s.sk) == s.counts:
+                if s.pid not in inodes_of:
+                    inodes_of[s.pid] = self.proctable.socket_inodes(s.pid)
+                if s.inode not in inodes_of[s.pid]:
+                    stale.add(s.sk)
+        return stale

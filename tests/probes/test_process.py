@@ -1,0 +1,200 @@
+"""process: a child with known memory, threads and storage I/O, read through the probe and checked against /proc."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from drums.metrics import Snapshot
+from drums.probes.process import (
+    OPEN_FDS,
+    READ_BYTES,
+    RESIDENT_MEMORY,
+    START_TIME,
+    THREADS,
+    UNIQUE_MEMORY,
+    WRITTEN_BYTES,
+    ProcessProbe,
+)
+
+MIB = 1 << 20
+IO_BYTES = 4 * MIB
+
+# Holds 64 MiB of touched memory and 3 idle threads, writes IO_BYTES to storage (fsync) and reads them
+# back with O_DIRECT so both bypass the page cache, then waits until its stdin is closed.
+CHILD = r"""
+import mmap, os, sys, threading
+size, path = int(sys.argv[1]), sys.argv[2]
+memory = bytearray(64 << 20)
+memory[::4096] = b"\1" * (len(memory) // 4096)
+stop = threading.Event()
+for _ in range(3):
+    threading.Thread(target=stop.wait, daemon=True).start()
+fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+assert os.write(fd, b"x" * size) == size
+os.fsync(fd)
+os.close(fd)
+fd = os.open(path, os.O_RDONLY | os.O_DIRECT)
+buf = mmap.mmap(-1, size)  # page aligned, as O_DIRECT requires
+assert os.readv(fd, [buf]) == size
+os.close(fd)
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def collect(probe: ProcessProbe) -> Snapshot:
+    snap = Snapshot()
+    probe.collect(snap)
+    return snap
+
+
+def comm(pid: int) -> str:
+    with open(f"/proc/{pid}/comm") as f:
+        return f.read().rstrip("\n")
+
+
+def start_time(pid: int) -> float:
+    """Start time as the kernel gives it: boot time plus the starttime field of /proc/<pid>/stat."""
+    with open(f"/proc/{pid}/stat") as f:
+        ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+    with open("/proc/stat") as f:
+        btime = next(int(line.split()[1]) for line in f if line.startswith("btime "))
+    return btime + ticks / os.sysconf("SC_CLK_TCK")
+
+
+def missing_pid() -> int:
+    with open("/proc/sys/kernel/pid_max") as f:
+        return int(f.read())  # PIDs are allocated below pid_max
+
+
+def fstype_of(path) -> str:
+    """Filesystem type of the mount holding `path`: the last, longest matching mountpoint."""
+    best = ("", "")
+    with open("/proc/self/mounts") as f:
+        for line in f:
+            mountpoint, fstype = line.split()[1:3]
+            if os.path.commonpath([mountpoint, str(path)]) == mountpoint and len(mountpoint) >= len(best[0]):
+                best = (mountpoint, fstype)
+    return best[1]
+
+
+@pytest.fixture
+def probe():
+    probe = ProcessProbe()
+    probe.start()
+    return probe
+
+
+@pytest.fixture
+def child(tmp_path):
+    if fstype_of(tmp_path) in ("tmpfs", "ramfs"):
+        pytest.skip(f"{tmp_path} is in memory, so writes to it are not storage I/O")
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(IO_BYTES), str(tmp_path / "data")],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout.readline() == "ready\n"
+    yield proc
+    proc.stdin.close()
+    proc.wait()
+
+
+def test_status_once_started(probe):
+    assert probe.name == "process"
+    assert (probe.status.attached, probe.status.attach_type) == (True, "psutil")
+
+
+def test_child_values_match_proc(probe, child):
+    pid = child.pid
+    probe.set_pids([pid])
+    snap = collect(probe)
+    with open(f"/proc/{pid}/statm") as f:
+        resident = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    fds = len(os.listdir(f"/proc/{pid}/fd"))
+
+    labels = (str(pid), comm(pid))
+    assert {metric: set(snap.values(metric)) for metric in snap.series} == {m: {labels} for m in probe.metrics}
+    one = {metric: snap.values(metric)[labels] for metric in probe.metrics}
+    assert one[THREADS] == 4
+    assert one[RESIDENT_MEMORY] == resident
+    assert one[RESIDENT_MEMORY] >= 64 * MIB
+    assert 64 * MIB <= one[UNIQUE_MEMORY] <= one[RESIDENT_MEMORY]
+    assert one[OPEN_FDS] == fds
+    # write_bytes is charged when a page is dirtied, so the file's pages count exactly once.
+    assert IO_BYTES <= one[WRITTEN_BYTES] <= IO_BYTES + MIB
+    # No upper bound: a cold page cache makes interpreter start-up read from disk too.
+    assert one[READ_BYTES] >= IO_BYTES
+    assert one[START_TIME] == pytest.approx(start_time(pid), abs=0.01)
+
+
+def test_only_chosen_pids_are_read(probe, child):
+    probe.set_pids([missing_pid(), child.pid])
+    snap = collect(probe)
+    assert {labels[0] for metric in snap.series for labels in snap.values(metric)} == {str(child.pid)}
+
+    probe.set_pids([os.getpid()])
+    snap = collect(probe)
+    assert set(snap.values(THREADS)) == {(str(os.getpid()), comm(os.getpid()))}
+
+
+def test_missing_pid_yields_nothing(probe):
+    probe.set_pids([missing_pid()])
+    assert collect(probe).series == {}
+
+
+def test_exited_child_is_dropped(probe, child):
+    probe.set_pids([child.pid])
+    assert collect(probe).values(THREADS)
+    child.stdin.close()
+    child.wait()
+    assert collect(probe).series == {}
+    assert probe._procs == {}
+
+
+def test_zombie_is_skipped(probe):
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        # Not reaped yet: wait for the exit without wait(2), by polling its state.
+        while open(f"/proc/{proc.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":
+            pass
+        probe.set_pids([proc.pid])
+        assert collect(probe).series == {}
+    finally:
+        proc.wait()
+
+
+def _respawn_at(pid: int, argv: list) -> subprocess.Popen:
+    """Start argv with PID `pid` by setting the namespace's last PID; other forks can race, so retry."""
+    for _ in range(20):
+        try:
+            with open("/proc/sys/kernel/ns_last_pid", "w") as f:
+                f.write(str(pid - 1))
+        except OSError as exc:
+            pytest.skip(f"cannot choose the next PID: {exc}")
+        proc = subprocess.Popen(argv)
+        if proc.pid == pid:
+            return proc
+        proc.kill()
+        proc.wait()
+    pytest.skip(f"another process kept taking PID {pid}")
+
+
+def test_reused_pid_is_not_read_as_the_dead_process(probe):
+    first = subprocess.Popen(["sleep", "60"])
+    pid = first.pid
+    probe.set_pids([pid])
+    first_start = collect(probe).values(START_TIME)[(str(pid), "sleep")]
+    first.kill()
+    first.wait()
+
+    second = _respawn_at(pid, ["sleep", "61"])
+    try:
+        snaps = [collect(probe), collect(probe)]
+        assert all(first_start not in snap.values(START_TIME).values() for snap in snaps)
+        assert snaps[-1].values(START_TIME) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
+    finally:
+        second.kill()
+        second.wait()
