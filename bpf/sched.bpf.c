@@ -156,6 +156,18 @@ int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
+// task:task_rename (task, comm): exec and prctl(PR_SET_NAME) rename threads after they started.
+int on_rename(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 task = ctx->args[0];
+    u32 tid = 0;
+    bpf_probe_read_kernel(&tid, 4, (void *)(task + TASK_PID_OFF));
+    struct thread_sched_t *t = thread_sched.lookup(&tid);
+    if (t)
+        bpf_probe_read_kernel_str(t->comm, sizeof(t->comm), (void *)ctx->args[1]);
+    return 0;
+}
+
 // sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
 int on_task_free(struct bpf_raw_tracepoint_args *ctx)
 {

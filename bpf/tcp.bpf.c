@@ -1,8 +1,8 @@
-// TCP health per connection: retransmitted segments, resets sent and received, state changes and
-// the smoothed RTT the kernel keeps for the connection, sampled at each of those events. All hooks
-// are on slow paths (state changes, retransmits, resets), never on the data path.
+// TCP health: retransmitted segments, resets and state changes, per connection and for the host.
+// The kernel keeps no per-connection count of these; the smoothed RTT it does keep is read by the
+// agent from tcp_info. All hooks are on slow paths, never on the data path.
 //
-// Offsets of struct sock and tcp_sock fields come from BTF.
+// Offsets of struct sock fields come from BTF.
 #include "drums.h"
 
 #define TCP_STATES 13  // TCP_ESTABLISHED (1) .. TCP_NEW_SYN_RECV (12)
@@ -13,12 +13,10 @@ struct tcp_conn_t {
     u16 lport;        // host byte order
     u16 rport;        // host byte order
     u16 state;
-    u32 srtt_us;      // smoothed RTT in microseconds (tcp_sock.srtt_us holds it shifted by 3)
     u8 laddr[16];
     u8 raddr[16];
     u64 retransmits;
     u64 resets_sent;
-    u64 resets_received;
     u64 state_changes;
 };
 
@@ -35,28 +33,33 @@ BPF_HASH(tcp_conns, u64, struct tcp_conn_t, 32768);
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
 BPF_ARRAY(dropped, u64, 1);
 
+static __always_inline void read_identity(struct tcp_conn_t *c, u64 sk)
+{
+    u64 net = 0;
+    u16 dport = 0;
+    bpf_probe_read_kernel(&c->family, 2, (void *)(sk + SK_FAMILY_OFF));
+    bpf_probe_read_kernel(&c->lport, 2, (void *)(sk + SK_NUM_OFF));
+    bpf_probe_read_kernel(&dport, 2, (void *)(sk + SK_DPORT_OFF));
+    c->rport = ntohs(dport);
+    bpf_probe_read_kernel(&net, sizeof(net), (void *)(sk + SK_NET_OFF));
+    if (net)
+        bpf_probe_read_kernel(&c->netns, 4, (void *)(net + NET_INUM_OFF));
+    if (c->family == AF_INET) {
+        bpf_probe_read_kernel(c->laddr, 4, (void *)(sk + SK_RCV_SADDR_OFF));
+        bpf_probe_read_kernel(c->raddr, 4, (void *)(sk + SK_DADDR_OFF));
+    } else {
+        bpf_probe_read_kernel(c->laddr, 16, (void *)(sk + SK_V6_RCV_SADDR_OFF));
+        bpf_probe_read_kernel(c->raddr, 16, (void *)(sk + SK_V6_DADDR_OFF));
+    }
+}
+
 static __always_inline struct tcp_conn_t *conn_entry(u64 sk)
 {
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c)
         return c;
     struct tcp_conn_t fresh = {};
-    u64 net = 0;
-    u16 dport = 0;
-    bpf_probe_read_kernel(&fresh.family, 2, (void *)(sk + SK_FAMILY_OFF));
-    bpf_probe_read_kernel(&fresh.lport, 2, (void *)(sk + SK_NUM_OFF));
-    bpf_probe_read_kernel(&dport, 2, (void *)(sk + SK_DPORT_OFF));
-    fresh.rport = ntohs(dport);
-    bpf_probe_read_kernel(&net, sizeof(net), (void *)(sk + SK_NET_OFF));
-    if (net)
-        bpf_probe_read_kernel(&fresh.netns, 4, (void *)(net + NET_INUM_OFF));
-    if (fresh.family == AF_INET) {
-        bpf_probe_read_kernel(fresh.laddr, 4, (void *)(sk + SK_RCV_SADDR_OFF));
-        bpf_probe_read_kernel(fresh.raddr, 4, (void *)(sk + SK_DADDR_OFF));
-    } else {
-        bpf_probe_read_kernel(fresh.laddr, 16, (void *)(sk + SK_V6_RCV_SADDR_OFF));
-        bpf_probe_read_kernel(fresh.raddr, 16, (void *)(sk + SK_V6_DADDR_OFF));
-    }
+    read_identity(&fresh, sk);
     if (tcp_conns.insert(&sk, &fresh) != 0) {
         int zero = 0;
         u64 *d = dropped.lookup(&zero);
@@ -65,14 +68,6 @@ static __always_inline struct tcp_conn_t *conn_entry(u64 sk)
         return 0;
     }
     return tcp_conns.lookup(&sk);
-}
-
-static __always_inline void sample_rtt(struct tcp_conn_t *c, u64 sk)
-{
-    u32 srtt8 = 0;
-    bpf_probe_read_kernel(&srtt8, 4, (void *)(sk + TCP_SRTT_OFF));
-    if (srtt8)
-        c->srtt_us = srtt8 >> 3;
 }
 
 static __always_inline struct tcp_totals_t *totals(void)
@@ -85,13 +80,13 @@ static __always_inline struct tcp_totals_t *totals(void)
 int on_state(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 sk = ctx->args[0];
-    int newstate = (int)ctx->args[2];
+    u32 newstate = (u32)ctx->args[2];
     u16 protocol = 0;
     bpf_probe_read_kernel(&protocol, 2, (void *)(sk + SK_PROTOCOL_OFF));
     if (protocol != IPPROTO_TCP)
         return 0;  // the tracepoint also fires for SCTP and MPTCP subflows' parents
     struct tcp_totals_t *tot = totals();
-    if (tot && newstate > 0 && newstate < TCP_STATES)
+    if (tot && newstate < TCP_STATES)
         tot->entered[newstate]++;
     if (newstate == TCP_CLOSE) {
         tcp_conns.delete(&sk);
@@ -100,9 +95,10 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
     struct tcp_conn_t *c = conn_entry(sk);
     if (!c)
         return 0;
+    // A connecting socket enters SYN_SENT before it has a local port: refresh the identity.
+    read_identity(c, sk);
     c->state = newstate;
     __sync_fetch_and_add(&c->state_changes, 1);
-    sample_rtt(c, sk);
     return 0;
 }
 
@@ -116,8 +112,7 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
     struct tcp_conn_t *c = conn_entry(sk);
     if (c) {
         __sync_fetch_and_add(&c->retransmits, 1);
-        sample_rtt(c, sk);
-    }
+        }
     return 0;
 }
 
@@ -142,9 +137,5 @@ int on_receive_reset(struct bpf_raw_tracepoint_args *ctx)
     struct tcp_totals_t *tot = totals();
     if (tot)
         tot->resets_received++;
-    u64 sk = ctx->args[0];
-    struct tcp_conn_t *c = tcp_conns.lookup(&sk);
-    if (c)
-        __sync_fetch_and_add(&c->resets_received, 1);
     return 0;
 }

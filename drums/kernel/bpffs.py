@@ -18,6 +18,7 @@ from drums.errors import KernelError, ProbeError
 BPFFS = "/sys/fs/bpf"
 PIN_ROOT = os.path.join(BPFFS, "drums")
 PERCPU_TYPES = {5, 6, 10}  # BPF_MAP_TYPE_PERCPU_HASH, PERCPU_ARRAY, LRU_PERCPU_HASH
+ARRAY_TYPES = {2, 6}  # BPF_MAP_TYPE_ARRAY, PERCPU_ARRAY
 _BATCH = 4096
 
 

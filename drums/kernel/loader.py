@@ -90,8 +90,10 @@ def load_in_child(req: LoadRequest, timeout: float = 60) -> None:
     proc = subprocess.run([sys.executable, "-m", "drums.kernel.loader"], input=json.dumps(asdict(req)),
                           capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
-        lines = [line for line in proc.stdout.splitlines() + proc.stderr.splitlines() if line.strip()]
-        raise ProbeError(lines[-1] if lines else f"loader exited with {proc.returncode}")
+        # The loader prints its one-line error on stdout; stderr holds bcc's verifier log.
+        lines = [line for line in proc.stdout.splitlines() if line.strip()]
+        raise ProbeError(lines[-1] if lines else f"loader exited with {proc.returncode}: "
+                         + " ".join(proc.stderr.strip().splitlines()[-1:]))
 
 
 def can_load_fentry(headers: str | None) -> bool:

@@ -139,7 +139,8 @@ class BpfProbe(Probe):
     def read(self, name: str) -> tuple[bytes, bytes, int]:
         m = self.opened[name]
         keys, values, count = m.read()
-        self.status.map_fill[name] = count / m.max_entries if m.max_entries else 0.0
+        if m.type not in bpffs.ARRAY_TYPES:  # arrays are always full; hash maps fill up
+            self.status.map_fill[name] = count / m.max_entries
         return keys, values, count
 
     def stop(self) -> None:

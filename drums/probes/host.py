@@ -9,7 +9,9 @@ import psutil
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.probes.base import Probe, ProbeStatus
 
-CPU_SECONDS = Metric("drums_host_cpu_seconds_total", COUNTER, "CPU time spent in each mode, all CPUs", ("mode",))
+CPU_SECONDS = Metric(
+    "drums_host_cpu_seconds_total", COUNTER, "CPU time spent in each mode, all CPUs summed", ("mode",)
+)
 MEMORY_TOTAL = Metric("drums_host_memory_total_bytes", GAUGE, "Physical memory")
 MEMORY_AVAILABLE = Metric(
     "drums_host_memory_available_bytes", GAUGE, "Memory that can be given to processes without swapping"
@@ -17,39 +19,29 @@ MEMORY_AVAILABLE = Metric(
 MEMORY_USED = Metric("drums_host_memory_used_bytes", GAUGE, "Memory in use, excluding buffers and page cache")
 SWAP_TOTAL = Metric("drums_host_swap_total_bytes", GAUGE, "Swap space")
 SWAP_USED = Metric("drums_host_swap_used_bytes", GAUGE, "Swap space in use")
-FS_LABELS = ("mountpoint", "fstype")
-FS_SIZE = Metric("drums_host_filesystem_size_bytes", GAUGE, "Size of a mounted filesystem", FS_LABELS)
-FS_FREE = Metric(
-    "drums_host_filesystem_free_bytes", GAUGE, "Space an unprivileged user can still write", FS_LABELS
-)
-DISK_READ_BYTES = Metric("drums_host_disk_read_bytes_total", COUNTER, "Bytes read from a block device", ("device",))
+
+FS = ("mountpoint", "fstype")
+FS_SIZE = Metric("drums_host_filesystem_size_bytes", GAUGE, "Size of a mounted filesystem", FS)
+FS_FREE = Metric("drums_host_filesystem_free_bytes", GAUGE, "Space an unprivileged user can still write", FS)
+
+DEV = ("device",)
+DISK_READ_BYTES = Metric("drums_host_disk_read_bytes_total", COUNTER, "Bytes read from a block device", DEV)
 DISK_WRITTEN_BYTES = Metric(
-    "drums_host_disk_written_bytes_total", COUNTER, "Bytes written to a block device", ("device",)
+    "drums_host_disk_written_bytes_total", COUNTER, "Bytes written to a block device", DEV
 )
-DISK_READS = Metric("drums_host_disk_reads_total", COUNTER, "Completed reads from a block device", ("device",))
-DISK_WRITES = Metric("drums_host_disk_writes_total", COUNTER, "Completed writes to a block device", ("device",))
-NET_RECEIVED_BYTES = Metric(
-    "drums_host_network_received_bytes_total", COUNTER, "Bytes received on an interface", ("interface",)
-)
-NET_SENT_BYTES = Metric("drums_host_network_sent_bytes_total", COUNTER, "Bytes sent on an interface", ("interface",))
-NET_RECEIVED_PACKETS = Metric(
-    "drums_host_network_received_packets_total", COUNTER, "Packets received on an interface", ("interface",)
-)
-NET_SENT_PACKETS = Metric(
-    "drums_host_network_sent_packets_total", COUNTER, "Packets sent on an interface", ("interface",)
-)
-NET_RECEIVE_ERRORS = Metric(
-    "drums_host_network_receive_errors_total", COUNTER, "Receive errors on an interface", ("interface",)
-)
-NET_TRANSMIT_ERRORS = Metric(
-    "drums_host_network_transmit_errors_total", COUNTER, "Transmit errors on an interface", ("interface",)
-)
-NET_RECEIVE_DROPS = Metric(
-    "drums_host_network_receive_drops_total", COUNTER, "Received packets dropped on an interface", ("interface",)
-)
-NET_TRANSMIT_DROPS = Metric(
-    "drums_host_network_transmit_drops_total", COUNTER, "Outgoing packets dropped on an interface", ("interface",)
-)
+DISK_READS = Metric("drums_host_disk_reads_total", COUNTER, "Completed reads from a block device", DEV)
+DISK_WRITES = Metric("drums_host_disk_writes_total", COUNTER, "Completed writes to a block device", DEV)
+
+NIC = ("interface",)
+NET_RECEIVED_BYTES = Metric("drums_host_network_received_bytes_total", COUNTER, "Bytes received", NIC)
+NET_SENT_BYTES = Metric("drums_host_network_sent_bytes_total", COUNTER, "Bytes sent", NIC)
+NET_RECEIVED_PACKETS = Metric("drums_host_network_received_packets_total", COUNTER, "Packets received", NIC)
+NET_SENT_PACKETS = Metric("drums_host_network_sent_packets_total", COUNTER, "Packets sent", NIC)
+NET_RECEIVE_ERRORS = Metric("drums_host_network_receive_errors_total", COUNTER, "Receive errors", NIC)
+NET_TRANSMIT_ERRORS = Metric("drums_host_network_transmit_errors_total", COUNTER, "Transmit errors", NIC)
+NET_RECEIVE_DROPS = Metric("drums_host_network_receive_drops_total", COUNTER, "Received packets dropped", NIC)
+NET_TRANSMIT_DROPS = Metric("drums_host_network_transmit_drops_total", COUNTER, "Sent packets dropped", NIC)
+
 LOAD = Metric("drums_host_load", GAUGE, "Run queue load average over a period", ("period",))
 
 # Linux counts guest time inside user and guest_nice inside nice; exporting them as modes too would

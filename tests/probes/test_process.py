@@ -1,7 +1,8 @@
-"""process: a child with known memory, threads and storage I/O, read through the probe and checked against /proc."""
+"""process: a child with known memory, threads and storage I/O, read by the probe and checked with /proc."""
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -63,6 +64,11 @@ def start_time(pid: int) -> float:
     return btime + ticks / os.sysconf("SC_CLK_TCK")
 
 
+def state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]
+
+
 def missing_pid() -> int:
     with open("/proc/sys/kernel/pid_max") as f:
         return int(f.read())  # PIDs are allocated below pid_max
@@ -74,7 +80,8 @@ def fstype_of(path) -> str:
     with open("/proc/self/mounts") as f:
         for line in f:
             mountpoint, fstype = line.split()[1:3]
-            if os.path.commonpath([mountpoint, str(path)]) == mountpoint and len(mountpoint) >= len(best[0]):
+            inside = os.path.commonpath([mountpoint, str(path)]) == mountpoint
+            if inside and len(mountpoint) >= len(best[0]):
                 best = (mountpoint, fstype)
     return best[1]
 
@@ -90,16 +97,11 @@ def probe():
 def child(tmp_path):
     if fstype_of(tmp_path) in ("tmpfs", "ramfs"):
         pytest.skip(f"{tmp_path} is in memory, so writes to it are not storage I/O")
-    proc = subprocess.Popen(
-        [sys.executable, "-c", CHILD, str(IO_BYTES), str(tmp_path / "data")],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout.readline() == "ready\n"
-    yield proc
-    proc.stdin.close()
-    proc.wait()
+    argv = [sys.executable, "-c", CHILD, str(IO_BYTES), str(tmp_path / "data")]
+    # Leaving the block closes the child's stdin, which ends it, and reaps it.
+    with subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True) as proc:
+        assert proc.stdout.readline() == "ready\n"
+        yield proc
 
 
 def test_status_once_started(probe):
@@ -116,15 +118,15 @@ def test_child_values_match_proc(probe, child):
     fds = len(os.listdir(f"/proc/{pid}/fd"))
 
     labels = (str(pid), comm(pid))
-    assert {metric: set(snap.values(metric)) for metric in snap.series} == {m: {labels} for m in probe.metrics}
+    assert {m: set(snap.values(m)) for m in snap.series} == {m: {labels} for m in probe.metrics}
     one = {metric: snap.values(metric)[labels] for metric in probe.metrics}
     assert one[THREADS] == 4
     assert one[RESIDENT_MEMORY] == resident
-    assert one[RESIDENT_MEMORY] >= 64 * MIB
+    assert 64 * MIB <= one[RESIDENT_MEMORY] <= 96 * MIB  # the interpreter itself takes 10-20 MiB
     assert 64 * MIB <= one[UNIQUE_MEMORY] <= one[RESIDENT_MEMORY]
     assert one[OPEN_FDS] == fds
     # write_bytes is charged when a page is dirtied, so the file's pages count exactly once.
-    assert IO_BYTES <= one[WRITTEN_BYTES] <= IO_BYTES + MIB
+    assert IO_BYTES <= one[WRITTEN_BYTES] <= IO_BYTES + 256 * 1024
     # No upper bound: a cold page cache makes interpreter start-up read from disk too.
     assert one[READ_BYTES] >= IO_BYTES
     assert one[START_TIME] == pytest.approx(start_time(pid), abs=0.01)
@@ -158,8 +160,8 @@ def test_zombie_is_skipped(probe):
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     try:
         # Not reaped yet: wait for the exit without wait(2), by polling its state.
-        while open(f"/proc/{proc.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":
-            pass
+        while state(proc.pid) != "Z":
+            time.sleep(0.01)
         probe.set_pids([proc.pid])
         assert collect(probe).series == {}
     finally:
@@ -187,6 +189,7 @@ def test_reused_pid_is_not_read_as_the_dead_process(probe):
     pid = first.pid
     probe.set_pids([pid])
     first_start = collect(probe).values(START_TIME)[(str(pid), "sleep")]
+    time.sleep(0.05)  # start times have clock-tick resolution: the two must not share a tick
     first.kill()
     first.wait()
 

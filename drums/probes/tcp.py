@@ -1,0 +1,95 @@
+"""TCP health per connection: retransmits, resets and state changes counted by bpf/tcp.bpf.c,
+and the smoothed RTT the kernel keeps per connection, read with sock_diag at each collect.
+
+The kernel keeps RTT itself (tcp_info), so nothing runs per packet to learn it. Host totals live
+in a map that is never pruned, so they survive the connections that produced them.
+"""
+from __future__ import annotations
+
+import socket
+import struct
+
+from drums.errors import KernelError
+from drums.kernel import sockdiag
+from drums.kernel.bpffs import sum_percpu
+from drums.kernel.btf import Btf
+from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.netfmt import endpoint
+from drums.probes.bpf import AttachPath, BpfProbe, needs_tracepoints, offset_defines
+
+CONN_LABELS = ("local", "remote", "netns")
+CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
+                          "Segments this connection retransmitted", CONN_LABELS)
+CONN_RESETS_SENT = Metric("drums_tcp_connection_resets_sent_total", COUNTER,
+                          "Resets this connection sent", CONN_LABELS)
+CONN_STATE_CHANGES = Metric("drums_tcp_connection_state_changes_total", COUNTER,
+                            "TCP state transitions of this connection", CONN_LABELS)
+CONN_RTT = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE,
+                  "The kernel's smoothed round-trip time of this connection (tcp_info), for "
+                  "established connections of the agent's network namespace", ("local", "remote"))
+RETRANSMITS = Metric("drums_tcp_retransmits_total", COUNTER, "TCP segments retransmitted on this host")
+RESETS_SENT = Metric("drums_tcp_resets_sent_total", COUNTER, "TCP resets sent by this host")
+RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
+                         "TCP resets received by connections of this host")
+STATE_ENTERED = Metric("drums_tcp_state_transitions_total", COUNTER,
+                       "TCP connections entering each state", ("state",))
+
+_CONN_VALUE = struct.Struct("<IHHHH16s16s4x3Q")
+_TOTALS_FMT = "<16Q"
+_U64 = struct.Struct("<Q")
+EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
+
+
+class TcpProbe(BpfProbe):
+    name = "tcp"
+    source = "tcp.bpf.c"
+    maps = ("tcp_conns", "tcp_totals", "dropped")
+    metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
+               RESETS_RECEIVED, STATE_ENTERED)
+    paths = (
+        AttachPath("raw_tracepoint",
+                   tuple(("raw_tracepoint", e, f) for e, f in zip(
+                       EVENTS, ("on_state", "on_retransmit", "on_send_reset", "on_receive_reset"))),
+                   needs_tracepoints(*EVENTS),
+                   "Linux >= 5.5 (tcp_send_reset and tcp_receive_reset tracepoints)"),
+    )
+
+    def offsets(self, btf: Btf) -> dict[str, int]:
+        return offset_defines(btf, {
+            "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
+            "SK_NUM_OFF": ("sock", "__sk_common.skc_num"),
+            "SK_DPORT_OFF": ("sock", "__sk_common.skc_dport"),
+            "SK_DADDR_OFF": ("sock", "__sk_common.skc_daddr"),
+            "SK_RCV_SADDR_OFF": ("sock", "__sk_common.skc_rcv_saddr"),
+            "SK_V6_DADDR_OFF": ("sock", "__sk_common.skc_v6_daddr"),
+            "SK_V6_RCV_SADDR_OFF": ("sock", "__sk_common.skc_v6_rcv_saddr"),
+            "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
+            "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
+            "NET_INUM_OFF": ("net", "ns.inum"),
+        })
+
+    def collect(self, snap: Snapshot) -> None:
+        keys, values, _ = self.read("tcp_conns")
+        for v in _CONN_VALUE.iter_unpack(values):
+            netns, family, lport, rport, _state, laddr, raddr, retrans, rst_sent, changes = v
+            labels = (endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns))
+            snap.add(CONN_RETRANSMITS, labels, retrans)
+            snap.add(CONN_RESETS_SENT, labels, rst_sent)
+            snap.add(CONN_STATE_CHANGES, labels, changes)
+        _, values, _ = self.read("tcp_totals")
+        totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]
+        snap.add(RETRANSMITS, (), totals[0])
+        snap.add(RESETS_SENT, (), totals[1])
+        snap.add(RESETS_RECEIVED, (), totals[2])
+        for state, name in sockdiag.TCP_STATES.items():
+            snap.add(STATE_ENTERED, (name.lower(),), totals[3 + state])
+        try:
+            for c in sockdiag.dump_tcp(1 << 1):  # ESTABLISHED only
+                local = endpoint(c.family, socket.inet_pton(c.family, c.local_address), c.local_port)
+                remote = endpoint(c.family, socket.inet_pton(c.family, c.remote_address), c.remote_port)
+                snap.add(CONN_RTT, (local, remote), c.srtt_us / 1e6)
+        except KernelError as e:
+            self.status.reason = f"no RTT: {e}"
+        _, values, _ = self.read("dropped")
+        self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
+

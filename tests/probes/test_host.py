@@ -1,0 +1,215 @@
+"""host: the probe's values against the kernel's own files, and against traffic and writes the test makes."""
+import mmap
+import os
+import socket
+import threading
+
+import psutil
+import pytest
+
+from drums.metrics import Snapshot
+from drums.probes import host
+from drums.probes.host import HostProbe
+
+MIB = 1 << 20
+
+
+@pytest.fixture
+def probe():
+    probe = HostProbe()
+    probe.start()
+    return probe
+
+
+def collect(probe: HostProbe) -> Snapshot:
+    snap = Snapshot()
+    probe.collect(snap)
+    return snap
+
+
+def meminfo() -> dict:
+    with open("/proc/meminfo") as f:
+        return {line.split(":")[0]: int(line.split()[1]) * 1024 for line in f}
+
+
+CPU_MODES = ("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal")  # /proc/stat's order
+
+
+def proc_stat_cpu() -> dict:
+    with open("/proc/stat") as f:
+        ticks = f.readline().split()[1:9]
+    return {mode: int(t) / os.sysconf("SC_CLK_TCK") for mode, t in zip(CPU_MODES, ticks)}
+
+
+def diskstats(device: str) -> tuple:
+    """(read bytes, written bytes, reads, writes) of a device; /proc/diskstats counts 512-byte sectors."""
+    with open("/proc/diskstats") as f:
+        fields = next(line.split() for line in f if line.split()[2] == device)
+    return int(fields[5]) * 512, int(fields[9]) * 512, int(fields[3]), int(fields[7])
+
+
+# Metric -> its column in a /proc/net/dev row: 8 receive columns, then the transmit ones.
+NET_COLUMNS = {
+    host.NET_RECEIVED_BYTES: 0,
+    host.NET_RECEIVED_PACKETS: 1,
+    host.NET_RECEIVE_ERRORS: 2,
+    host.NET_RECEIVE_DROPS: 3,
+    host.NET_SENT_BYTES: 8,
+    host.NET_SENT_PACKETS: 9,
+    host.NET_TRANSMIT_ERRORS: 10,
+    host.NET_TRANSMIT_DROPS: 11,
+}
+
+
+def net_dev() -> dict:
+    with open("/proc/net/dev") as f:
+        rows = [line.split(":") for line in f.readlines()[2:]]
+    return {nic.strip(): [int(x) for x in data.split()] for nic, data in rows}
+
+
+def loadavg() -> tuple:
+    with open("/proc/loadavg") as f:
+        return tuple(float(x) for x in f.read().split()[:3])
+
+
+def test_status_and_declared_metrics(probe):
+    assert probe.name == "host"
+    assert (probe.status.attached, probe.status.attach_type) == (True, "psutil")
+    snap = collect(probe)
+    assert probe.status.reason == ""
+    assert set(snap.series) == set(probe.metrics)
+    for metric, rows in snap.series.items():
+        assert all(len(labels) == len(metric.labels) for labels, _ in rows), metric.name
+        assert len({labels for labels, _ in rows}) == len(rows), f"duplicate series in {metric.name}"
+
+
+def test_memory_matches_meminfo(probe):
+    snap = collect(probe)
+    info = meminfo()
+    total = snap.values(host.MEMORY_TOTAL)[()]
+    assert total == info["MemTotal"] == psutil.virtual_memory().total
+    assert 0 < snap.values(host.MEMORY_AVAILABLE)[()] <= total
+    assert 0 < snap.values(host.MEMORY_USED)[()] < total
+    swap_total = snap.values(host.SWAP_TOTAL)[()]
+    assert swap_total == info["SwapTotal"]
+    assert 0 <= snap.values(host.SWAP_USED)[()] <= swap_total
+
+
+def test_cpu_seconds_lie_between_two_reads_of_proc_stat(probe):
+    before = proc_stat_cpu()
+    snap = collect(probe)
+    after = proc_stat_cpu()
+    seconds = {labels[0]: value for labels, value in snap.values(host.CPU_SECONDS).items()}
+    assert set(seconds) == set(CPU_MODES)  # guest and guest_nice are already inside user and nice
+    for mode, value in seconds.items():
+        assert before[mode] - 1e-6 <= value <= after[mode] + 1e-6, mode
+    assert seconds["idle"] > 0
+
+
+def test_network_lies_between_two_reads_of_proc_net_dev(probe):
+    before = net_dev()
+    snap = collect(probe)
+    after = net_dev()
+    assert {nic for nic, in snap.values(host.NET_SENT_BYTES)} == set(before)
+    for metric, column in NET_COLUMNS.items():
+        for (nic,), value in snap.values(metric).items():
+            assert before[nic][column] <= value <= after[nic][column], (metric.name, nic)
+
+
+def test_loopback_counts_bytes_sent_over_tcp(probe):
+    size = 4 * MIB
+    before = collect(probe)
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        out = socket.create_connection(server.getsockname())
+        conn, _ = server.accept()
+        with out, conn:
+            sender = threading.Thread(target=out.sendall, args=(b"x" * size,))
+            sender.start()
+            received = 0
+            while received < size:
+                received += len(conn.recv(MIB))
+            sender.join()
+    after = collect(probe)
+
+    def delta(metric):
+        return after.values(metric)[("lo",)] - before.values(metric)[("lo",)]
+
+    # Loopback counts each packet once as sent and once as received; headers and ACKs add a little.
+    for metric in (host.NET_SENT_BYTES, host.NET_RECEIVED_BYTES):
+        assert size <= delta(metric) <= size * 1.05, metric.name
+    for metric in (host.NET_SENT_PACKETS, host.NET_RECEIVED_PACKETS):
+        assert size // 65536 <= delta(metric) <= size // 100, metric.name  # lo's MTU is 65536
+    for metric in (
+        host.NET_RECEIVE_ERRORS, host.NET_TRANSMIT_ERRORS, host.NET_RECEIVE_DROPS, host.NET_TRANSMIT_DROPS
+    ):
+        assert delta(metric) == 0, metric.name
+
+
+def test_root_filesystem_and_no_pseudo_filesystems(probe):
+    snap = collect(probe)
+    sizes = snap.values(host.FS_SIZE)
+    with open("/proc/self/mounts") as f:
+        root_type = [line.split()[2] for line in f if line.split()[1] == "/"][-1]
+    st = os.statvfs("/")
+    assert sizes[("/", root_type)] == st.f_blocks * st.f_frsize
+    free = snap.values(host.FS_FREE)[("/", root_type)]
+    assert abs(free - st.f_bavail * st.f_frsize) < 64 * MIB
+    assert not {fstype for _, fstype in sizes} & {"proc", "sysfs", "tmpfs", "devtmpfs", "cgroup", "cgroup2"}
+    assert set(snap.values(host.FS_FREE)) == set(sizes)
+
+
+def test_disk_counts_direct_writes_and_reads(probe, tmp_path):
+    st = os.stat(tmp_path)
+    sys_dev = f"/sys/dev/block/{os.major(st.st_dev)}:{os.minor(st.st_dev)}"
+    if not os.path.exists(sys_dev):
+        pytest.skip(f"{tmp_path} is not on a block device")
+    device = os.path.basename(os.path.realpath(sys_dev))
+    size = 4 * MIB
+    before = collect(probe)
+
+    # O_DIRECT skips the page cache, so both transfers reach the device before the next collect.
+    fd = os.open(tmp_path / "data", os.O_RDWR | os.O_CREAT | os.O_DIRECT)
+    with mmap.mmap(-1, size) as buf:  # page aligned, as O_DIRECT requires
+        buf.write(b"x" * size)
+        try:
+            assert os.pwritev(fd, [buf], 0) == size
+            os.fsync(fd)
+            assert os.preadv(fd, [buf], 0) == size
+        finally:
+            os.close(fd)
+    proc_before = diskstats(device)
+    after = collect(probe)
+    proc_after = diskstats(device)
+
+    metrics = (host.DISK_READ_BYTES, host.DISK_WRITTEN_BYTES, host.DISK_READS, host.DISK_WRITES)
+    values = tuple(after.values(metric)[(device,)] for metric in metrics)
+    assert all(b <= v <= a for b, v, a in zip(proc_before, values, proc_after)), (proc_before, values)
+    assert values[0] - before.values(host.DISK_READ_BYTES)[(device,)] >= size
+    assert values[1] - before.values(host.DISK_WRITTEN_BYTES)[(device,)] >= size
+    assert values[2] > before.values(host.DISK_READS)[(device,)]
+    assert values[3] > before.values(host.DISK_WRITES)[(device,)]
+
+
+def test_load_matches_proc_loadavg(probe):
+    before = loadavg()
+    snap = collect(probe)
+    after = loadavg()
+    load = tuple(snap.values(host.LOAD)[(period,)] for period in ("1m", "5m", "15m"))
+    # getloadavg(3) has more precision than /proc/loadavg, which rounds to hundredths.
+    assert load == pytest.approx(before, abs=0.006) or load == pytest.approx(after, abs=0.006)
+
+
+def test_unreadable_sources_are_skipped_and_named(probe, tmp_path, monkeypatch):
+    # An empty directory as /proc: every /proc reader fails. Disk I/O falls back to /sys/block and the
+    # load average comes from getloadavg(3), so those two still report.
+    monkeypatch.setattr(psutil, "PROCFS_PATH", str(tmp_path))
+    snap = collect(probe)
+    assert {metric.name for metric in snap.series} == {
+        "drums_host_disk_read_bytes_total",
+        "drums_host_disk_written_bytes_total",
+        "drums_host_disk_reads_total",
+        "drums_host_disk_writes_total",
+        "drums_host_load",
+    }
+    failed = [part.split(":")[0] for part in probe.status.reason.split("; ")]
+    assert failed == ["cpu", "memory", "filesystems", "network"]
