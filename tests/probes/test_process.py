@@ -140,6 +140,7 @@ def test_only_chosen_pids_are_read(probe, child):
     probe.set_pids([os.getpid()])
     snap = collect(probe)
     assert set(snap.values(THREADS)) == {(str(os.getpid()), comm(os.getpid()))}
+    assert set(probe._procs) == {os.getpid()}  # PIDs no longer chosen leave the cache
 
 
 def test_missing_pid_yields_nothing(probe):

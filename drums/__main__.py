@@ -1,0 +1,5 @@
+import sys
+
+from drums.cli import main
+
+sys.exit(main())

@@ -1,0 +1,204 @@
+"""The host agent: starts the probes, and on each scrape joins what they read into one snapshot.
+
+A probe that cannot start degrades only itself, visibly (drums_probe_attached), unless the agent
+runs with strict=True. A probe that fails while collecting is marked failed for that collect and
+the others still export.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import re
+import resource
+import threading
+import time
+from dataclasses import dataclass, field
+
+from drums.budget import Budget
+from drums.errors import DrumsError, UsageError
+from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.probes.base import Probe
+from drums.proctable import ProcessTable
+
+log = logging.getLogger("drums")
+
+PROBE_ATTACHED = Metric("drums_probe_attached", GAUGE,
+                        "1 if the probe is collecting, by the attach type in use; 0 and type none if not",
+                        ("probe", "attach_type"))
+PROBE_DURATION = Metric("drums_probe_collect_duration_seconds", GAUGE,
+                        "How long the probe's last collect took", ("probe",))
+PROBE_SUCCESS = Metric("drums_probe_collect_success", GAUGE, "1 if the probe's last collect succeeded",
+                       ("probe",))
+PROBE_MAP_FILL = Metric("drums_probe_map_fill_ratio", GAUGE,
+                        "Used fraction of each of the probe's BPF hash maps", ("probe", "map"))
+PROBE_DROPPED = Metric("drums_probe_dropped_events_total", COUNTER,
+                       "Events the probe could not count because a BPF map was full", ("probe",))
+FOLDED = Metric("drums_budget_folded_entities", GAUGE,
+                "Entities over the cardinality budget, summed into the series labelled other", ("kind",))
+AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER, "CPU time used by the agent process")
+AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE, "Resident memory of the agent process")
+AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
+                   "Memory only the agent process uses (private pages: what stopping it would free)")
+SELF_METRICS = (PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
+                AGENT_CPU, AGENT_RSS, AGENT_USS)
+
+
+@dataclass
+class Selection:
+    """Which processes are monitored: all by default, else those matching any criterion."""
+
+    pids: set[int] = field(default_factory=set)
+    name_patterns: list[re.Pattern] = field(default_factory=list)
+    cgroups: list[str] = field(default_factory=list)
+
+    @classmethod
+    def parse(cls, pids=(), names=(), cgroups=()) -> "Selection":
+        sel = cls(set(pids), [], list(cgroups))
+        for p in pids:
+            if p <= 0:
+                raise UsageError(f"--pid {p}: a PID is a positive number")
+            if not os.path.exists(f"/proc/{p}"):
+                raise UsageError(f"--pid {p}: no such process")
+        for n in names:
+            try:
+                sel.name_patterns.append(re.compile(n))
+            except re.error as e:
+                raise UsageError(f"--process-name {n!r}: not a regular expression ({e})") from None
+        return sel
+
+    @property
+    def everything(self) -> bool:
+        return not (self.pids or self.name_patterns or self.cgroups)
+
+    def matches(self, pid: int, name: str) -> bool:
+        if pid in self.pids or any(p.search(name) for p in self.name_patterns):
+            return True
+        if self.cgroups:
+            try:
+                with open(f"/proc/{pid}/cgroup") as f:
+                    paths = [line.rstrip("\n").split(":", 2)[-1] for line in f]
+            except OSError:
+                return False
+            return any(path.startswith(c) for c in self.cgroups for path in paths)
+        return False
+
+
+def _memory() -> tuple[int, int]:
+    """(RSS, USS) of this process in bytes, from smaps_rollup."""
+    rss = uss = 0
+    try:
+        with open("/proc/self/smaps_rollup") as f:
+            for line in f:
+                key, _, rest = line.partition(":")
+                if key == "Rss":
+                    rss = int(rest.split()[0]) * 1024
+                elif key in ("Private_Clean", "Private_Dirty"):
+                    uss += int(rest.split()[0]) * 1024
+    except OSError:
+        pass
+    return rss, uss
+
+
+class Agent:
+    def __init__(self, probes: list[Probe], proctable: ProcessTable, selection: Selection | None = None,
+                 budget: Budget | None = None):
+        self.probes = probes
+        self.proctable = proctable
+        self.selection = selection or Selection()
+        self.budget = budget or Budget({})
+        self._lock = threading.Lock()
+        self._durations: dict[str, float] = {}
+        self._success: dict[str, int] = {}
+
+    def start(self, strict: bool = False) -> None:
+        for probe in self.probes:
+            try:
+                probe.start()
+            except DrumsError as e:
+                probe.status.attached = False
+                probe.status.reason = str(e)
+                if strict:
+                    raise DrumsError(f"probe {probe.name}: {e} (--strict)") from None
+                log.warning("probe %s not attached: %s", probe.name, e)
+
+    def stop(self, unload: bool) -> None:
+        for probe in self.probes:
+            if unload and hasattr(probe, "unload"):
+                probe.unload()
+            else:
+                probe.stop()
+
+    def collect(self) -> Snapshot:
+        """One consistent snapshot; concurrent scrapes wait for each other rather than interleave."""
+        with self._lock:
+            return self._collect()
+
+    def _collect(self) -> Snapshot:
+        self.proctable.refresh()
+        pids = self._process_pids()
+        for probe in self.probes:
+            if hasattr(probe, "set_pids"):
+                probe.set_pids(pids)
+        raw = Snapshot()
+        for probe in self.probes:
+            if not probe.status.attached:
+                continue
+            start = time.perf_counter()
+            try:
+                probe.collect(raw)
+                self._success[probe.name] = 1
+            except DrumsError as e:
+                self._success[probe.name] = 0
+                log.warning("probe %s failed to collect: %s", probe.name, e)
+            self._durations[probe.name] = time.perf_counter() - start
+        if not self.selection.everything:
+            raw = self._select(raw)
+        snap = self.budget.apply(raw)
+        self._self_metrics(snap)
+        return snap
+
+    def _chosen(self) -> set[int]:
+        pt = self.proctable
+        if self.selection.everything:
+            return pt.pids()
+        return {pid for pid in pt.pids() if self.selection.matches(pid, pt.name(pid))}
+
+    def _process_pids(self) -> list[int]:
+        """Processes to read from /proc, which costs per process: those the budget kept at the
+        last collect, then the newest others up to the budget."""
+        chosen = self._chosen()
+        limit = self.budget.limit("process")
+        kept = [int(pid) for (pid,) in self.budget.kept("process") if pid.isdigit() and int(pid) in chosen]
+        rest = sorted(chosen - set(kept), reverse=True)
+        return (kept + rest)[:limit]
+
+    def _select(self, snap: Snapshot) -> Snapshot:
+        chosen = self._chosen()
+        out = Snapshot()
+        for metric, rows in snap.series.items():
+            if "pid" not in metric.labels:
+                out.series[metric] = rows
+                continue
+            i = metric.labels.index("pid")
+            out.series[metric] = [(labels, v) for labels, v in rows if labels[i].isdigit() and int(labels[i]) in chosen]
+        return out
+
+    def _self_metrics(self, snap: Snapshot) -> None:
+        for probe in self.probes:
+            st = probe.status
+            snap.add(PROBE_ATTACHED, (probe.name, st.attach_type if st.attached else "none"), int(st.attached))
+            if not st.attached:
+                continue
+            snap.add(PROBE_DURATION, (probe.name,), self._durations.get(probe.name, 0.0))
+            snap.add(PROBE_SUCCESS, (probe.name,), self._success.get(probe.name, 0))
+            for name, fill in sorted(st.map_fill.items()):
+                snap.add(PROBE_MAP_FILL, (probe.name, name), fill)
+            if st.map_fill:
+                snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
+        for kind, count in self.budget.folded().items():
+            snap.add(FOLDED, (kind,), count)
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        snap.add(AGENT_CPU, (), usage.ru_utime + usage.ru_stime)
+        rss, uss = _memory()
+        snap.add(AGENT_RSS, (), rss)
+        snap.add(AGENT_USS, (), uss)

@@ -1,0 +1,142 @@
+"""The cardinality budget: own series for the most active processes, threads, sockets and TCP
+connections; everything else summed into one `other` series per metric.
+
+An entity that gets its own series keeps it while it lives (series that flap in and out confuse
+rate()), unless a folded one becomes more than twice as active. `other` never goes backwards:
+when a folded entity leaves it (it ends, or gets its own series), its last values stay in a
+baseline.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Histogram, Metric, Snapshot
+
+# Labels that split an entity's series (they survive folding); every other label names the entity.
+DIMENSIONS = {"protocol", "kind"}
+OTHER = "other"
+
+# Entity kinds: the labels that identify one, and the counters that rank them by activity.
+KINDS = {
+    "socket": (("inode",), ("drums_socket_sent_bytes_total", "drums_socket_received_bytes_total")),
+    "thread": (("pid", "tid"), ("drums_thread_cpu_seconds_total",)),
+    "process": (("pid",), ("drums_process_cpu_seconds_total", "drums_process_socket_sent_bytes_total",
+                           "drums_process_socket_received_bytes_total")),
+    "connection": (("local", "remote"), ("drums_tcp_connection_retransmits_total",
+                                         "drums_tcp_connection_state_changes_total")),
+}
+
+
+def kind_of(metric: Metric) -> str | None:
+    for kind, (ident, _) in KINDS.items():
+        if all(label in metric.labels for label in ident):
+            return kind
+    return None
+
+
+@dataclass
+class _KindState:
+    limit: int
+    kept: set = field(default_factory=set)
+    last_score: dict = field(default_factory=dict)  # entity -> its ranking total at the last collect
+    folded_last: dict = field(default_factory=dict)  # entity -> {(metric, folded labels): value}
+    baseline: dict = field(default_factory=dict)  # (metric, folded labels) -> value
+    folded_now: int = 0
+
+
+def _add(a, b):
+    if isinstance(a, Histogram):
+        return Histogram([x + y for x, y in zip(a.cumulative, b.cumulative)], a.sum + b.sum, a.count + b.count)
+    return a + b
+
+
+class Budget:
+    def __init__(self, limits: dict[str, int]):
+        self.kinds = {kind: _KindState(limits.get(kind, 0)) for kind in KINDS}
+
+    def folded(self) -> dict[str, int]:
+        """Entities of each kind whose series are currently summed into `other`."""
+        return {kind: st.folded_now for kind, st in self.kinds.items()}
+
+    def kept(self, kind: str) -> set[tuple]:
+        """Entities of a kind that had their own series at the last collect."""
+        return set(self.kinds[kind].kept)
+
+    def limit(self, kind: str) -> int:
+        return self.kinds[kind].limit
+
+    def apply(self, snap: Snapshot) -> Snapshot:
+        out = Snapshot()
+        by_kind: dict[str, list[Metric]] = {}
+        for metric in snap.series:
+            kind = kind_of(metric)
+            if kind is None:
+                out.series[metric] = snap.series[metric]
+            else:
+                by_kind.setdefault(kind, []).append(metric)
+        for kind, metrics in by_kind.items():
+            self._apply_kind(kind, metrics, snap, out)
+        return out
+
+    def _apply_kind(self, kind: str, metrics: list[Metric], snap: Snapshot, out: Snapshot) -> None:
+        st = self.kinds[kind]
+        ident, rank_names = KINDS[kind]
+        scores: dict[tuple, float] = {}
+        for metric in metrics:
+            idx = [metric.labels.index(label) for label in ident]
+            ranking = metric.name in rank_names
+            for labels, value in snap.series[metric]:
+                entity = tuple(labels[i] for i in idx)
+                scores[entity] = scores.get(entity, 0.0) + (value if ranking else 0.0)
+        self._choose(st, scores)
+
+        folded_now: dict[tuple, dict] = {}
+        sums: dict[tuple, object] = {}
+        for metric in metrics:
+            idx = [metric.labels.index(label) for label in ident]
+            keep_idx = [i for i, label in enumerate(metric.labels) if label in DIMENSIONS]
+            for labels, value in snap.series[metric]:
+                entity = tuple(labels[i] for i in idx)
+                if entity in st.kept:
+                    out.add(metric, labels, value)
+                    continue
+                other = tuple(labels[i] if i in keep_idx else OTHER for i in range(len(labels)))
+                key = (metric, other)
+                sums[key] = value if key not in sums else _add(sums[key], value)
+                if metric.kind in (COUNTER, HISTOGRAM):
+                    folded_now.setdefault(entity, {})[key] = value
+        # Folded entities that left (ended or promoted) leave their last values in the baseline.
+        for entity, values in st.folded_last.items():
+            if entity not in folded_now:
+                for key, value in values.items():
+                    st.baseline[key] = _add(st.baseline[key], value) if key in st.baseline else value
+        st.folded_last = folded_now
+        st.folded_now = len({e for e in scores if e not in st.kept})
+        for key in set(sums) | set(st.baseline):
+            metric, labels = key
+            if metric.kind == GAUGE:
+                if key in sums:
+                    out.add(metric, labels, sums[key])
+                continue
+            value = sums.get(key)
+            base = st.baseline.get(key)
+            out.add(metric, labels, value if base is None else base if value is None else _add(base, value))
+
+    @staticmethod
+    def _choose(st: _KindState, totals: dict[tuple, float]) -> None:
+        activity = {e: max(0.0, total - st.last_score.get(e, total)) for e, total in totals.items()}
+        st.last_score = totals
+        st.kept &= set(totals)  # entities that ended free their slots
+        candidates = sorted((e for e in totals if e not in st.kept), key=lambda e: -activity[e])
+        for e in candidates:
+            if len(st.kept) < st.limit:
+                st.kept.add(e)
+                continue
+            if not st.kept:
+                break
+            weakest = min(st.kept, key=lambda k: activity[k])
+            if activity[e] > 2 * activity[weakest] and activity[e] > 0:
+                st.kept.discard(weakest)
+                st.kept.add(e)
+            else:
+                break  # candidates are sorted: no later one can do better

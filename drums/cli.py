@@ -1,0 +1,133 @@
+"""The `drums` command: agent, doctor, unload. Errors become one line on stderr and exit code 2."""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+
+from drums.errors import DrumsError, UsageError
+
+log = logging.getLogger("drums")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not argparse's usage block
+        raise UsageError(f"{message} (see {self.prog} --help)")
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is negative")
+    return value
+
+
+def _port(text: str) -> int:
+    value = _positive(text)
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"{value} is not a port (0-65535)")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from drums.exporters.prometheus import DEFAULT_PORT
+    from drums.probes.registry import PROBES
+
+    parser = _Parser(prog="drums", description="Middleware-aware monitoring for distributed robots.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    agent = sub.add_parser("agent", help="run the host agent and serve Prometheus metrics")
+    agent.add_argument("--address", default="127.0.0.1",
+                       help="address to serve /metrics on (default 127.0.0.1; 0.0.0.0 for Prometheus "
+                            "on another host)")
+    agent.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"port for /metrics (default {DEFAULT_PORT})")
+    agent.add_argument("--probe", action="append", choices=PROBES, default=None,
+                       help="run only these probes (repeatable; default all)")
+    agent.add_argument("--no-probe", action="append", choices=PROBES, default=[],
+                       help="do not run this probe (repeatable)")
+    agent.add_argument("--strict", action="store_true",
+                       help="refuse to start unless every probe attaches with eBPF")
+    agent.add_argument("--keep-loaded", action="store_true",
+                       help="leave the BPF programs pinned on exit, so a restart needs no compile")
+    agent.add_argument("--pid", type=_positive, action="append", default=[], help="monitor this process")
+    agent.add_argument("--process-name", action="append", default=[],
+                       help="monitor processes whose name matches this regular expression")
+    agent.add_argument("--cgroup", action="append", default=[],
+                       help="monitor processes in this cgroup (path prefix, e.g. /system.slice)")
+    for kind, default in (("processes", 100), ("threads", 200), ("sockets", 500), ("connections", 500)):
+        agent.add_argument(f"--max-{kind}", type=_positive, default=default,
+                           help=f"{kind} with series of their own; the rest are summed as other "
+                                f"(default {default})")
+    agent.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+
+    sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
+    sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded")
+    return parser
+
+
+def run_agent(args) -> int:
+    from drums.agent import Agent, Selection
+    from drums.budget import Budget
+    from drums.exporters.prometheus import MetricsServer
+    from drums.kernel.features import Features
+    from drums.probes.registry import PROBES, build
+    from drums.proctable import ProcessTable
+
+    logging.basicConfig(level=args.log_level.upper(), format="drums: %(message)s")
+    selection = Selection.parse(args.pid, args.process_name, args.cgroup)
+    names = [p for p in (args.probe or PROBES) if p not in args.no_probe]
+    proctable = ProcessTable()
+    probes = build(Features(), proctable, names)
+    budget = Budget({"process": args.max_processes, "thread": args.max_threads,
+                     "socket": args.max_sockets, "connection": args.max_connections})
+    agent = Agent(probes, proctable, selection, budget)
+    server = MetricsServer(agent.collect, args.address, args.port)
+    start = time.perf_counter()
+    agent.start(strict=args.strict)
+    server.start()
+    attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in probes if p.status.attached)
+    log.info("serving http://%s:%d/metrics after %.2f s; probes: %s", args.address, server.port,
+             time.perf_counter() - start, attached or "none")
+
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    done.wait()
+    server.stop()
+    agent.stop(unload=not args.keep_loaded)
+    return 0
+
+
+def run_unload(_args) -> int:
+    import shutil
+
+    from drums.kernel.bpffs import PIN_ROOT
+    shutil.rmtree(PIN_ROOT, ignore_errors=True)
+    print(f"removed {PIN_ROOT}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        if args.command == "agent":
+            return run_agent(args)
+        if args.command == "doctor":
+            from drums.doctor import run
+            return run()
+        return run_unload(args)
+    except DrumsError as e:
+        print(f"drums: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

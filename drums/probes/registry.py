@@ -1,0 +1,39 @@
+"""Every probe by name, in the order the agent starts them."""
+from __future__ import annotations
+
+from drums.kernel.features import Features
+from drums.probes.base import Probe
+from drums.proctable import ProcessTable
+
+PROBES = ("sockets", "sched", "tcp", "host", "process")
+
+
+def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Probe]:
+    from drums.probes.host import HostProbe
+    from drums.probes.process import ProcessProbe
+    from drums.probes.sched import SchedProbe
+    from drums.probes.sockets import SocketsProbe
+    from drums.probes.tcp import TcpProbe
+
+    makers = {
+        "sockets": lambda: SocketsProbe(features, proctable),
+        "sched": lambda: SchedProbe(features, proctable),
+        "tcp": lambda: TcpProbe(features),
+        "host": HostProbe,
+        "process": ProcessProbe,
+    }
+    return [makers[name]() for name in PROBES if name in names]
+
+
+def all_metrics():
+    """Every metric any probe or the agent declares, for the README table."""
+    from drums.agent import SELF_METRICS
+    from drums.probes.host import HostProbe
+    from drums.probes.process import ProcessProbe
+    from drums.probes.sched import SchedProbe
+    from drums.probes.sockets import SocketsProbe
+    from drums.probes.tcp import TcpProbe
+
+    for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe):
+        yield cls.name, cls.metrics
+    yield "agent", SELF_METRICS
