@@ -100,6 +100,9 @@ def can_load_fentry(headers: str | None) -> bool:
     """Whether the kernel accepts a BPF trampoline (some refuse them with EPERM)."""
     if headers:
         os.environ["BCC_KERNEL_SOURCE"] = headers
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)  # libbcc prints the kernel's refusal itself; the answer is all we need
     try:
         from bcc import BPF
         b = BPF(text=b"KFUNC_PROBE(do_nanosleep) { return 0; }")
@@ -107,6 +110,10 @@ def can_load_fentry(headers: str | None) -> bool:
         return True
     except Exception:
         return False
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def main() -> int:

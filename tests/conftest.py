@@ -1,0 +1,72 @@
+"""Shared fixtures: the real BPF probes, loaded once per test session into their own pin folder
+so that a developer's running agent is left alone."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from drums.kernel.features import Features
+from drums.metrics import Snapshot
+from drums.proctable import ProcessTable
+
+TEST_PIN_ROOT = "/sys/fs/bpf/drums_test"
+
+
+@pytest.fixture(scope="session")
+def features():
+    return Features()
+
+
+@pytest.fixture(scope="session")
+def proctable():
+    return ProcessTable()
+
+
+def _started(probe):
+    probe.start()
+    yield probe
+    probe.unload()
+
+
+@pytest.fixture(scope="session")
+def sockets_probe(features, proctable):
+    from drums.probes.sockets import SocketsProbe
+    yield from _started(SocketsProbe(features, proctable, pin_root=TEST_PIN_ROOT))
+
+
+@pytest.fixture(scope="session")
+def sched_probe(features, proctable):
+    from drums.probes.sched import SchedProbe
+    yield from _started(SchedProbe(features, proctable, pin_root=TEST_PIN_ROOT))
+
+
+@pytest.fixture(scope="session")
+def tcp_probe(features, proctable):
+    from drums.probes.tcp import TcpProbe
+    yield from _started(TcpProbe(features, pin_root=TEST_PIN_ROOT))
+
+
+@pytest.fixture
+def collect(proctable):
+    """collect(probe) -> Snapshot, as the agent would take it."""
+    def take(probe) -> Snapshot:
+        proctable.refresh()
+        snap = Snapshot()
+        probe.collect(snap)
+        return snap
+    return take
+
+
+def series(snap: Snapshot, metric_name: str, **labels) -> dict[tuple, object]:
+    """The rows of one metric whose labels match, keyed by their full label tuple."""
+    for metric, rows in snap.series.items():
+        if metric.name == metric_name:
+            idx = {k: metric.labels.index(k) for k in labels}
+            return {lv: v for lv, v in rows if all(lv[i] == str(labels[k]) for k, i in idx.items())}
+    return {}
+
+
+def pytest_sessionstart(session):
+    if os.geteuid() != 0:
+        raise pytest.UsageError("Drums tests load BPF programs: run them as root (make test)")

@@ -1,0 +1,62 @@
+"""`drums doctor` against this machine, and the attach-path choice against imagined kernels."""
+import subprocess
+import sys
+
+from drums.kernel.features import Features
+from drums.probes.bpf import choose_path
+from drums.probes.sockets import SocketsProbe
+
+
+class Kernel(Features):
+    """A kernel described by hand: which tracepoints, kprobes and fentry it has."""
+
+    def __init__(self, tracepoints=(), kprobes=False, fentry=False):
+        super().__init__()
+        self._tracepoints = set(tracepoints)
+        self.__dict__["kprobes"] = kprobes
+        self.__dict__["fentry"] = fentry
+
+    def tracepoint(self, event):
+        return event in self._tracepoints
+
+
+LIFECYCLE = {"inet_sock_set_state", "sched_process_exit", "sched_process_free"}
+LINUX_6_6 = LIFECYCLE | {"sock_send_length", "sock_recv_length"}
+
+
+def chosen(kernel):
+    path, reasons = choose_path(SocketsProbe.paths, kernel)
+    return (path.name if path else None), reasons
+
+
+def test_new_kernel_uses_socket_tracepoints_even_with_kprobes_and_fentry():
+    assert chosen(Kernel(LINUX_6_6, kprobes=True, fentry=True)) == ("raw_tracepoint", [])
+
+
+def test_ubuntu_22_04_uses_fentry_then_kprobes():
+    name, reasons = chosen(Kernel(LIFECYCLE, kprobes=True, fentry=True))
+    assert name == "fentry"
+    assert reasons == ["raw_tracepoint: no tracepoint sock_send_length, sock_recv_length"]
+    assert chosen(Kernel(LIFECYCLE, kprobes=True, fentry=False))[0] == "kprobe"
+
+
+def test_no_path_says_why_for_each():
+    name, reasons = chosen(Kernel(LIFECYCLE))
+    assert name is None
+    assert [r.split(":")[0] for r in reasons] == ["raw_tracepoint", "fentry", "kprobe"]
+    assert "CONFIG_KPROBES" in reasons[2]
+
+
+def test_doctor_reports_this_machine_as_platform_md_says():
+    out = subprocess.run([sys.executable, "-m", "drums", "doctor"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stderr == ""
+    lines = out.stdout.splitlines()
+    line = {l.split()[1]: l for l in lines if l[:3] in ("ok ", "NO ")}
+    # ../shared/PLATFORM.md: kprobes NOT available, fentry refused with EPERM, tracepoints work.
+    assert line["kprobes"].startswith("NO ") and "CONFIG_KPROBES" in line["kprobes"]
+    assert line["fentry"].startswith("NO ") and "refused" in line["fentry"]
+    assert line["tracepoints"].startswith("ok ")
+    assert line["BTF"].startswith("ok ")
+    for probe in ("sockets", "sched", "tcp"):
+        assert any(l.strip().startswith(f"probe {probe}") and "will use raw_tracepoint" in l for l in lines)
