@@ -1,0 +1,135 @@
+"""The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+PIN_ROOT = "/sys/fs/bpf/drums"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def agent():
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}/metrics"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            urllib.request.urlopen(url, timeout=5).read()
+            break
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"agent did not serve: {proc.stdout.read()}")
+            time.sleep(0.1)
+    yield url
+    proc.terminate()
+    assert proc.wait(timeout=10) == 0
+    log = proc.stdout.read()
+    assert "Traceback" not in log, log
+    assert not os.path.exists(PIN_ROOT) or not os.listdir(PIN_ROOT), "pins left behind after shutdown"
+
+
+def scrape(url: str) -> str:
+    return urllib.request.urlopen(url, timeout=10).read().decode()
+
+
+def samples(text: str, name: str) -> dict[tuple, float]:
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if s.name == name:
+                out[tuple(sorted(s.labels.items()))] = s.value
+    return out
+
+
+def test_promtool_finds_nothing_in_live_metrics(agent):
+    text = scrape(agent)
+    result = subprocess.run(["promtool", "check", "metrics"], input=text, capture_output=True, text=True)
+    assert result.returncode == 0 and result.stdout == "" and result.stderr == "", result.stdout + result.stderr
+
+
+def test_every_probe_attached_with_its_attach_type(agent):
+    attached = samples(scrape(agent), "drums_probe_attached")
+    got = {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in attached.items()}
+    assert got == {"sockets": ("raw_tracepoint", 1), "sched": ("raw_tracepoint", 1), "tcp": ("raw_tracepoint", 1),
+                   "host": ("psutil", 1), "process": ("psutil", 1)}
+
+
+def test_exited_process_series_gone_within_two_scrapes(agent):
+    child = subprocess.Popen([sys.executable, "-c", "import sys, time\n"
+                              "t = time.time()\nwhile time.time() - t < 0.3: pass\nsys.stdin.read()"],
+                             stdin=subprocess.PIPE)
+    pid = str(child.pid)
+    time.sleep(0.5)
+    cpu = samples(scrape(agent), "drums_process_cpu_seconds_total")
+    assert any(dict(k)["pid"] == pid and v >= 0.25 for k, v in cpu.items())
+    child.stdin.close()
+    child.wait()
+    gone_after = None
+    for n in (1, 2):
+        text = scrape(agent)
+        if f'pid="{pid}"' not in text:
+            gone_after = n
+            break
+    assert gone_after is not None, "exited process still exported after two scrapes"
+
+
+def test_unknown_path_is_404_and_agent_keeps_serving(agent):
+    base = agent.rsplit("/", 1)[0]
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(base + "/nope", timeout=5)
+    assert e.value.code == 404
+    assert "drums_agent_cpu_seconds_total" in scrape(agent)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["agent", "--port", "70000"], "--port: 70000 is not a port"),
+    (["agent", "--port", "http"], "'http' is not a whole number"),
+    (["agent", "--bogus"], "unrecognized arguments: --bogus"),
+    (["agent", "--pid", "2147483646"], "--pid 2147483646: no such process"),
+    (["agent", "--process-name", "(["], "not a regular expression"),
+    (["agent", "--no-probe", "nope"], "invalid choice: 'nope'"),
+    (["frobnicate"], "invalid choice: 'frobnicate'"),
+])
+def test_bad_input_is_one_line_and_exit_2(argv, message):
+    out = subprocess.run([sys.executable, "-m", "drums", *argv], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2
+    assert out.stdout == ""
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("drums: ") and message in lines[0], out.stderr
+
+
+def test_port_in_use_is_one_line():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        out = subprocess.run([sys.executable, "-m", "drums", "agent", "--port", str(port), "--probe", "host"],
+                             capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2
+    assert out.stderr.strip() == f"drums: cannot listen on 127.0.0.1:{port}: Address already in use"
+
+
+def test_strict_refuses_when_a_probe_cannot_attach(tmp_path):
+    # Hide kernel BTF from the agent's view by running it without privileges: BPF probes cannot attach.
+    nobody = shutil.which("setpriv")
+    assert nobody, "setpriv (util-linux) is needed for this test"
+    out = subprocess.run([nobody, "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-m",
+                          "drums", "agent", "--port", "0", "--strict"],
+                         capture_output=True, text=True, timeout=30, cwd=tmp_path)
+    assert out.returncode == 2
+    assert out.stderr.startswith("drums: probe sockets: not root") and "(--strict)" in out.stderr
