@@ -111,15 +111,29 @@ class Agent:
         self._success: dict[str, int] = {}
 
     def start(self, strict: bool = False) -> None:
-        for probe in self.probes:
+        for i, probe in enumerate(self.probes):
             try:
                 probe.start()
+                continue
             except DrumsError as e:
                 probe.status.attached = False
                 probe.status.reason = str(e)
                 if strict:
                     raise DrumsError(f"probe {probe.name}: {e} (--strict)") from None
-                log.warning("probe %s not attached: %s", probe.name, e)
+            if probe.fallback is None:
+                log.warning("probe %s not attached: %s", probe.name, probe.status.reason)
+                continue
+            replacement = probe.fallback()
+            try:
+                replacement.start()
+            except DrumsError as e:
+                log.warning("probe %s not attached: %s; fallback failed too: %s", probe.name,
+                            probe.status.reason, e)
+                continue
+            log.warning("probe %s uses %s: %s. Missing: %s", probe.name, replacement.status.attach_type,
+                        probe.status.reason, replacement.status.reason)
+            replacement.status.reason = f"{probe.status.reason}; missing: {replacement.status.reason}"
+            self.probes[i] = replacement
 
     def stop(self, unload: bool) -> None:
         for probe in self.probes:

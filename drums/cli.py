@@ -83,13 +83,15 @@ def run_agent(args) -> int:
     selection = Selection.parse(args.pid, args.process_name, args.cgroup)
     names = [p for p in (args.probe or PROBES) if p not in args.no_probe]
     proctable = ProcessTable()
-    probes = build(Features(), proctable, names)
+    features = Features()
+    probes = build(features, proctable, names)
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
     agent = Agent(probes, proctable, selection, budget)
     server = MetricsServer(agent.collect, args.address, args.port)
     start = time.perf_counter()
     agent.start(strict=args.strict)
+    features.release_btf()
     server.start()
     attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in probes if p.status.attached)
     log.info("serving http://%s:%d/metrics after %.2f s; probes: %s", args.address, server.port,

@@ -32,11 +32,20 @@ class Features:
         return platform.release()
 
     @cached_property
+    def has_btf(self) -> bool:
+        return os.path.exists(self._path(VMLINUX_BTF))
+
+    @cached_property
     def btf(self) -> Btf | None:
+        """The parsed BTF (about 20 MB in memory): only loading a probe needs it."""
         try:
             return Btf.load(self._path(VMLINUX_BTF))
         except KernelError:
             return None
+
+    def release_btf(self) -> None:
+        """Drop the parsed BTF once the probes are loaded; the agent keeps running without it."""
+        self.__dict__.pop("btf", None)
 
     @cached_property
     def privileged(self) -> bool:
@@ -71,12 +80,15 @@ class Features:
         return os.path.isdir(self._path("/sys/bus/event_source/devices/kprobe"))
 
     def tracepoint(self, event: str) -> bool:
-        """Whether a raw tracepoint exists: from BTF when present, else from tracefs."""
-        if self.btf is not None:
-            return self.btf.tracepoint_args(event) is not None
-        category_events = self._path(f"{TRACEFS}/events")
-        return any(os.path.isdir(os.path.join(category_events, c, event))
-                   for c in _listdir(category_events))
+        """Whether a raw tracepoint exists: from tracefs when mounted (cheap), else from BTF."""
+        if self.tracefs:
+            return event in self._tracefs_events
+        return self.btf is not None and self.btf.tracepoint_args(event) is not None
+
+    @cached_property
+    def _tracefs_events(self) -> set[str]:
+        root = self._path(f"{TRACEFS}/events")
+        return {event for category in _listdir(root) for event in _listdir(os.path.join(root, category))}
 
     @cached_property
     def fentry(self) -> bool:

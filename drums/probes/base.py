@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 from drums.metrics import Metric, Snapshot
 
@@ -20,6 +21,7 @@ class Probe:
 
     name = ""
     metrics: tuple[Metric, ...] = ()
+    fallback: Callable[[], "Probe"] | None = None  # what to run instead when start() fails
 
     def __init__(self):
         self.status = ProbeStatus()

@@ -65,7 +65,7 @@ def common_requirements(features: Features) -> list[str]:
         problems.append("not root (BPF needs CAP_BPF and CAP_PERFMON)")
     if not features.bpffs:
         problems.append("bpffs is not mounted at /sys/fs/bpf (mount -t bpf bpf /sys/fs/bpf)")
-    if features.btf is None:
+    if not features.has_btf:
         problems.append("no kernel BTF at /sys/kernel/btf/vmlinux (CONFIG_DEBUG_INFO_BTF)")
     return problems
 

@@ -11,7 +11,9 @@ PROBES = ("sockets", "sched", "tcp", "host", "process")
 def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Probe]:
     from drums.probes.host import HostProbe
     from drums.probes.process import ProcessProbe
+    from drums.probes.procsched import ProcSchedProbe
     from drums.probes.sched import SchedProbe
+    from drums.probes.sockdiag_sockets import SockDiagSocketsProbe
     from drums.probes.sockets import SocketsProbe
     from drums.probes.tcp import TcpProbe
 
@@ -22,7 +24,18 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
         "host": HostProbe,
         "process": ProcessProbe,
     }
-    return [makers[name]() for name in PROBES if name in names]
+    # What runs where eBPF cannot (not root, no bcc, old kernel): the kernel's own counters.
+    fallbacks = {
+        "sockets": lambda: SockDiagSocketsProbe(proctable),
+        "sched": lambda: ProcSchedProbe(proctable),
+    }
+    probes = []
+    for name in PROBES:
+        if name in names:
+            probe = makers[name]()
+            probe.fallback = fallbacks.get(name)
+            probes.append(probe)
+    return probes
 
 
 def all_metrics():

@@ -1,0 +1,262 @@
+"""What the agent itself costs on a busy host: 1,000 processes and 10,000 open sockets, scraped once
+a second. Beside it, the paper's approach: a process that polls the same processes with psutil
+each second (cpu_times, memory_info, io_counters, num_threads, and net_connections for the
+sockets). Both are measured alike, one after the other: CPU from /proc/<pid>/stat over the window,
+USS from smaps_rollup at its end. Goals: at most 0.5% of one core, 30 MB USS, /metrics in 20 ms.
+
+    .venv/bin/python bench/agent_cost.py [--seconds 30] [--processes 1000] [--sockets 10000]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shlex
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+from common import (Agent, BenchError, cpu_seconds, drums_unload, fetch, fmt, main_wrapper, median,
+                    memory, percentile, print_table, progress, ratio, require_root, samples, series_count,
+                    terminate, uss_bytes)
+
+GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 20}
+HOLDERS = 4  # processes that hold the sockets
+
+# Holds N loopback TCP connections (2N sockets). On "send" each socket sends a few bytes and reads
+# its peer's; on end of input it exits.
+HOLDER = textwrap.dedent("""
+    import socket, sys
+    conns = int(sys.argv[1])
+    srv = socket.socket(); srv.bind(("127.0.0.1", 0)); srv.listen(1024)
+    pairs = []
+    for _ in range(conns):
+        c = socket.create_connection(srv.getsockname()); s, _ = srv.accept()
+        pairs.append((c, s))
+    print("ready", flush=True)
+    for line in sys.stdin:
+        if line.strip() == "send":
+            for c, s in pairs:
+                c.sendall(b"ping"); s.sendall(b"pong")
+            for c, s in pairs:
+                s.recv(4); c.recv(4)
+            print("sent", flush=True)
+""")
+
+
+def raise_fd_limit(need: int) -> None:
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = max(soft, need)
+    if want > hard:
+        hard = want  # root may raise the hard limit
+    resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
+
+
+class Crowd:
+    """The host's load: sleeping processes and socket-holding processes, killed on close."""
+
+    def __init__(self, processes: int, sockets: int):
+        self.sleepers: list[subprocess.Popen] = []
+        self.holders: list[subprocess.Popen] = []
+        self.processes, self.sockets = processes, sockets
+
+    def start(self) -> None:
+        per_holder = -(-self.sockets // (2 * HOLDERS))  # connections per holder, rounded up
+        raise_fd_limit(2 * per_holder + 256)
+        for _ in range(HOLDERS):
+            self.holders.append(subprocess.Popen([sys.executable, "-c", HOLDER, str(per_holder)],
+                                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True))
+        for _ in range(max(0, self.processes - HOLDERS)):
+            self.sleepers.append(subprocess.Popen(["sleep", "3600"], stdin=subprocess.DEVNULL,
+                                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        for h in self.holders:
+            if h.stdout.readline().strip() != "ready":
+                raise BenchError("a socket holder failed to open its connections")
+
+    def send(self) -> None:
+        for h in self.holders:
+            h.stdin.write("send\n")
+            h.stdin.flush()
+        for h in self.holders:
+            if h.stdout.readline().strip() != "sent":
+                raise BenchError("a socket holder failed to send")
+
+    def pids(self) -> list[int]:
+        return [p.pid for p in self.sleepers + self.holders]
+
+    def close(self) -> None:
+        for h in self.holders:
+            try:
+                h.stdin.close()
+            except OSError:
+                pass
+        for p in self.sleepers:
+            p.kill()
+        for p in self.sleepers:
+            p.wait()
+        for h in self.holders:
+            terminate(h, timeout=5)
+
+
+def measure_agent(seconds: float, interval: float, agent_args: list[str], on_ready) -> dict:
+    agent = Agent(extra=agent_args).start()
+    try:
+        agent.wait_ready()
+        on_ready()
+        for _ in range(2):  # the first collects read the names of every new process
+            fetch(agent.url, timeout=30)
+            time.sleep(interval)
+        latencies, collect, sizes, per_probe = [], [], [], {}
+        cpu0, t0 = cpu_seconds(agent.proc.pid), time.monotonic()
+        next_at = t0
+        while time.monotonic() - t0 < seconds:
+            start = time.perf_counter()
+            status, body = fetch(agent.url, timeout=30)
+            latencies.append((time.perf_counter() - start) * 1000)
+            if status != 200:
+                raise BenchError(f"/metrics answered {status}")
+            durations = samples(body, "drums_probe_collect_duration_seconds")
+            collect.append(sum(durations.values()) * 1000)
+            for labels, v in durations.items():
+                per_probe.setdefault(labels.split('"')[1], []).append(v * 1000)
+            sizes.append((len(body), series_count(body)))
+            next_at += interval
+            time.sleep(max(0.0, next_at - time.monotonic()))
+        cpu1, t1 = cpu_seconds(agent.proc.pid), time.monotonic()
+        mem = memory(agent.proc.pid)
+        return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": uss_bytes(agent.proc.pid), "rss": mem.get("Rss", 0),
+                "latencies": latencies, "collect": collect, "sizes": sizes[-1],
+                "per_probe": {k: median(v) for k, v in per_probe.items()},
+                "sockets": _socket_series(body)}
+    finally:
+        agent.stop()
+
+
+def _socket_series(body: bytes) -> int:
+    return len(samples(body, "drums_socket_sent_bytes_total"))
+
+
+def measure_poller(seconds: float, interval: float, pids: list[int], pid_file: str) -> dict:
+    with open(pid_file, "w") as f:
+        f.write("\n".join(map(str, pids)))
+    proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--poller", pid_file,
+                             "--interval", str(interval)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        if proc.stdout.readline().strip() != "ready":
+            raise BenchError("the psutil poller did not start")
+        time.sleep(2 * interval)  # as for the agent: the first cycles are not measured
+        cpu0, t0 = cpu_seconds(proc.pid), time.monotonic()
+        time.sleep(seconds)
+        cpu1, t1 = cpu_seconds(proc.pid), time.monotonic()
+        uss, rss = uss_bytes(proc.pid), memory(proc.pid).get("Rss", 0)
+        proc.stdin.close()
+        cycles = json.loads(proc.stdout.readline())
+        proc.wait(30)
+    finally:
+        terminate(proc)
+    measured = cycles[2:] or cycles
+    return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": uss, "rss": rss, "cycles": measured}
+
+
+def poller(pid_file: str, interval: float) -> None:
+    """The peer: poll each process and the socket table with psutil every interval, until stdin
+    closes; then print the duration of each cycle in ms."""
+    import psutil
+
+    with open(pid_file) as f:
+        procs = [psutil.Process(int(line)) for line in f if line.strip()]
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    print("ready", flush=True)
+    cycles = []
+    next_at = time.monotonic()
+    while not stop.is_set():
+        start = time.perf_counter()
+        for p in procs:
+            try:
+                with p.oneshot():
+                    p.cpu_times(), p.memory_info(), p.io_counters(), p.num_threads()
+            except psutil.Error:
+                pass
+        psutil.net_connections(kind="inet")
+        cycles.append((time.perf_counter() - start) * 1000)
+        next_at += interval
+        stop.wait(max(0.0, next_at - time.monotonic()))
+    print(json.dumps(cycles), flush=True)
+
+
+def run(args) -> None:
+    require_root()
+    crowd = Crowd(args.processes, args.sockets)
+    pid_file = f"/tmp/drums-bench-pids-{os.getpid()}"
+    try:
+        progress(f"starting {args.processes} processes holding {args.sockets} sockets")
+        crowd.start()
+        drums_unload()
+        progress(f"agent: {args.seconds} s at one scrape per {args.interval:g} s")
+        # BPF counters exist only for traffic seen while the programs are attached: the holders
+        # send once the agent is ready.
+        ours = measure_agent(args.seconds, args.interval, shlex.split(args.agent_args), on_ready=crowd.send)
+        progress(f"psutil poller: {args.seconds} s")
+        peer = measure_poller(args.seconds, args.interval, crowd.pids(), pid_file)
+    finally:
+        crowd.close()
+        drums_unload()
+        try:
+            os.unlink(pid_file)
+        except OSError:
+            pass
+
+    lat, cyc = ours["latencies"], peer["cycles"]
+    rows = [
+        [f"CPU, % of one core (goal <= {GOALS['cpu']})", fmt(ours["cpu"]), fmt(peer["cpu"]),
+         ratio(ours["cpu"], peer["cpu"])],
+        [f"USS MB at the end (goal <= {GOALS['uss_mb']})", fmt(ours["uss"] / 2**20, 1), fmt(peer["uss"] / 2**20, 1),
+         ratio(ours["uss"], peer["uss"])],
+        ["RSS MB at the end", fmt(ours["rss"] / 2**20, 1), fmt(peer["rss"] / 2**20, 1), ratio(ours["rss"], peer["rss"])],
+        [f"ms per cycle, median (goal <= {GOALS['metrics_ms']})", fmt(median(lat), 1), fmt(median(cyc), 1),
+         ratio(median(lat), median(cyc))],
+        ["ms per cycle, p95", fmt(percentile(lat, 95), 1), fmt(percentile(cyc, 95), 1),
+         ratio(percentile(lat, 95), percentile(cyc, 95))],
+    ]
+    size, series = ours["sizes"]
+    notes = [
+        f"{args.processes:,} processes ({HOLDERS} of them hold {args.sockets:,} loopback TCP sockets, each "
+        f"of which sent a few bytes), {args.seconds} s window after 2 unmeasured cycles, one cycle per "
+        f"{args.interval:g} s; the agent runs all probes"
+        + (f" with {args.agent_args}" if args.agent_args else " with its default budget") + ".",
+        "a Drums cycle is one /metrics request timed by the client (collect + render + HTTP); a psutil "
+        "cycle is one poll of every process and of net_connections(), with nothing rendered or sent.",
+        f"agent's own collect time (sum of drums_probe_collect_duration_seconds): median "
+        f"{fmt(median(ours['collect']), 1)} ms; per probe: "
+        + ", ".join(f"{k} {fmt(v, 1)} ms" for k, v in sorted(ours["per_probe"].items())),
+        f"/metrics body: {series:,} series, {size / 1024:,.0f} KiB; per-socket series "
+        f"(drums_socket_sent_bytes_total): {ours['sockets']:,}",
+    ]
+    print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",
+                ["measure", "Drums agent", "psutil poller", "Drums / psutil"], rows, notes)
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--poller":
+        parser = argparse.ArgumentParser()
+        parser.add_argument("--poller")
+        parser.add_argument("--interval", type=float, default=1.0)
+        a = parser.parse_args()
+        poller(a.poller, a.interval)
+        return
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=int, default=30, help="measured window of each (default 30)")
+    parser.add_argument("--interval", type=float, default=1.0, help="seconds between cycles (default 1)")
+    parser.add_argument("--processes", type=int, default=1000, help="processes on the host (default 1000)")
+    parser.add_argument("--sockets", type=int, default=10000, help="open sockets (default 10000)")
+    parser.add_argument("--agent-args", default="", help="extra agent flags, e.g. '--max-sockets 20000'")
+    args = parser.parse_args()
+    main_wrapper(lambda: run(args))
+
+
+if __name__ == "__main__":
+    main()

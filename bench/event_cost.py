@@ -1,0 +1,324 @@
+"""What each socket and scheduler probe costs per kernel event, beside the floor: an empty BPF
+program on the same raw tracepoint, which pays the same dispatch and does nothing.
+
+Two measures, both printed:
+- the program's own run time per event, from the kernel's BPF statistics
+  (kernel.bpf_stats_enabled: run_time_ns / run_cnt of each program);
+- the time added to a fixed workload per operation, with the statistics off (they cost time
+  themselves), against the same workload with no program attached.
+Workloads run in a child process pinned to one CPU: 1-byte send()+recv() on a unix datagram
+socketpair and on a loopback TCP connection (two sock_send_length/sock_recv_length events per
+operation), and a pipe ping-pong between two processes on one CPU (per round trip two
+sched_switch and two sched_wakeup events). Goal: the probes cost at most 1.3x the floor.
+
+    .venv/bin/python bench/event_cost.py [--rounds 5] [--ops 200000] [--pingpongs 100000]
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+from common import (BenchError, bpftool_json, fmt, foreign_note, main_wrapper, print_table,
+                    progress, ratio, require_root, require_tool)
+
+PIN_ROOT = "/sys/fs/bpf/drums_bench"
+STATS_SYSCTL = "/proc/sys/kernel/bpf_stats_enabled"
+
+# probe -> its workloads, and the (tracepoint, Drums program) pairs those workloads exercise.
+PROBES = {
+    "sockets": (("unix", "tcp"), (("sock_send_length", "on_send"), ("sock_recv_length", "on_recv"))),
+    "sched": (("pingpong",), (("sched_switch", "on_switch"), ("sched_wakeup", "on_wakeup"))),
+}
+WORKLOAD_LABEL = {
+    "unix": "send+recv 1 B, unix dgram socketpair",
+    "tcp": "send+recv 1 B, loopback TCP",
+    "pingpong": "pipe ping-pong round trip, 2 processes on 1 CPU",
+}
+FLOOR_SOURCE = b"""
+int floor_send(struct bpf_raw_tracepoint_args *ctx) { return 0; }
+int floor_recv(struct bpf_raw_tracepoint_args *ctx) { return 0; }
+int floor_switch(struct bpf_raw_tracepoint_args *ctx) { return 0; }
+int floor_wakeup(struct bpf_raw_tracepoint_args *ctx) { return 0; }
+"""
+FLOOR_FN = {"sock_send_length": b"floor_send", "sock_recv_length": b"floor_recv",
+            "sched_switch": b"floor_switch", "sched_wakeup": b"floor_wakeup"}
+
+# The workload, run as `python -c WORKLOAD kind ops batches cpu`; prints ns per op of each batch.
+WORKLOAD = textwrap.dedent("""
+    import gc, json, os, socket, sys, time
+    kind, ops, batches, cpu = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+    os.sched_setaffinity(0, {cpu})
+    n = max(1, ops // batches)
+    out = []
+    warmup = 0
+    if kind == "pingpong":
+        a_r, a_w = os.pipe(); b_r, b_w = os.pipe()
+        child = os.fork()
+        if child == 0:
+            read, write = os.read, os.write
+            for _ in range(n * batches):
+                read(a_r, 1); write(b_w, b"x")
+            os._exit(0)
+        read, write = os.read, os.write
+        gc.disable()
+        for _ in range(batches):
+            t = time.perf_counter_ns()
+            for _ in range(n):
+                write(a_w, b"x"); read(b_r, 1)
+            out.append((time.perf_counter_ns() - t) / n)
+        os.waitpid(child, 0)
+    else:
+        if kind == "unix":
+            a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        else:
+            srv = socket.socket(); srv.bind(("127.0.0.1", 0)); srv.listen(1)
+            a = socket.create_connection(srv.getsockname()); b, _ = srv.accept()
+            a.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        send, recv = a.send, b.recv
+        warmup = 1000
+        for _ in range(warmup):
+            send(b"x"); recv(1)
+        gc.disable()
+        for _ in range(batches):
+            t = time.perf_counter_ns()
+            for _ in range(n):
+                send(b"x"); recv(1)
+            out.append((time.perf_counter_ns() - t) / n)
+    # ops: every operation the run made, the untimed warm-up included, to count events per op.
+    print(json.dumps({"ops": n * batches + warmup, "ns_per_op": out}))
+""")
+
+
+def run_workload(kind: str, ops: int, batches: int, cpu: int) -> tuple[float, int]:
+    """ns per operation of the fastest batch (the one least disturbed by the rest of the host),
+    and the number of operations run."""
+    proc = subprocess.run([sys.executable, "-c", WORKLOAD, kind, str(ops), str(batches), str(cpu)],
+                          capture_output=True, text=True, timeout=300, check=False)
+    if proc.returncode != 0:
+        raise BenchError(f"workload {kind} failed: {proc.stderr.strip()[-300:]}")
+    data = json.loads(proc.stdout)
+    return min(data["ns_per_op"]), data["ops"]
+
+
+class Floor:
+    """The empty programs, compiled once with bcc and attached only while measured."""
+
+    def __init__(self, headers: str | None):
+        if headers:
+            os.environ["BCC_KERNEL_SOURCE"] = headers
+        try:
+            from bcc import BPF
+        except ImportError:
+            raise BenchError("bcc is not installed (apt-get install python3-bpfcc)") from None
+        self.bpf = BPF(text=FLOOR_SOURCE)
+        self.attached: list[str] = []
+
+    def attach(self, tracepoints) -> None:
+        for tp in tracepoints:
+            self.bpf.attach_raw_tracepoint(tp=tp.encode(), fn_name=FLOOR_FN[tp])
+            self.attached.append(tp)
+
+    def detach(self) -> None:
+        for tp in self.attached:
+            self.bpf.detach_raw_tracepoint(tp=tp.encode())
+        self.attached = []
+
+    def prog_ids(self, tracepoints) -> dict[str, int]:
+        out = {}
+        for tp in tracepoints:
+            fd = self.bpf.load_func(FLOOR_FN[tp], self.bpf.RAW_TRACEPOINT).fd
+            with open(f"/proc/self/fdinfo/{fd}") as f:
+                info = dict(line.split(":", 1) for line in f if ":" in line)
+            out[tp] = int(info["prog_id"])
+        return out
+
+    def close(self) -> None:
+        self.detach()
+        self.bpf.cleanup()
+
+
+def make_probe(name: str):
+    from drums.kernel.features import Features
+    from drums.probes.sched import SchedProbe
+    from drums.probes.sockets import SocketsProbe
+    from drums.proctable import ProcessTable
+
+    cls = {"sockets": SocketsProbe, "sched": SchedProbe}[name]
+    return cls(Features(), ProcessTable(), pin_root=PIN_ROOT)
+
+
+def drums_prog_ids(probe_name: str) -> dict[str, int]:
+    """tracepoint -> id of the program Drums attached there, found through the probe's link pins."""
+    out = {}
+    for pin in glob.glob(os.path.join(PIN_ROOT, f"{probe_name}-*", "link*")):
+        link = bpftool_json("link", "show", "pinned", pin)
+        if link and link.get("tp_name"):
+            out[link["tp_name"]] = link["prog_id"]
+    return out
+
+
+def prog_stats(prog_id: int) -> tuple[int, int]:
+    """(run_time_ns, run_cnt) of a program; zero while kernel.bpf_stats_enabled is 0."""
+    p = bpftool_json("prog", "show", "id", str(prog_id)) or {}
+    return p.get("run_time_ns", 0), p.get("run_cnt", 0)
+
+
+def set_stats(value: int) -> int:
+    with open(STATS_SYSCTL) as f:
+        old = int(f.read())
+    with open(STATS_SYSCTL, "w") as f:
+        f.write(str(value))
+    return old
+
+
+def run(args) -> None:
+    require_root()
+    require_tool("bpftool")
+    from drums.kernel.features import Features
+    from drums.kernel.bpffs import PIN_ROOT as AGENT_PIN_ROOT
+
+    if os.path.realpath(PIN_ROOT) == os.path.realpath(AGENT_PIN_ROOT):
+        raise BenchError("the benchmark's pin root must differ from the agent's")
+    tracepoints = [tp for _, pairs in PROBES.values() for tp, _ in pairs]
+    notes = foreign_note(tracepoints)
+    floor = Floor(Features().kernel_headers)
+    added: dict[tuple[str, str], list[float]] = {}  # (workload, condition) -> ns/op per round
+    events_per_op: dict[tuple[str, str], float] = {}  # (workload, tracepoint) -> events per op
+    self_ns: dict[tuple[str, str], float] = {}  # (tracepoint, floor|drums) -> ns per program run
+    found_by_name: dict[str, bool] = {}
+    old_stats = set_stats(0)
+    probe = None
+
+    def ops_of(workload):
+        return args.pingpongs if workload == "pingpong" else args.ops
+
+    def measure(workload, condition):
+        ns, _ = run_workload(workload, ops_of(workload), args.batches, args.cpu)
+        added.setdefault((workload, condition), []).append(ns)
+
+    try:
+        # Pass 1, statistics off: time per operation, conditions rotated round by round.
+        order = ["none", "floor", "drums"]
+        for rnd in range(args.rounds):
+            for probe_name, (workloads, pairs) in PROBES.items():
+                tps = [tp for tp, _ in pairs]
+                for condition in order:
+                    progress(f"round {rnd + 1}/{args.rounds}: {probe_name} workloads, {condition}")
+                    if condition == "floor":
+                        floor.attach(tps)
+                    elif condition == "drums":
+                        probe = make_probe(probe_name)
+                        probe.start()
+                    try:
+                        for w in workloads:
+                            measure(w, condition)
+                    finally:
+                        floor.detach()
+                        if probe is not None:
+                            probe.unload()
+                            probe = None
+            order = order[1:] + order[:1]
+
+        # Pass 2, statistics on: each program's own time per run, and events per operation.
+        set_stats(1)
+        for probe_name, (workloads, pairs) in PROBES.items():
+            tps = [tp for tp, _ in pairs]
+            for condition in ("floor", "drums"):
+                progress(f"bpf_stats: {probe_name} workloads, {condition}")
+                if condition == "floor":
+                    floor.attach(tps)
+                    ids = floor.prog_ids(tps)
+                else:
+                    probe = make_probe(probe_name)
+                    probe.start()
+                    ids = drums_prog_ids(probe_name)
+                    listed = {(p.get("name"), p["id"]) for p in bpftool_json("prog", "show") or []}
+                    for tp, fn in pairs:
+                        found_by_name[fn] = (fn, ids.get(tp)) in listed
+                try:
+                    before = {tp: prog_stats(ids[tp]) for tp in tps}
+                    for w in workloads:
+                        run_workload(w, ops_of(w), args.batches, args.cpu)
+                    after = {tp: prog_stats(ids[tp]) for tp in tps}
+                finally:
+                    floor.detach()
+                    if probe is not None:
+                        probe.unload()
+                        probe = None
+                for tp in tps:
+                    d_ns, d_cnt = (after[tp][0] - before[tp][0]), (after[tp][1] - before[tp][1])
+                    self_ns[tp, condition] = d_ns / d_cnt if d_cnt else float("nan")
+        # Events per operation, per workload, from one more statistics-on run with the floor.
+        for probe_name, (workloads, pairs) in PROBES.items():
+            tps = [tp for tp, _ in pairs]
+            floor.attach(tps)
+            ids = floor.prog_ids(tps)
+            try:
+                for w in workloads:
+                    before = {tp: prog_stats(ids[tp])[1] for tp in tps}
+                    _, n = run_workload(w, ops_of(w) // 4, args.batches, args.cpu)
+                    for tp in tps:
+                        events_per_op[w, tp] = (prog_stats(ids[tp])[1] - before[tp]) / n
+            finally:
+                floor.detach()
+    finally:
+        set_stats(old_stats)
+        if probe is not None:
+            probe.unload()
+        floor.close()
+        shutil.rmtree(PIN_ROOT, ignore_errors=True)  # the probes remove their own dirs, not the root
+
+    rows = []
+    for probe_name, (_, pairs) in PROBES.items():
+        for tp, fn in pairs:
+            f, d = self_ns.get((tp, "floor"), float("nan")), self_ns.get((tp, "drums"), float("nan"))
+            rows.append([f"{tp} ({probe_name}: {fn})", fmt(f, 1), fmt(d, 1), ratio(d, f)])
+    print_table("Per-event cost: the program's own run time (kernel bpf_stats)",
+                ["event (probe: program)", "empty program ns/run", "Drums ns/run", "Drums / empty"], rows,
+                ["run_time_ns / run_cnt over the workloads below; the statistics themselves add a clock "
+                 "read per run to both columns.",
+                 "Drums programs found by name with `bpftool prog show -j`: "
+                 + ", ".join(f"{fn} {'yes' if ok else 'no'}" for fn, ok in found_by_name.items())])
+
+    rows = []
+    for probe_name, (workloads, pairs) in PROBES.items():
+        for w in workloads:
+            none = min(added[w, "none"])
+            fl = min(added[w, "floor"]) - none
+            dr = min(added[w, "drums"]) - none
+            events = sum(events_per_op.get((w, tp), 0) for tp, _ in pairs)
+            per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
+            rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
+                         ratio(dr, fl), fmt(events, 2), per_event])
+    notes += [
+        f"ns per operation: the fastest of {args.rounds} rounds x {args.batches} batches (other work on "
+        "the host only ever adds time); "
+        f"{args.ops:,} socket operations or {args.pingpongs:,} round trips per run, on CPU {args.cpu}; "
+        "added = with programs attached minus with none. Goal: Drums at most 1.3x the floor.",
+        "per round (ns/op): " + "; ".join(
+            f"{w}/{c} " + ",".join(fmt(v, 0) for v in vals) for (w, c), vals in sorted(added.items())),
+    ]
+    print_table("Per-event cost: time added to a workload",
+                ["workload (probe)", "no program ns/op", "empty added ns/op", "Drums added ns/op",
+                 "Drums / empty", "events/op", "added ns/event empty / Drums"], rows, notes)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=5, help="rounds of none/floor/drums (default 5)")
+    parser.add_argument("--ops", type=int, default=200_000, help="socket operations per run (default 200000)")
+    parser.add_argument("--pingpongs", type=int, default=100_000, help="round trips per run (default 100000)")
+    parser.add_argument("--batches", type=int, default=10, help="timed batches per run (default 10)")
+    parser.add_argument("--cpu", type=int, default=1, help="CPU the workload runs on (default 1)")
+    args = parser.parse_args()
+    main_wrapper(lambda: run(args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,589 @@
+"""sockets: real TCP, UDP and unix traffic between this test and child processes, counted by
+bpf/sockets.bpf.c and checked against the byte and call counts the processes made themselves."""
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import select
+import socket
+import struct
+import subprocess
+import sys
+import time
+
+import pytest
+
+from drums.probes.sockets import decode_sockets
+from tests.conftest import series
+
+COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
+ZERO = dict.fromkeys(COUNTS, 0)
+NETNS = str(os.stat("/proc/self/ns/net").st_ino)
+LOOPBACK = {socket.AF_INET: "127.0.0.1", socket.AF_INET6: "::1"}
+
+# Every child starts with these helpers. Children report on stdout (a pipe, never a socket, so it
+# adds nothing to what the probe counts) and wait for commands on stdin.
+PRELUDE = r"""
+import json, os, socket, sys, threading
+
+def report(**kw):
+    print(json.dumps(kw), flush=True)
+
+def command():
+    return sys.stdin.readline().strip()
+
+def send_in_calls(sock, size, chunk):
+    '''Send `size` bytes in calls of at most `chunk` bytes; return how many calls it took.'''
+    data, calls = memoryview(b"d" * size), 0
+    while data:
+        data = data[sock.send(data[:chunk]):]
+        calls += 1
+    return calls
+
+def inode(sock):
+    return os.fstat(sock.fileno()).st_ino
+
+def name(address):
+    host, port = address[:2]
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+"""
+
+
+class Child:
+    """A Python child process running PRELUDE + code, with line-by-line JSON reports."""
+
+    def __init__(self, code: str, *args, pass_fds=()):
+        self.proc = subprocess.Popen([sys.executable, "-c", PRELUDE + code, *map(str, args)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=pass_fds)
+        self.pid = self.proc.pid
+        self._buffer = b""
+
+    def read(self, timeout: float = 30.0) -> dict | None:
+        """The next report, or None if none came within `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while b"\n" not in self._buffer:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self.proc.stdout], [], [], left)[0]:
+                return None
+            chunk = os.read(self.proc.stdout.fileno(), 65536)
+            if not chunk:
+                raise AssertionError(f"child {self.pid} ended (exit status {self.proc.wait()})")
+            self._buffer += chunk
+        line, self._buffer = self._buffer.split(b"\n", 1)
+        return json.loads(line)
+
+    def expect(self, timeout: float = 30.0) -> dict:
+        report = self.read(timeout)
+        assert report is not None, f"child {self.pid} reported nothing in {timeout} s"
+        return report
+
+    def tell(self, line: str = "") -> None:
+        self.proc.stdin.write(line.encode() + b"\n")
+        self.proc.stdin.flush()
+
+    def close(self) -> None:
+        """Closing stdin ends the child; it is killed if it does not."""
+        with contextlib.suppress(OSError):
+            self.proc.stdin.close()
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture
+def spawn():
+    """spawn(code, *args, pass_fds=()) -> Child; every child is ended when the test ends."""
+    children = []
+
+    def start(code, *args, pass_fds=()):
+        children.append(Child(code, *args, pass_fds=pass_fds))
+        return children[-1]
+
+    yield start
+    for child in children:
+        child.close()
+
+
+def name(address) -> str:
+    """A socket address as the probe labels it: 127.0.0.1:5000, [::1]:5000."""
+    host, port = address[:2]
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def comm(pid: int) -> str:
+    with open(f"/proc/{pid}/comm") as f:
+        return f.read().rstrip("\n")
+
+
+def inode(sock: socket.socket) -> int:
+    return os.fstat(sock.fileno()).st_ino
+
+
+def socket_rows(snap, **labels) -> dict[tuple, dict[str, int]]:
+    """Per-socket counts of the sockets whose labels match: label tuple -> {count: value}."""
+    rows: dict[tuple, dict[str, int]] = {}
+    for c in COUNTS:
+        for lv, value in series(snap, f"drums_socket_{c}_total", **labels).items():
+            rows.setdefault(lv, {})[c] = value
+    return rows
+
+
+def one_socket(snap, **labels) -> tuple[dict[str, str], dict[str, int]]:
+    """The one socket matching `labels`: its labels by name, and its counts."""
+    rows = socket_rows(snap, **labels)
+    assert len(rows) == 1, f"expected one socket with {labels}, found {rows}"
+    (lv, counts), = rows.items()
+    keys = ("pid", "process", "protocol", "local", "remote", "netns", "inode")
+    return dict(zip(keys, lv)), counts
+
+
+def process_counts(snap, pid: int, protocol: str) -> dict[str, int]:
+    """Process totals of one protocol; all zero if the process has none."""
+    out = dict(ZERO)
+    for c in COUNTS:
+        rows = series(snap, f"drums_process_socket_{c}_total", pid=pid, protocol=protocol)
+        assert len(rows) <= 1, rows
+        out[c] = sum(rows.values())
+    return out
+
+
+def thread_bytes(snap, pid: int, protocol: str) -> dict[int, tuple[int, int]]:
+    """tid -> (sent bytes, received bytes) of one process's threads."""
+    sent = series(snap, "drums_thread_socket_sent_bytes_total", pid=pid, protocol=protocol)
+    received = series(snap, "drums_thread_socket_received_bytes_total", pid=pid, protocol=protocol)
+    assert sent.keys() == received.keys()
+    return {int(lv[1]): (sent[lv], received[lv]) for lv in sent}
+
+
+def recv_exactly(sock: socket.socket, size: int) -> int:
+    """Receive `size` bytes; return the number of recv calls it took."""
+    calls = 0
+    while size > 0:
+        got = len(sock.recv(min(size, 1 << 20)))
+        assert got, "peer closed early"
+        size -= got
+        calls += 1
+    return calls
+
+
+def recv_to_eof(sock: socket.socket) -> tuple[int, int]:
+    """Receive until the peer closes; return (bytes, calls), the final empty read included."""
+    total = calls = 0
+    while True:
+        got = len(sock.recv(1 << 20))
+        calls += 1
+        total += got
+        if not got:
+            return total, calls
+
+
+def eventually(check, timeout: float = 3.0):
+    """Retry `check` (which asserts) until it passes or `timeout` runs out; return its result."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return check()
+        except AssertionError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
+def tcp_listener(family=socket.AF_INET) -> socket.socket:
+    lst = socket.socket(family, socket.SOCK_STREAM)
+    lst.bind((LOOPBACK[family], 0))
+    lst.listen(128)
+    return lst
+
+
+def reset(sock: socket.socket) -> None:
+    """Close with SO_LINGER (on, 0): the kernel sends a reset instead of a FIN."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    sock.close()
+
+
+# ---- exact bytes and calls, per socket and per process --------------------------------------
+
+TCP_SENDER = r"""
+s = socket.create_connection(("127.0.0.1", int(sys.argv[1])))
+calls = send_in_calls(s, int(sys.argv[2]), int(sys.argv[3]))
+report(calls=calls, local=name(s.getsockname()), remote=name(s.getpeername()), inode=inode(s))
+command()
+"""
+
+
+def test_tcp_bytes_and_calls_of_both_ends(sockets_probe, collect, spawn):
+    size, chunk = 1_000_003, 65_537
+    with tcp_listener() as lst:
+        child = spawn(TCP_SENDER, lst.getsockname()[1], size, chunk)
+        conn, _ = lst.accept()
+    with conn:
+        recv_calls = recv_exactly(conn, size)
+        sent = child.expect()
+        assert sent["calls"] >= -(-size // chunk)
+        snap = collect(sockets_probe)
+
+        labels, counts = one_socket(snap, pid=child.pid, protocol="tcp")
+        assert labels == {"pid": str(child.pid), "process": comm(child.pid), "protocol": "tcp",
+                          "local": sent["local"], "remote": sent["remote"], "netns": NETNS,
+                          "inode": str(sent["inode"])}
+        assert counts == dict(ZERO, sent_bytes=size, send_calls=sent["calls"])
+
+        labels, counts = one_socket(snap, pid=os.getpid(), inode=inode(conn))
+        assert (labels["protocol"], labels["local"], labels["remote"], labels["netns"]) == (
+            "tcp", name(conn.getsockname()), name(conn.getpeername()), NETNS)
+        assert (labels["local"], labels["remote"]) == (sent["remote"], sent["local"])
+        assert counts == dict(ZERO, received_bytes=size, receive_calls=recv_calls)
+
+        assert process_counts(snap, child.pid, "tcp") == dict(ZERO, sent_bytes=size, send_calls=sent["calls"])
+        assert thread_bytes(snap, child.pid, "tcp") == {child.pid: (size, 0)}  # its main thread
+
+
+UDP_SENDER = r"""
+family = socket.AF_INET6 if ":" in sys.argv[1] else socket.AF_INET
+s = socket.socket(family, socket.SOCK_DGRAM)
+s.bind((sys.argv[1], 0))
+s.connect((sys.argv[1], int(sys.argv[2])))
+report(local=name(s.getsockname()), remote=name(s.getpeername()), inode=inode(s))
+command()
+sizes = json.loads(sys.argv[3])
+report(sent=[s.send(b"u" * n) for n in sizes])
+command()
+"""
+DATAGRAMS = [1, 7, 512, 1399, 1472, 1473, 4097, 8191, 9001, 30_001]  # sums to 56,154: fits rmem
+
+
+@pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
+def test_connected_udp_datagrams(sockets_probe, collect, spawn, family):
+    with socket.socket(family, socket.SOCK_DGRAM) as rx:
+        rx.bind((LOOPBACK[family], 0))
+        child = spawn(UDP_SENDER, LOOPBACK[family], rx.getsockname()[1], json.dumps(DATAGRAMS))
+        peer = child.expect()
+        rx.connect((LOOPBACK[family], int(peer["local"].rsplit(":", 1)[1])))
+        assert name(rx.getpeername()) == peer["local"]
+        child.tell("go")
+        assert child.expect()["sent"] == DATAGRAMS
+        rx.settimeout(5)
+        assert [len(rx.recv(65536)) for _ in DATAGRAMS] == DATAGRAMS
+        snap = collect(sockets_probe)
+        total = sum(DATAGRAMS)
+
+        labels, counts = one_socket(snap, pid=child.pid, protocol="udp")
+        assert labels == {"pid": str(child.pid), "process": comm(child.pid), "protocol": "udp",
+                          "local": peer["local"], "remote": peer["remote"], "netns": NETNS,
+                          "inode": str(peer["inode"])}
+        assert counts == dict(ZERO, sent_bytes=total, send_calls=len(DATAGRAMS))
+
+        labels, counts = one_socket(snap, pid=os.getpid(), inode=inode(rx))
+        assert (labels["protocol"], labels["local"], labels["remote"], labels["netns"]) == (
+            "udp", name(rx.getsockname()), name(rx.getpeername()), NETNS)
+        assert counts == dict(ZERO, received_bytes=total, receive_calls=len(DATAGRAMS))
+
+        assert process_counts(snap, child.pid, "udp") == dict(ZERO, sent_bytes=total, send_calls=len(DATAGRAMS))
+
+
+UNIX_SENDER = r"""
+s = socket.socket(fileno=int(sys.argv[1]))
+report(calls=send_in_calls(s, int(sys.argv[2]), int(sys.argv[3])))
+command()
+"""
+
+
+def test_unix_stream_socketpair(sockets_probe, collect, spawn):
+    size, chunk = 1_000_003, 100_003
+    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    with mine, theirs:
+        child = spawn(UNIX_SENDER, theirs.fileno(), size, chunk, pass_fds=(theirs.fileno(),))
+        recv_calls = recv_exactly(mine, size)
+        calls = child.expect()["calls"]
+        snap = collect(sockets_probe)
+
+        labels, counts = one_socket(snap, pid=child.pid, protocol="unix")
+        assert labels == {"pid": str(child.pid), "process": comm(child.pid), "protocol": "unix",
+                          "local": "", "remote": "", "netns": NETNS, "inode": str(inode(theirs))}
+        assert counts == dict(ZERO, sent_bytes=size, send_calls=calls)
+
+        labels, counts = one_socket(snap, pid=os.getpid(), inode=inode(mine))
+        assert (labels["protocol"], labels["local"], labels["remote"]) == ("unix", "", "")
+        assert counts == dict(ZERO, received_bytes=size, receive_calls=recv_calls)
+
+        assert process_counts(snap, child.pid, "unix") == dict(ZERO, sent_bytes=size, send_calls=calls)
+
+
+# ---- closed sockets fold into the process totals ----------------------------------------------
+
+MANY_SENDER = r"""
+port, count, size, chunk = map(int, sys.argv[1:5])
+calls, locals_ = 0, []
+for _ in range(count):
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        calls += send_in_calls(s, size, chunk)
+        locals_.append(name(s.getsockname()))
+report(calls=calls, local=locals_)
+command()
+"""
+
+
+def test_closed_connections_fold_into_process_totals(sockets_probe, collect, spawn):
+    count, size, chunk = 7, 200_003, 40_009
+    with tcp_listener() as lst:
+        child = spawn(MANY_SENDER, lst.getsockname()[1], count, size, chunk)
+        for _ in range(count):
+            conn, _ = lst.accept()
+            with conn:
+                assert recv_to_eof(conn)[0] == size
+    sent = child.expect()
+    assert len(set(sent["local"])) == count
+
+    def folded():
+        snap = collect(sockets_probe)
+        assert socket_rows(snap, pid=child.pid) == {}
+        assert {lv: c for lv, c in socket_rows(snap, pid=os.getpid(), protocol="tcp").items()
+                if lv[4] in sent["local"]} == {}
+        return snap
+
+    snap = eventually(folded)
+    assert process_counts(snap, child.pid, "tcp") == dict(ZERO, sent_bytes=count * size, send_calls=sent["calls"])
+    assert thread_bytes(snap, child.pid, "tcp") == {child.pid: (count * size, 0)}
+
+
+# ---- 10,000 short connections: totals never go backwards, the map does not grow ---------------
+
+CHURN_SERVER = r"""
+lst = socket.socket()
+lst.bind(("127.0.0.1", 0))
+lst.listen(1024)
+report(port=lst.getsockname()[1])
+count = int(sys.argv[1])
+received = calls = 0
+for _ in range(count):
+    conn, _ = lst.accept()
+    while True:
+        got = len(conn.recv(65536))
+        calls += 1
+        received += got
+        if not got:
+            break
+    conn.close()
+report(received=received, calls=calls)
+command()
+"""
+CHURN_CLIENT = r"""
+port, count, size = map(int, sys.argv[1:4])
+calls = 0
+for _ in range(count):
+    s = socket.create_connection(("127.0.0.1", port))
+    calls += send_in_calls(s, size, size)
+    s.close()
+report(calls=calls)
+command()
+"""
+
+
+def process_totals(snap, pids) -> dict[tuple, int]:
+    """(metric, pid, protocol) -> value, for every process total of these processes."""
+    out = {}
+    for c in COUNTS:
+        for pid in pids:
+            for lv, value in series(snap, f"drums_process_socket_{c}_total", pid=pid).items():
+                out[(c, pid, lv[2])] = value
+    return out
+
+
+def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
+    count, size = 10_000, 1_001
+    server = spawn(CHURN_SERVER, count)
+    client = spawn(CHURN_CLIENT, server.expect()["port"], count, size)
+    pids = (client.pid, server.pid)
+    samples = [process_totals(collect(sockets_probe), pids)]
+    done = None
+    while done is None:
+        done = client.read(timeout=0.05)
+        samples.append(process_totals(collect(sockets_probe), pids))
+    served = server.expect()
+    samples.append(process_totals(collect(sockets_probe), pids))
+
+    assert len(samples) >= 5, "the run ended before the probe could be sampled during it"
+    for before, after in zip(samples, samples[1:]):
+        went_back = {k: (before[k], after.get(k)) for k in before if after.get(k, -1) < before[k]}
+        assert went_back == {}
+    final = samples[-1]
+    assert (final[("sent_bytes", client.pid, "tcp")], final[("send_calls", client.pid, "tcp")]) == (
+        count * size, done["calls"])
+    assert served["received"] == count * size
+    assert (final[("received_bytes", server.pid, "tcp")], final[("receive_calls", server.pid, "tcp")]) == (
+        count * size, served["calls"])
+    assert final[("received_bytes", client.pid, "tcp")] == final[("sent_bytes", server.pid, "tcp")] == 0
+
+    # Every connection closed, so the map holds no entry of either process: not one of the 20,000
+    # sockets is left behind. (Counted per process: the whole map's size also moves with whatever
+    # else runs on the host.)
+    def drained():
+        keys, values, _ = sockets_probe.read("socket_traffic")
+        assert [s for s in decode_sockets(keys, values) if s.pid in pids] == []
+    eventually(drained)
+
+
+# ---- per-thread counts -----------------------------------------------------------------------
+
+THREADS_SENDER = r"""
+port = int(sys.argv[1])
+sizes = list(map(int, sys.argv[2:4]))
+stops = [threading.Event() for _ in sizes]
+lock = threading.Lock()
+
+def work(i):
+    s = socket.create_connection(("127.0.0.1", port))
+    calls = send_in_calls(s, sizes[i], 30_011)
+    with lock:
+        report(thread=i, tid=threading.get_native_id(), calls=calls)
+    stops[i].wait()
+    s.close()
+
+threads = [threading.Thread(target=work, args=(i,)) for i in range(len(sizes))]
+for t in threads:
+    t.start()
+while (line := command()):
+    i = int(line)
+    stops[i].set()
+    threads[i].join()
+    report(joined=i)
+for stop in stops:  # stdin closed: end
+    stop.set()
+"""
+
+
+def drain(conns: list[socket.socket], total: int) -> None:
+    """Read from several connections at once until `total` bytes arrived over all of them."""
+    while total:
+        for conn in select.select(conns, [], [], 10)[0]:
+            got = len(conn.recv(1 << 20))
+            assert got, "peer closed early"
+            total -= got
+
+
+def test_thread_counts(sockets_probe, collect, spawn):
+    sizes = (300_007, 700_001)
+    with tcp_listener() as lst:
+        child = spawn(THREADS_SENDER, lst.getsockname()[1], *sizes)
+        conns = [lst.accept()[0], lst.accept()[0]]
+    try:
+        drain(conns, sum(sizes))
+        reports = sorted((child.expect(), child.expect()), key=lambda r: r["thread"])
+        tids = [r["tid"] for r in reports]
+        assert child.pid not in tids and len(set(tids)) == 2
+
+        snap = collect(sockets_probe)
+        assert thread_bytes(snap, child.pid, "tcp") == {tids[0]: (sizes[0], 0), tids[1]: (sizes[1], 0)}
+        calls = sum(r["calls"] for r in reports)
+        assert process_counts(snap, child.pid, "tcp") == dict(ZERO, sent_bytes=sum(sizes), send_calls=calls)
+
+        # The first thread exits: its series ends, and its bytes stay in the process totals.
+        child.tell("0")
+        assert child.expect() == {"joined": 0}
+        snap = collect(sockets_probe)
+        assert thread_bytes(snap, child.pid, "tcp") == {tids[1]: (sizes[1], 0)}
+        assert process_counts(snap, child.pid, "tcp") == dict(ZERO, sent_bytes=sum(sizes), send_calls=calls)
+    finally:
+        for conn in conns:
+            conn.close()
+
+
+# ---- errors ----------------------------------------------------------------------------------
+
+ERRORS_CHILD = r"""
+port = int(sys.argv[1])
+failed = {"udp": [], "tcp": []}
+would_block = 0
+
+def attempt(kind, call, *args):
+    global would_block
+    try:
+        call(*args)
+    except BlockingIOError:
+        would_block += 1
+    except OSError as e:
+        failed[kind].append(e.errno)
+    else:
+        raise SystemExit(f"{call} succeeded")
+
+udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+for _ in range(3):
+    attempt("udp", udp.send, b"no address")  # EDESTADDRREQ
+attempt("udp", udp.sendto, b"port 0", ("127.0.0.1", 0))  # EINVAL
+udp.setblocking(False)
+for _ in range(4):
+    attempt("udp", udp.recv, 100)  # EAGAIN
+
+doomed = socket.create_connection(("127.0.0.1", port))
+idle = socket.create_connection(("127.0.0.1", port))
+report(doomed=inode(doomed), idle=inode(idle), udp=inode(udp))
+command()  # the parent has reset `doomed`
+for _ in range(3):
+    attempt("tcp", doomed.send, b"too late")  # ECONNRESET, then EPIPE
+idle.setblocking(False)
+for _ in range(5):
+    attempt("tcp", idle.recv, 100)  # EAGAIN
+report(failed=failed, would_block=would_block)
+command()
+"""
+
+
+def test_failed_calls_are_errors_and_eagain_is_not(sockets_probe, collect, spawn):
+    with tcp_listener() as lst:
+        child = spawn(ERRORS_CHILD, lst.getsockname()[1])
+        doomed, _ = lst.accept()
+        idle, _ = lst.accept()
+    with idle:
+        inodes = child.expect()
+        reset(doomed)
+        child.tell("go")
+        result = child.expect()
+        assert result["failed"] == {"udp": [errno.EDESTADDRREQ] * 3 + [errno.EINVAL],
+                                    "tcp": [errno.ECONNRESET, errno.EPIPE, errno.EPIPE]}
+        assert result["would_block"] == 4 + 5
+        snap = collect(sockets_probe)
+
+        assert process_counts(snap, child.pid, "udp") == dict(ZERO, send_errors=4)
+        assert process_counts(snap, child.pid, "tcp") == dict(ZERO, send_errors=3)
+        _, counts = one_socket(snap, pid=child.pid, inode=inodes["udp"])
+        assert counts == dict(ZERO, send_errors=4)
+        # Only EAGAIN ever happened on the idle connection: nothing to count, so no series.
+        assert socket_rows(snap, pid=child.pid, inode=inodes["idle"]) == {}
+
+
+# ---- a TCP socket used after the kernel closed it -------------------------------------------------
+
+def use_after_reset(lst: socket.socket) -> int:
+    """Connect, have the peer reset, fail to send twice, close; return the socket's inode.
+
+    The reset moves the socket to TCP_CLOSE, which deletes its entry; the failed sends then come
+    from a socket in CLOSE, as they do in every program before it notices the reset."""
+    c = socket.create_connection(lst.getsockname())
+    reset(lst.accept()[0])
+    with c:
+        for _ in range(2):
+            with pytest.raises(OSError):
+                c.send(b"x")
+        return inode(c)
+
+
+def test_socket_used_after_a_reset_is_forgotten_when_closed(sockets_probe, collect):
+    with tcp_listener() as lst:
+        gone = use_after_reset(lst)
+    assert socket_rows(collect(sockets_probe), pid=os.getpid(), inode=gone) == {}
+
+
+def test_next_socket_does_not_inherit_a_socket_used_after_reset(sockets_probe, collect):
+    with tcp_listener() as lst:
+        use_after_reset(lst)
+        for _ in range(5):  # the freed struct sock is usually the next TCP socket's
+            with socket.create_connection(lst.getsockname()) as c, lst.accept()[0]:
+                c.sendall(b"y" * 1234)
+                rows = socket_rows(collect(sockets_probe), pid=os.getpid(), protocol="tcp")
+                carrying = {(lv[3], lv[6]) for lv, counts in rows.items() if counts["sent_bytes"] == 1234}
+                assert carrying == {(name(c.getsockname()), str(inode(c)))}

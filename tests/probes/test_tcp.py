@@ -1,0 +1,314 @@
+"""tcp: resets, state transitions, RTT and retransmissions of real connections, counted by
+bpf/tcp.bpf.c and checked against the TCP state machine and the kernel's own tcp_info."""
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import struct
+import subprocess
+import sys
+import time
+import warnings
+from collections import Counter
+
+import pytest
+
+from tests.conftest import series
+
+NETNS = str(os.stat("/proc/self/ns/net").st_ino)
+LOOPBACK = {socket.AF_INET: "127.0.0.1", socket.AF_INET6: "::1"}
+STATES = ("established", "syn_sent", "syn_recv", "fin_wait1", "fin_wait2", "time_wait", "close",
+          "close_wait", "last_ack", "listen", "closing")
+
+
+def name(address) -> str:
+    host, port = address[:2]
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def host_totals(snap) -> Counter:
+    """The host-wide counters: retransmits, resets_sent, resets_received and one per state entered."""
+    totals = Counter()
+    for key in ("retransmits", "resets_sent", "resets_received"):
+        (totals[key],) = series(snap, f"drums_tcp_{key}_total").values()
+    for (state,), value in series(snap, "drums_tcp_state_transitions_total").items():
+        totals[state] = value
+    assert set(STATES) <= set(totals)
+    return totals
+
+
+def host_delta(tcp_probe, collect, action, expected: dict, attempts: int = 10) -> None:
+    """Run `action` between two collects and check how the host totals moved.
+
+    The totals count every TCP socket of the host, so other traffic can only add to them: every
+    attempt must move each counter by at least `expected`. Where the host is quiet one attempt
+    (normally the first) moves them by exactly `expected`, every other counter unchanged; if other
+    TCP traffic never left a quiet moment, only the lower bounds are checked, with a warning."""
+    want = Counter(expected)
+    seen = []
+    for _ in range(attempts):
+        before = host_totals(collect(tcp_probe))
+
+        def moved() -> Counter:
+            after = host_totals(collect(tcp_probe))
+            delta = Counter({k: after[k] - before[k] for k in after if after[k] != before[k]})
+            assert min(delta.values(), default=0) >= 0, f"host totals went backwards: {dict(delta)}"
+            assert not want - delta, f"missing {dict(want - delta)} (moved {dict(delta)})"
+            return delta
+
+        action()
+        eventually(moved)
+        time.sleep(0.05)  # anything late from the action would show up now
+        delta = moved()
+        if delta == want:
+            return
+        seen.append(dict(delta))
+    warnings.warn(f"other TCP traffic on the host: checked {dict(want)} as lower bounds only, saw {seen}")
+
+
+def eventually(check, timeout: float = 3.0):
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return check()
+        except AssertionError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
+def wait_until(condition, what: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def tcp_listener(family=socket.AF_INET, address=None) -> socket.socket:
+    lst = socket.socket(family, socket.SOCK_STREAM)
+    lst.bind((address or LOOPBACK[family], 0))
+    lst.listen(16)
+    return lst
+
+
+def abort(sock: socket.socket) -> None:
+    """Close with SO_LINGER (on, 0): the kernel sends a reset instead of a FIN."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    sock.close()
+
+
+def connection(snap, metric: str, sock: socket.socket):
+    """One connection's value of a per-connection metric, or None if it has no series."""
+    rows = series(snap, metric, local=name(sock.getsockname()), remote=name(sock.getpeername()))
+    assert len(rows) <= 1, rows
+    return next(iter(rows.values()), None)
+
+
+def tcp_info(sock: socket.socket) -> dict[str, int]:
+    """The kernel's struct tcp_info of a socket (include/uapi/linux/tcp.h), read directly."""
+    info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 104)
+    return {"srtt_us": struct.unpack_from("=I", info, 68)[0],
+            "total_retrans": struct.unpack_from("=I", info, 100)[0]}
+
+
+# ---- resets -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
+def test_abortive_close_sends_one_reset(tcp_probe, collect, family):
+    with tcp_listener(family) as lst:
+        def connect_and_abort():
+            client = socket.create_connection(lst.getsockname()[:2])
+            server, _ = lst.accept()
+            abort(client)
+            with server, pytest.raises(ConnectionResetError):
+                server.recv(1)
+
+        # Both ends open and close; the client's reset closes the server's end at once.
+        host_delta(tcp_probe, collect, connect_and_abort, {
+            "resets_sent": 1, "resets_received": 1, "syn_sent": 1, "syn_recv": 1, "established": 2,
+            "close": 2})
+
+
+@pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
+def test_connecting_to_a_closed_port_is_reset(tcp_probe, collect, family):
+    with tcp_listener(family) as lst:
+        port = lst.getsockname()[1]  # closed, and nobody else's port for a moment
+
+    def refused():
+        with socket.socket(family) as s, pytest.raises(ConnectionRefusedError):
+            s.connect((LOOPBACK[family], port))
+
+    # The reset that answers a SYN belongs to no socket; the client counts it received.
+    host_delta(tcp_probe, collect, refused, {
+        "resets_sent": 1, "resets_received": 1, "syn_sent": 1, "close": 1})
+
+
+# ---- state transitions --------------------------------------------------------------------------
+
+def test_one_connection_walks_the_state_machine(tcp_probe, collect):
+    with tcp_listener() as lst:
+        snap = collect(tcp_probe)
+        listener = series(snap, "drums_tcp_connection_state_changes_total",
+                          local=name(lst.getsockname()), remote="0.0.0.0:0")
+        assert listener == {(name(lst.getsockname()), "0.0.0.0:0", NETNS): 1}  # LISTEN
+
+        def open_and_close():
+            client = socket.create_connection(lst.getsockname())
+            server, _ = lst.accept()
+            snap = collect(tcp_probe)
+            # Client: SYN_SENT, ESTABLISHED; server: SYN_RECV, ESTABLISHED.
+            for end in (client, server):
+                rows = series(snap, "drums_tcp_connection_state_changes_total",
+                              local=name(end.getsockname()), remote=name(end.getpeername()))
+                assert rows == {(name(end.getsockname()), name(end.getpeername()), NETNS): 2}
+                assert connection(snap, "drums_tcp_connection_retransmits_total", end) == 0
+                assert connection(snap, "drums_tcp_connection_resets_sent_total", end) == 0
+            ends = [(name(e.getsockname()), name(e.getpeername())) for e in (client, server)]
+            client.close()  # FIN_WAIT1, FIN_WAIT2, then TIME_WAIT, where the socket is already CLOSE
+            with server:
+                assert server.recv(1) == b""  # CLOSE_WAIT
+            # server closes: LAST_ACK, then CLOSE; a closed connection's series are gone.
+            def gone():
+                snap = collect(tcp_probe)
+                for local, remote in ends:
+                    assert series(snap, "drums_tcp_connection_state_changes_total", local=local, remote=remote) == {}
+            eventually(gone)
+
+        host_delta(tcp_probe, collect, open_and_close, {
+            "syn_sent": 1, "syn_recv": 1, "established": 2, "fin_wait1": 1, "fin_wait2": 1,
+            "close_wait": 1, "last_ack": 1, "close": 2})
+
+
+# ---- RTT ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
+def test_smoothed_rtt_of_a_loopback_connection(tcp_probe, collect, family):
+    with tcp_listener(family) as lst, socket.create_connection(lst.getsockname()[:2]) as client, \
+            lst.accept()[0] as server:
+        for _ in range(5):  # round trips give both ends RTT samples
+            client.sendall(b"ping")
+            assert server.recv(4) == b"ping"
+            server.sendall(b"pong")
+            assert client.recv(4) == b"pong"
+        for end in (client, server):
+            rtt, kernel_us = settled(tcp_probe, collect, end, "srtt_us", "drums_tcp_connection_smoothed_rtt_seconds")
+            assert rtt == kernel_us / 1e6
+            assert 0 < rtt < 0.010
+
+
+# ---- retransmissions ----------------------------------------------------------------------------
+
+RECEIVER = r"""
+import socket, sys
+lst = socket.socket()
+lst.bind((sys.argv[1], int(sys.argv[2])))
+lst.listen()
+print("listening", flush=True)
+conn, _ = lst.accept()
+print(len(conn.recv(100)), flush=True)
+sys.stdin.read()
+"""
+
+
+def ip(*args: str) -> None:
+    subprocess.run(("ip", *args), check=True, capture_output=True)
+
+
+@contextlib.contextmanager
+def peer_namespace(index: int):
+    """A network namespace joined to this one by a veth pair: (namespace, its device, our
+    address, its address). Only there can the test lose packets on purpose: loopback never drops them."""
+    tag = f"{os.getpid() % 100000}{index}"
+    ns, ours, theirs = f"drums_test_{tag}", f"drt{tag}a", f"drt{tag}b"
+    local = f"10.213.{os.getpid() % 250}.{4 * index + 1}"
+    remote = f"10.213.{os.getpid() % 250}.{4 * index + 2}"
+    try:
+        ip("netns", "add", ns)
+        ip("link", "add", ours, "type", "veth", "peer", "name", theirs, "netns", ns)
+        ip("addr", "add", f"{local}/30", "dev", ours)
+        ip("link", "set", ours, "up")
+        ip("-n", ns, "addr", "add", f"{remote}/30", "dev", theirs)
+        ip("-n", ns, "link", "set", theirs, "up")
+        yield ns, theirs, local, remote
+    finally:
+        # Deleting the namespace frees its end of the pair only later: delete ours first.
+        subprocess.run(("ip", "link", "del", ours), capture_output=True)
+        subprocess.run(("ip", "netns", "del", ns), capture_output=True)
+
+
+@contextlib.contextmanager
+def stalled_connection(index: int, cut):
+    """A connection from this namespace to a receiver in a peer namespace that stops
+    acknowledging after its first read: cut(ns, device, address) breaks the path."""
+    with peer_namespace(index) as (ns, device, local, remote):
+        port = 7000 + index
+        receiver = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", RECEIVER, remote, str(port)),
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            assert receiver.stdout.readline() == "listening\n"
+            sender = socket.create_connection((remote, port), timeout=5)
+            try:
+                sender.sendall(b"x" * 10)
+                assert receiver.stdout.readline() == "10\n"  # acknowledged
+                assert tcp_info(sender)["total_retrans"] == 0
+                cut(ns, device, remote)
+                sender.sendall(b"y" * 1000)
+                yield sender
+            finally:
+                abort(sender)
+        finally:
+            receiver.stdin.close()
+            receiver.wait(timeout=10)
+
+
+def tcp_ext(name: str) -> int:
+    """A TcpExt counter of this network namespace (/proc/net/netstat)."""
+    with open("/proc/net/netstat") as f:
+        lines = f.read().splitlines()
+    for header, values in zip(lines[::2], lines[1::2]):
+        if header.startswith("TcpExt:"):
+            return int(values.split()[header.split().index(name)])
+    raise KeyError(name)
+
+
+def settled(tcp_probe, collect, sock, field: str, metric: str):
+    """A connection's value of `metric` and the kernel's tcp_info `field`, from a collect between
+    two reads of tcp_info that agree: a late ACK or a retransmit can change the field at any time."""
+    for _ in range(20):
+        kernel = tcp_info(sock)[field]
+        snap = collect(tcp_probe)
+        if tcp_info(sock)[field] == kernel:
+            return connection(snap, metric, sock), kernel
+    pytest.fail(f"tcp_info {field} kept changing")
+
+
+def test_retransmits_of_segments_lost_on_the_way(tcp_probe, collect):
+    """The receiver's address disappears: segments still leave, and are dropped on arrival."""
+    def unaddress(ns, device, address):
+        ip("-n", ns, "addr", "del", f"{address}/30", "dev", device)
+
+    before = host_totals(collect(tcp_probe))["retransmits"]
+    with stalled_connection(1, unaddress) as sender:
+        # About 0.6 s: a tail loss probe, then RTO retransmits after 0.2 s and 0.4 s more.
+        wait_until(lambda: tcp_info(sender)["total_retrans"] >= 3, "three retransmits")
+        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans", "drums_tcp_connection_retransmits_total")
+        assert probe == kernel >= 3
+        assert host_totals(collect(tcp_probe))["retransmits"] - before >= kernel
+
+
+def test_retransmits_that_never_left_the_host_are_not_counted(tcp_probe, collect):
+    """The receiver's link goes down: retransmissions fail in the sender's own queue (-EBUSY),
+    and the kernel does not count them as retransmitted segments."""
+    def link_down(ns, device, address):
+        ip("-n", ns, "link", "set", device, "down")
+
+    still_queued = tcp_ext("TCPSpuriousRtxHostQueues")
+    with stalled_connection(2, link_down) as sender:
+        # The kernel counts attempts that found the segment still queued here; other connections
+        # may add to that count, so also give the timers time for a probe and two RTO attempts.
+        time.sleep(0.7)
+        wait_until(lambda: tcp_ext("TCPSpuriousRtxHostQueues") - still_queued >= 2, "two failed attempts")
+        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans", "drums_tcp_connection_retransmits_total")
+        assert probe == kernel, f"the probe counts {probe} retransmits where the kernel made {kernel}"
