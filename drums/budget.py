@@ -124,7 +124,8 @@ class Budget:
 
     @staticmethod
     def _choose(st: _KindState, totals: dict[tuple, float]) -> None:
-        activity = {e: max(0.0, total - st.last_score.get(e, total)) for e, total in totals.items()}
+        # A newcomer's activity is all it did so far, so a busy new process can win a slot at once.
+        activity = {e: max(0.0, total - st.last_score.get(e, 0.0)) for e, total in totals.items()}
         st.last_score = totals
         st.kept &= set(totals)  # entities that ended free their slots
         candidates = sorted((e for e in totals if e not in st.kept), key=lambda e: -activity[e])

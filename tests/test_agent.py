@@ -71,12 +71,13 @@ def test_every_probe_attached_with_its_attach_type(agent):
 
 def test_exited_process_series_gone_within_two_scrapes(agent):
     child = subprocess.Popen([sys.executable, "-c", "import sys, time\n"
-                              "t = time.time()\nwhile time.time() - t < 0.3: pass\nsys.stdin.read()"],
-                             stdin=subprocess.PIPE)
+                              "while time.process_time() < 0.3: pass\n"
+                              "print(time.process_time(), flush=True)\nsys.stdin.read()"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     pid = str(child.pid)
-    time.sleep(0.5)
+    burned = float(child.stdout.readline())
     cpu = samples(scrape(agent), "drums_process_cpu_seconds_total")
-    assert any(dict(k)["pid"] == pid and v >= 0.25 for k, v in cpu.items())
+    assert any(dict(k)["pid"] == pid and burned <= v <= burned + 0.05 for k, v in cpu.items()), (burned, cpu)
     child.stdin.close()
     child.wait()
     gone_after = None
