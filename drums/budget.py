@@ -81,14 +81,18 @@ class Budget:
     def _apply_kind(self, kind: str, metrics: list[Metric], snap: Snapshot, out: Snapshot) -> None:
         st = self.kinds[kind]
         ident, rank_names = KINDS[kind]
-        scores: dict[tuple, float] = {}
+        totals: dict[tuple, float] = {}  # (entity, ranking metric) -> value now
+        entities = set()
         for metric in metrics:
             idx = [metric.labels.index(label) for label in ident]
             ranking = metric.name in rank_names
             for labels, value in snap.series[metric]:
                 entity = tuple(labels[i] for i in idx)
-                scores[entity] = scores.get(entity, 0.0) + (value if ranking else 0.0)
-        self._choose(st, scores)
+                entities.add(entity)
+                if ranking:
+                    key = (entity, metric.name)
+                    totals[key] = totals.get(key, 0.0) + value
+        self._choose(st, entities, totals)
 
         folded_now: dict[tuple, dict] = {}
         sums: dict[tuple, object] = {}
@@ -111,7 +115,7 @@ class Budget:
                 for key, value in values.items():
                     st.baseline[key] = _add(st.baseline[key], value) if key in st.baseline else value
         st.folded_last = folded_now
-        st.folded_now = len({e for e in scores if e not in st.kept})
+        st.folded_now = len(entities - st.kept)
         for key in set(sums) | set(st.baseline):
             metric, labels = key
             if metric.kind == GAUGE:
@@ -123,12 +127,21 @@ class Budget:
             out.add(metric, labels, value if base is None else base if value is None else _add(base, value))
 
     @staticmethod
-    def _choose(st: _KindState, totals: dict[tuple, float]) -> None:
-        # A newcomer's activity is all it did so far, so a busy new process can win a slot at once.
-        activity = {e: max(0.0, total - st.last_score.get(e, 0.0)) for e, total in totals.items()}
+    def _choose(st: _KindState, entities: set, totals: dict[tuple, float]) -> None:
+        # Activity is each entity's share of what all entities did since the last collect, summed
+        # over the ranking counters, so bytes and seconds weigh alike. A newcomer's activity is all
+        # it did so far, so a busy new process can win a slot at once.
+        delta = {k: max(0.0, v - st.last_score.get(k, 0.0)) for k, v in totals.items()}
         st.last_score = totals
-        st.kept &= set(totals)  # entities that ended free their slots
-        candidates = sorted((e for e in totals if e not in st.kept), key=lambda e: -activity[e])
+        per_metric: dict[str, float] = {}
+        for (_, name), d in delta.items():
+            per_metric[name] = per_metric.get(name, 0.0) + d
+        activity = dict.fromkeys(entities, 0.0)
+        for (entity, name), d in delta.items():
+            if per_metric[name]:
+                activity[entity] += d / per_metric[name]
+        st.kept &= entities  # entities that ended free their slots
+        candidates = sorted((e for e in entities if e not in st.kept), key=lambda e: -activity[e])
         for e in candidates:
             if len(st.kept) < st.limit:
                 st.kept.add(e)

@@ -193,6 +193,14 @@ def eventually(check, timeout: float = 3.0):
             time.sleep(0.02)
 
 
+def wait_until(condition, what: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.01)
+
+
 def tcp_listener(family=socket.AF_INET) -> socket.socket:
     lst = socket.socket(family, socket.SOCK_STREAM)
     lst.bind((LOOPBACK[family], 0))
@@ -485,6 +493,8 @@ def test_thread_counts(sockets_probe, collect, spawn):
         # The first thread exits: its series ends, and its bytes stay in the process totals.
         child.tell("0")
         assert child.expect() == {"joined": 0}
+        # join() returns before the kernel thread is through do_exit; its /proc entry goes after.
+        wait_until(lambda: not os.path.exists(f"/proc/{child.pid}/task/{tids[0]}"), "the thread to exit")
         snap = collect(sockets_probe)
         assert thread_bytes(snap, child.pid, "tcp") == {tids[1]: (sizes[1], 0)}
         assert process_counts(snap, child.pid, "tcp") == dict(ZERO, sent_bytes=sum(sizes), send_calls=calls)

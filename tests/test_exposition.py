@@ -1,0 +1,71 @@
+"""The text exposition, the cardinality budget and the README table, without the kernel."""
+from prometheus_client.parser import text_string_to_metric_families
+
+from drums import docs
+from drums.budget import Budget
+from drums.exporters.prometheus import render
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Histogram, Metric, Snapshot
+
+CPU = Metric("drums_process_cpu_seconds_total", COUNTER, "cpu", ("pid", "process"))
+MEM = Metric("drums_process_resident_memory_bytes", GAUGE, "rss", ("pid", "process"))
+SENT = Metric("drums_process_socket_sent_bytes_total", COUNTER, "sent", ("pid", "process", "protocol"))
+LAT = Metric("drums_process_runqueue_latency_seconds", HISTOGRAM, "lat", ("pid", "process"), (0.001, 0.01))
+
+
+def test_render_parses_back_with_prometheus_client_including_hostile_label_values():
+    snap = Snapshot()
+    snap.add(CPU, ("1", 'we"ird\\name\nx'), 1.5)
+    snap.add(LAT, ("1", "a"), Histogram([2, 3], 0.0125, 4))
+    families = {f.name: f for f in text_string_to_metric_families(render(snap).decode())}
+    (cpu,) = families["drums_process_cpu_seconds"].samples
+    assert cpu.labels == {"pid": "1", "process": 'we"ird\\name\nx'} and cpu.value == 1.5
+    lat = {(s.name, s.labels.get("le")): s.value for s in families["drums_process_runqueue_latency_seconds"].samples}
+    assert lat == {("drums_process_runqueue_latency_seconds_bucket", "0.001"): 2,
+                   ("drums_process_runqueue_latency_seconds_bucket", "0.01"): 3,
+                   ("drums_process_runqueue_latency_seconds_bucket", "+Inf"): 4,
+                   ("drums_process_runqueue_latency_seconds_sum", None): 0.0125,
+                   ("drums_process_runqueue_latency_seconds_count", None): 4}
+
+
+def _snap(cpu: dict, sent: dict | None = None, mem: dict | None = None) -> Snapshot:
+    snap = Snapshot()
+    for pid, v in cpu.items():
+        snap.add(CPU, (pid, f"p{pid}"), v)
+    for pid, v in (sent or {}).items():
+        snap.add(SENT, (pid, f"p{pid}", "tcp"), v)
+    for pid, v in (mem or {}).items():
+        snap.add(MEM, (pid, f"p{pid}"), v)
+    return snap
+
+
+def test_budget_keeps_the_most_active_and_folds_the_rest_into_other():
+    b = Budget({"process": 2})
+    # Shares of CPU plus shares of bytes: 1 (0.61) and 2 (0.06 + 0.91) beat 3 (0.30) and 4 (0.12).
+    out = b.apply(_snap({"1": 10.0, "2": 1.0, "3": 5.0, "4": 0.5}, sent={"2": 10, "4": 1},
+                        mem={"1": 7, "2": 8, "3": 9, "4": 10}))
+    assert out.values(CPU) == {("1", "p1"): 10.0, ("2", "p2"): 1.0, ("other", "other"): 5.5}
+    assert out.values(SENT) == {("2", "p2", "tcp"): 10, ("other", "other", "tcp"): 1}  # dimensions survive
+    assert out.values(MEM) == {("1", "p1"): 7, ("2", "p2"): 8, ("other", "other"): 19}
+    assert b.folded()["process"] == 2
+
+
+def test_other_never_goes_backwards_when_folded_entities_end_or_get_promoted():
+    b = Budget({"process": 1})
+    seen = []
+    rounds = [
+        ({"1": 100.0, "2": 1.0, "3": 2.0}, 3.0),    # 1 kept; 2 and 3 folded
+        ({"1": 101.0, "2": 1.25, "3": 2.0}, 3.25),  # 1 stays busiest
+        ({"1": 102.0, "3": 2.5}, 3.75),             # 2 ended at 1.25: the baseline keeps it
+        ({"1": 102.0, "3": 50.0}, 105.75),          # 1 idle, 3 busy: 3 promoted (its 2.5 stays), 1's 102 folded
+        ({"3": 60.0}, 105.75),                      # 1 ended: its last value stays
+    ]
+    for counters, other in rounds:
+        out = b.apply(_snap(counters)).values(CPU)
+        assert out[("other", "other")] == other, (counters, out)
+        assert len(out) == 2  # one entity of its own, and other
+
+
+def test_readme_metric_table_is_current():
+    with open("README.md") as f:
+        text = f.read()
+    assert docs.rewrite(text) == text, "run `make readme`"
