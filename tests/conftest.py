@@ -1,8 +1,10 @@
-"""Shared fixtures: the real BPF probes, loaded once per test session into their own pin folder
-so that a developer's running agent is left alone."""
+"""Shared fixtures: the real BPF probes, loaded once per test session into a pin folder of the
+session's own, so that a running agent or another test session is left alone."""
 from __future__ import annotations
 
+import glob
 import os
+import shutil
 
 import pytest
 
@@ -10,7 +12,7 @@ from drums.kernel.features import Features
 from drums.metrics import Snapshot
 from drums.proctable import ProcessTable
 
-TEST_PIN_ROOT = "/sys/fs/bpf/drums_test"
+TEST_PIN_ROOT = f"/sys/fs/bpf/drums_test_{os.getpid()}"
 
 
 @pytest.fixture(scope="session")
@@ -70,3 +72,10 @@ def series(snap: Snapshot, metric_name: str, **labels) -> dict[tuple, object]:
 def pytest_sessionstart(session):
     if os.geteuid() != 0:
         raise pytest.UsageError("Drums tests load BPF programs: run them as root (make test)")
+    for old in glob.glob("/sys/fs/bpf/drums_test_*"):  # left by sessions that were killed
+        if not os.path.exists(f"/proc/{old.rsplit('_', 1)[1]}"):
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def pytest_sessionfinish(session):
+    shutil.rmtree(TEST_PIN_ROOT, ignore_errors=True)
