@@ -298,9 +298,27 @@ def attached_programs(tracepoints) -> list[str]:
     return sorted(out)
 
 
-def foreign_note(tracepoints) -> list[str]:
-    found = attached_programs(tracepoints)
-    if not found:
-        return []
-    return [f"other BPF programs were attached during the run and are in every figure, the baseline "
-            f"included: {', '.join(found)} (another session's probes?)"]
+class ForeignWatch:
+    """Programs of others on the measured tracepoints, looked for whenever none of ours is
+    attached: they tax every condition, the baseline included, and make a run noisier."""
+
+    def __init__(self, tracepoints):
+        self.tracepoints = tuple(tracepoints)
+        self.found: set[str] = set()
+        self.looks = self.hits = 0
+        self.load_at_start = os.getloadavg()[0]
+
+    def look(self) -> None:
+        found = attached_programs(self.tracepoints)
+        self.looks += 1
+        self.hits += bool(found)
+        self.found.update(found)
+
+    def notes(self) -> list[str]:
+        out = [f"host load average (1 min): {self.load_at_start:.2f} at the start, "
+               f"{os.getloadavg()[0]:.2f} at the end"]
+        if self.found:
+            out.append(f"other BPF programs were attached to the measured events at {self.hits} of "
+                       f"{self.looks} looks (another session's probes?), in the baseline too: "
+                       + ", ".join(sorted(self.found)))
+        return out

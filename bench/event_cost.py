@@ -24,7 +24,7 @@ import subprocess
 import sys
 import textwrap
 
-from common import (BenchError, bpftool_json, fmt, foreign_note, main_wrapper, print_table,
+from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, print_table,
                     progress, ratio, require_root, require_tool)
 
 PIN_ROOT = "/sys/fs/bpf/drums_bench"
@@ -49,14 +49,17 @@ int floor_wakeup(struct bpf_raw_tracepoint_args *ctx) { return 0; }
 FLOOR_FN = {"sock_send_length": b"floor_send", "sock_recv_length": b"floor_recv",
             "sched_switch": b"floor_switch", "sched_wakeup": b"floor_wakeup"}
 
-# The workload, run as `python -c WORKLOAD kind ops batches cpu`; prints ns per op of each batch.
+# The workload, run as `python -c WORKLOAD kind ops batches cpu`; prints ns per op of each batch
+# and the probed events per op, counted from the workload's own view (not from BPF, which would
+# also count every other process on the host): a send and a receive call per socket operation;
+# for the ping-pong, each context switch of the two processes (sched_switch) and each voluntary
+# one, which a wakeup ends (sched_wakeup).
 WORKLOAD = textwrap.dedent("""
-    import gc, json, os, socket, sys, time
+    import gc, json, os, resource, socket, sys, time
     kind, ops, batches, cpu = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
     os.sched_setaffinity(0, {cpu})
     n = max(1, ops // batches)
     out = []
-    warmup = 0
     if kind == "pingpong":
         a_r, a_w = os.pipe(); b_r, b_w = os.pipe()
         child = os.fork()
@@ -67,12 +70,18 @@ WORKLOAD = textwrap.dedent("""
             os._exit(0)
         read, write = os.read, os.write
         gc.disable()
+        before = resource.getrusage(resource.RUSAGE_SELF)
         for _ in range(batches):
             t = time.perf_counter_ns()
             for _ in range(n):
                 write(a_w, b"x"); read(b_r, 1)
             out.append((time.perf_counter_ns() - t) / n)
+        after = resource.getrusage(resource.RUSAGE_SELF)
         os.waitpid(child, 0)
+        kid = resource.getrusage(resource.RUSAGE_CHILDREN)
+        voluntary = after.ru_nvcsw - before.ru_nvcsw + kid.ru_nvcsw
+        switches = voluntary + after.ru_nivcsw - before.ru_nivcsw + kid.ru_nivcsw
+        events = {"sched_switch": switches / (n * batches), "sched_wakeup": voluntary / (n * batches)}
     else:
         if kind == "unix":
             a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -81,8 +90,7 @@ WORKLOAD = textwrap.dedent("""
             a = socket.create_connection(srv.getsockname()); b, _ = srv.accept()
             a.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         send, recv = a.send, b.recv
-        warmup = 1000
-        for _ in range(warmup):
+        for _ in range(1000):
             send(b"x"); recv(1)
         gc.disable()
         for _ in range(batches):
@@ -90,20 +98,20 @@ WORKLOAD = textwrap.dedent("""
             for _ in range(n):
                 send(b"x"); recv(1)
             out.append((time.perf_counter_ns() - t) / n)
-    # ops: every operation the run made, the untimed warm-up included, to count events per op.
-    print(json.dumps({"ops": n * batches + warmup, "ns_per_op": out}))
+        events = {"sock_send_length": 1.0, "sock_recv_length": 1.0}
+    print(json.dumps({"ns_per_op": out, "events_per_op": events}))
 """)
 
 
-def run_workload(kind: str, ops: int, batches: int, cpu: int) -> tuple[float, int]:
+def run_workload(kind: str, ops: int, batches: int, cpu: int) -> tuple[float, dict[str, float]]:
     """ns per operation of the fastest batch (the one least disturbed by the rest of the host),
-    and the number of operations run."""
+    and the probed events per operation, by tracepoint."""
     proc = subprocess.run([sys.executable, "-c", WORKLOAD, kind, str(ops), str(batches), str(cpu)],
                           capture_output=True, text=True, timeout=300, check=False)
     if proc.returncode != 0:
         raise BenchError(f"workload {kind} failed: {proc.stderr.strip()[-300:]}")
     data = json.loads(proc.stdout)
-    return min(data["ns_per_op"]), data["ops"]
+    return min(data["ns_per_op"]), data["events_per_op"]
 
 
 class Floor:
@@ -186,10 +194,10 @@ def run(args) -> None:
     if os.path.realpath(PIN_ROOT) == os.path.realpath(AGENT_PIN_ROOT):
         raise BenchError("the benchmark's pin root must differ from the agent's")
     tracepoints = [tp for _, pairs in PROBES.values() for tp, _ in pairs]
-    notes = foreign_note(tracepoints)
+    watch = ForeignWatch(tracepoints)
     floor = Floor(Features().kernel_headers)
     added: dict[tuple[str, str], list[float]] = {}  # (workload, condition) -> ns/op per round
-    events_per_op: dict[tuple[str, str], float] = {}  # (workload, tracepoint) -> events per op
+    events_per_op: dict[tuple[str, str], list[float]] = {}  # (workload, tracepoint) -> per run
     self_ns: dict[tuple[str, str], float] = {}  # (tracepoint, floor|drums) -> ns per program run
     found_by_name: dict[str, bool] = {}
     old_stats = set_stats(0)
@@ -199,8 +207,11 @@ def run(args) -> None:
         return args.pingpongs if workload == "pingpong" else args.ops
 
     def measure(workload, condition):
-        ns, _ = run_workload(workload, ops_of(workload), args.batches, args.cpu)
+        ns, events = run_workload(workload, ops_of(workload), args.batches, args.cpu)
         added.setdefault((workload, condition), []).append(ns)
+        if condition == "none":
+            for tp, count in events.items():
+                events_per_op.setdefault((workload, tp), []).append(count)
 
     try:
         # Pass 1, statistics off: time per operation, conditions rotated round by round.
@@ -210,6 +221,8 @@ def run(args) -> None:
                 tps = [tp for tp, _ in pairs]
                 for condition in order:
                     progress(f"round {rnd + 1}/{args.rounds}: {probe_name} workloads, {condition}")
+                    if condition == "none":
+                        watch.look()
                     if condition == "floor":
                         floor.attach(tps)
                     elif condition == "drums":
@@ -254,19 +267,6 @@ def run(args) -> None:
                 for tp in tps:
                     d_ns, d_cnt = (after[tp][0] - before[tp][0]), (after[tp][1] - before[tp][1])
                     self_ns[tp, condition] = d_ns / d_cnt if d_cnt else float("nan")
-        # Events per operation, per workload, from one more statistics-on run with the floor.
-        for probe_name, (workloads, pairs) in PROBES.items():
-            tps = [tp for tp, _ in pairs]
-            floor.attach(tps)
-            ids = floor.prog_ids(tps)
-            try:
-                for w in workloads:
-                    before = {tp: prog_stats(ids[tp])[1] for tp in tps}
-                    _, n = run_workload(w, ops_of(w) // 4, args.batches, args.cpu)
-                    for tp in tps:
-                        events_per_op[w, tp] = (prog_stats(ids[tp])[1] - before[tp]) / n
-            finally:
-                floor.detach()
     finally:
         set_stats(old_stats)
         if probe is not None:
@@ -292,11 +292,11 @@ def run(args) -> None:
             none = min(added[w, "none"])
             fl = min(added[w, "floor"]) - none
             dr = min(added[w, "drums"]) - none
-            events = sum(events_per_op.get((w, tp), 0) for tp, _ in pairs)
+            events = sum(median(events_per_op.get((w, tp), [0])) for tp, _ in pairs)
             per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
             rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
                          ratio(dr, fl), fmt(events, 2), per_event])
-    notes += [
+    notes = watch.notes() + [
         f"ns per operation: the fastest of {args.rounds} rounds x {args.batches} batches (other work on "
         "the host only ever adds time); "
         f"{args.ops:,} socket operations or {args.pingpongs:,} round trips per run, on CPU {args.cpu}; "

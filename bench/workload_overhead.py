@@ -14,7 +14,7 @@ import tempfile
 import threading
 import time
 
-from common import (Agent, BenchError, drums_unload, fetch, fmt, foreign_note, free_port, main_wrapper,
+from common import (Agent, BenchError, ForeignWatch, drums_unload, fetch, fmt, free_port, main_wrapper,
                     median, pin_cpu, print_table, progress, require_root, require_tool, terminate)
 
 CONDITIONS = ("none", "drums", "tcpdump")
@@ -117,7 +117,8 @@ def run(args) -> None:
     for tool in ("iperf3", "tcpdump", "taskset", "bpftool"):
         require_tool(tool)
     drums_unload()
-    notes = foreign_note(HOT_TRACEPOINTS)
+    watch = ForeignWatch(HOT_TRACEPOINTS)
+    notes: list[str] = []
     server_cpu, client_cpu = (None, None) if args.no_pin else (1, 0)
     port = free_port()
     server = subprocess.Popen(pin_cpu(server_cpu) + ["iperf3", "-s", "-p", str(port)],
@@ -130,6 +131,8 @@ def run(args) -> None:
             for condition in CONDITIONS:
                 for workload, (client_args, _) in WORKLOADS.items():
                     progress(f"round {rnd + 1}/{args.rounds}: {workload} with {condition}")
+                    if condition != "drums":
+                        watch.look()
                     monitor = Monitor(condition, args.scrape_interval, args.snaplen)
                     monitor.start()
                     try:
@@ -161,6 +164,7 @@ def run(args) -> None:
     for workload, stats in tcpdump_stats.items():
         if stats:
             notes.append(f"tcpdump on {workload}, last round: {stats[-1]}")
+    notes += watch.notes()
     pinning = "no CPU pinning" if args.no_pin else "iperf3 client on CPU 0, server on CPU 1"
     notes.insert(0, f"median of {args.rounds} interleaved rounds of {args.seconds} s each; {pinning}; "
                     f"the agent runs all probes and is scraped every {args.scrape_interval:g} s; "

@@ -111,10 +111,12 @@ static __always_inline void count_drop(int which)
         __sync_fetch_and_add(d, 1);
 }
 
-static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid)
+// The socket's entry, created at first use; *klass gets its protocol class even when there is none.
+static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid, u16 *klass)
 {
     struct socket_traffic_t *s = socket_traffic.lookup(&sk);
     if (s) {
+        *klass = s->klass;
         // TCP entries are deleted when the connection closes; other sockets are freed without a
         // tracepoint, so a recycled struct sock is recognised by its new inode.
         if (s->klass == CLASS_TCP)
@@ -128,6 +130,16 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid)
     fresh.tgid = tgid;
     fresh.ino = socket_ino(sk);
     read_identity(&fresh, sk);
+    *klass = fresh.klass;
+    if (fresh.klass == CLASS_TCP) {
+        // A TCP socket in CLOSE (never connected, or reset) would never pass CLOSE again to free
+        // its entry, and its struct sock would pass the entry to the next socket: count such
+        // calls in the thread totals only.
+        u8 state = 0;
+        bpf_probe_read_kernel(&state, 1, (void *)(sk + SK_STATE_OFF));
+        if (state == TCP_CLOSE)
+            return 0;
+    }
     if (socket_traffic.insert(&sk, &fresh) != 0) {
         count_drop(DROP_SOCKET);
         return 0;
@@ -144,8 +156,8 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 k
     u64 id = bpf_get_current_pid_tgid();
     u32 tid = (u32)id, tgid = id >> 32;
 
-    struct socket_traffic_t *s = socket_entry(sk, tgid);
-    u16 klass = s ? s->klass : klass_hint;
+    u16 klass = klass_hint;
+    struct socket_traffic_t *s = socket_entry(sk, tgid, &klass);
     u64 bytes = ret > 0 ? ret : 0;
     if (s) {
         // Atomic: threads of a process may share a socket.

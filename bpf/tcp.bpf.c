@@ -1,4 +1,4 @@
-// TCP health: retransmitted segments, resets and state changes, per connection and for the host.
+// TCP health: retransmitted segments and state changes per connection; those and resets per host.
 // The kernel keeps no per-connection count of these; the smoothed RTT it does keep is read by the
 // agent from tcp_info. All hooks are on slow paths, never on the data path.
 //
@@ -16,7 +16,6 @@ struct tcp_conn_t {
     u8 laddr[16];
     u8 raddr[16];
     u64 retransmits;
-    u64 resets_sent;
     u64 state_changes;
 };
 
@@ -102,10 +101,16 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
-// tcp:tcp_retransmit_skb (sk, skb[, reason])
+// tcp:tcp_retransmit_skb (sk, skb[, err])
 int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 sk = ctx->args[0];
+#ifdef RETRANSMIT_HAS_ERR
+    // Kernels whose event carries err also fire it for attempts that failed (e.g. EBUSY while the
+    // segment still sits in a host queue); the kernel's own tcpi_total_retrans skips those.
+    if ((int)ctx->args[2] != 0)
+        return 0;
+#endif
     struct tcp_totals_t *tot = totals();
     if (tot)
         tot->retransmits++;
@@ -116,22 +121,17 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
-// tcp:tcp_send_reset (sk, skb[, reason]); sk is NULL for a reset answering no socket.
+// tcp:tcp_send_reset (sk, skb[, reason]). A connection that aborts moves to CLOSE before it sends
+// its reset, so resets are counted for the host only.
 int on_send_reset(struct bpf_raw_tracepoint_args *ctx)
 {
-    u64 sk = ctx->args[0];
     struct tcp_totals_t *tot = totals();
     if (tot)
         tot->resets_sent++;
-    if (!sk)
-        return 0;
-    struct tcp_conn_t *c = tcp_conns.lookup(&sk);
-    if (c)
-        __sync_fetch_and_add(&c->resets_sent, 1);
     return 0;
 }
 
-// tcp:tcp_receive_reset (sk): the connection is about to close, so only the totals keep it.
+// tcp:tcp_receive_reset (sk): the connection is about to close, so only the host totals keep it.
 int on_receive_reset(struct bpf_raw_tracepoint_args *ctx)
 {
     struct tcp_totals_t *tot = totals();

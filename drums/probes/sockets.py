@@ -132,6 +132,7 @@ class SocketsProbe(BpfProbe):
             "SK_V6_DADDR_OFF": ("sock", "__sk_common.skc_v6_daddr"),
             "SK_V6_RCV_SADDR_OFF": ("sock", "__sk_common.skc_v6_rcv_saddr"),
             "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
+            "SK_STATE_OFF": ("sock", "__sk_common.skc_state"),
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
             "SK_TYPE_OFF": ("sock", "sk_type"),
             "SK_SOCKET_OFF": ("sock", "sk_socket"),

@@ -20,8 +20,6 @@ from drums.probes.bpf import AttachPath, BpfProbe, needs_tracepoints, offset_def
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
                           "Segments this connection retransmitted", CONN_LABELS)
-CONN_RESETS_SENT = Metric("drums_tcp_connection_resets_sent_total", COUNTER,
-                          "Resets this connection sent", CONN_LABELS)
 CONN_STATE_CHANGES = Metric("drums_tcp_connection_state_changes_total", COUNTER,
                             "TCP state transitions of this connection", CONN_LABELS)
 CONN_RTT = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE,
@@ -34,7 +32,7 @@ RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
 STATE_ENTERED = Metric("drums_tcp_state_transitions_total", COUNTER,
                        "TCP connections entering each state", ("state",))
 
-_CONN_VALUE = struct.Struct("<IHHHH16s16s4x3Q")
+_CONN_VALUE = struct.Struct("<IHHHH16s16s4x2Q")
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
 EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
@@ -44,7 +42,7 @@ class TcpProbe(BpfProbe):
     name = "tcp"
     source = "tcp.bpf.c"
     maps = ("tcp_conns", "tcp_totals", "dropped")
-    metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
+    metrics = (CONN_RETRANSMITS, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
                RESETS_RECEIVED, STATE_ENTERED)
     paths = (
         AttachPath("raw_tracepoint",
@@ -55,7 +53,8 @@ class TcpProbe(BpfProbe):
     )
 
     def offsets(self, btf: Btf) -> dict[str, int]:
-        return offset_defines(btf, {
+        d = {"RETRANSMIT_HAS_ERR": 1} if len(btf.tracepoint_args("tcp_retransmit_skb") or ()) >= 3 else {}
+        return d | offset_defines(btf, {
             "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
             "SK_NUM_OFF": ("sock", "__sk_common.skc_num"),
             "SK_DPORT_OFF": ("sock", "__sk_common.skc_dport"),
@@ -71,10 +70,9 @@ class TcpProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         keys, values, _ = self.read("tcp_conns")
         for v in _CONN_VALUE.iter_unpack(values):
-            netns, family, lport, rport, _state, laddr, raddr, retrans, rst_sent, changes = v
+            netns, family, lport, rport, _state, laddr, raddr, retrans, changes = v
             labels = (endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns))
             snap.add(CONN_RETRANSMITS, labels, retrans)
-            snap.add(CONN_RESETS_SENT, labels, rst_sent)
             snap.add(CONN_STATE_CHANGES, labels, changes)
         _, values, _ = self.read("tcp_totals")
         totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]

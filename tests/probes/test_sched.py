@@ -1,0 +1,548 @@
+"""sched: children with a known CPU use, run-queue waits and lifetime, read through the real BPF probe and
+checked against the kernel's own accounting in /proc/<pid>/task/<tid>/{schedstat,status,stat}."""
+import json
+import os
+import struct
+import subprocess
+import sys
+import time
+
+import pytest
+
+from drums.metrics import Histogram
+from drums.probes.sched import _PROCESS_VALUE, _THREAD_VALUE, RUNQ_BUCKETS
+from tests.conftest import series
+
+PROCESS_CPU = "drums_process_cpu_seconds_total"
+PROCESS_RUNQ = "drums_process_runqueue_latency_seconds"
+PROCESS_SWITCHES = "drums_process_context_switches_total"
+THREAD_CPU = "drums_thread_cpu_seconds_total"
+THREAD_RUNQ = "drums_thread_runqueue_wait_seconds_total"
+THREAD_RUNQ_WAITS = "drums_thread_runqueue_waits_total"
+THREAD_SWITCHES = "drums_thread_context_switches_total"
+
+MS_BOUND = next(b for b in RUNQ_BUCKETS if b >= 1e-3)  # 1.024 ms
+FOUR_MS_BOUND = next(b for b in RUNQ_BUCKETS if b >= 4e-3)  # 4.096 ms
+
+# Every child script starts with these helpers and speaks one JSON line per step.
+PRELUDE = r'''
+import hashlib, json, os, sys, threading, time
+
+def say(**fields):
+    print(json.dumps(fields), flush=True)
+
+def burn(seconds):
+    """Spin until this thread has used `seconds` of CPU; the CPU time it measured itself."""
+    start = time.thread_time()
+    while time.thread_time() - start < seconds:
+        pass
+    return time.thread_time() - start
+
+def name_thread(name):
+    with open("/proc/thread-self/comm", "w") as f:
+        f.write(name)
+'''
+
+# A thread named "burner" says its tid; on "go" it burns argv[1] seconds of CPU, says what it measured
+# and sleeps until the child's stdin closes.
+BURN_IN_THREAD = r'''
+go = threading.Event()
+def worker():
+    name_thread("burner")
+    say(tid=threading.get_native_id())
+    go.wait()
+    say(cpu=burn(float(sys.argv[1])))
+    threading.Event().wait()
+threading.Thread(target=worker, daemon=True).start()
+sys.stdin.readline()
+go.set()
+sys.stdin.read()
+'''
+
+# On "go", a thread burns argv[1] seconds of CPU and exits. Once the kernel has released it, the child
+# says its tid and measured CPU, and the context switches of the whole process (getrusage counts those of
+# released threads) and of the main thread alone.
+EXITING_THREAD = r'''
+import resource
+def switches():
+    with open("/proc/thread-self/status") as f:
+        fields = dict(line.split(":", 1) for line in f)
+    return int(fields["voluntary_ctxt_switches"]), int(fields["nonvoluntary_ctxt_switches"])
+say(ready=True)
+sys.stdin.readline()
+out = {}
+def worker():
+    out["tid"] = threading.get_native_id()
+    out["cpu"] = burn(float(sys.argv[1]))
+t = threading.Thread(target=worker)
+t.start()
+t.join()
+while len(os.listdir("/proc/self/task")) > 1:
+    time.sleep(0.001)
+usage = resource.getrusage(resource.RUSAGE_SELF)
+say(**out, process_switches=(usage.ru_nvcsw, usage.ru_nivcsw), main_switches=switches())
+sys.stdin.read()
+'''
+
+# Two threads pinned to CPU argv[1] keep it busy for argv[2] seconds of wall time after "go", then sleep
+# until the child's stdin closes. They hash more than 2 KiB at a time, which runs without the GIL: they
+# compete for the CPU, not for the GIL.
+PINNED_SPINNERS = r'''
+os.sched_setaffinity(0, {int(sys.argv[1])})  # threads inherit the affinity of the thread that starts them
+seconds = float(sys.argv[2])
+data = bytes(1 << 20)
+tids, ready, go, done = [], threading.Barrier(3), threading.Event(), threading.Barrier(3)
+def spin():
+    tids.append(threading.get_native_id())
+    ready.wait()
+    go.wait()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        hashlib.sha256(data)
+    done.wait()
+    threading.Event().wait()
+for _ in range(2):
+    threading.Thread(target=spin, daemon=True).start()
+ready.wait()
+say(tids=tids)
+sys.stdin.readline()
+start = time.monotonic()
+go.set()
+done.wait()
+say(wall=time.monotonic() - start)
+sys.stdin.read()
+'''
+
+# The main thread, pinned to CPU argv[1], sleeps 10 ms 50 times after "go".
+PINNED_SLEEPER = r'''
+os.sched_setaffinity(0, {int(sys.argv[1])})
+say(ready=True)
+sys.stdin.readline()
+for _ in range(50):
+    time.sleep(0.01)
+say(done=True)
+sys.stdin.read()
+'''
+
+# Says the CPU time the whole process has used so far, fork and exec included.
+IDLE = r'''
+say(cpu=time.process_time())
+sys.stdin.read()
+'''
+
+# On "go", forks argv[1] processes one after another; each starts a thread, joins it and exits, and is
+# reaped before the next fork. Says the PIDs and the thread ids it saw.
+FORKER = r'''
+say(ready=True)
+sys.stdin.readline()
+pids, tids = [], []
+for _ in range(int(sys.argv[1])):
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        t = threading.Thread(target=lambda: os.write(w, b"%16d" % threading.get_native_id()))
+        t.start()
+        t.join()
+        os._exit(0)
+    tids.append(int(os.read(r, 16)))
+    os.close(r)
+    os.close(w)
+    os.waitpid(pid, 0)
+    pids.append(pid)
+say(pids=pids, tids=tids)
+sys.stdin.read()
+'''
+
+# A thread burns argv[1] seconds of CPU, then calls exec: the kernel gives it the process's PID
+# (de_thread) and the old main thread is gone.
+EXEC_FROM_THREAD = r'''
+def worker():
+    say(tid=threading.get_native_id())
+    burn(float(sys.argv[1]))
+    os.execv(sys.executable, [sys.executable, "-c", "import sys; print('{}', flush=True); sys.stdin.read()"])
+threading.Thread(target=worker).start()
+time.sleep(60)
+'''
+
+# Pairs of threads that each burn argv[1] seconds of CPU and exit, over and over.
+THREAD_CHURN = r'''
+def worker():
+    burn(float(sys.argv[1]))
+say(ready=True)
+while True:
+    threads = [threading.Thread(target=worker) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+'''
+
+
+class Child:
+    """A `python -c` child: PRELUDE + script, one JSON line out per step, a line in to go on."""
+
+    def __init__(self, script: str, *args):
+        argv = [sys.executable, "-c", PRELUDE + script, *map(str, args)]
+        self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.pid = self.proc.pid
+
+    def read(self) -> dict:
+        line = self.proc.stdout.readline()
+        assert line, f"child {self.pid} ended early"
+        return json.loads(line)
+
+    def go(self) -> None:
+        self.proc.stdin.write("go\n")
+        self.proc.stdin.flush()
+
+    def end(self) -> None:
+        """Close its stdin, which ends it, and reap it."""
+        if self.proc.poll() is None:
+            self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.proc.stdout.close()
+
+
+@pytest.fixture
+def spawn():
+    children = []
+
+    def start(script: str, *args) -> Child:
+        children.append(Child(script, *args))
+        return children[-1]
+    yield start
+    for child in children:
+        child.end()
+
+
+def tids_of(pid: int) -> list[int]:
+    return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+
+
+def schedstat(pid: int, tid: int) -> tuple[int, int, int]:
+    """The kernel's (ns on a CPU, ns waiting on a run queue, times it ran after waiting) for one thread."""
+    with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+        oncpu, run_delay, timeslices = (int(x) for x in f.read().split())
+    return oncpu, run_delay, timeslices
+
+
+def process_schedstat(pid: int) -> int:
+    """ns on a CPU of the live threads of a process."""
+    return sum(schedstat(pid, tid)[0] for tid in tids_of(pid))
+
+
+def ctxt_switches(path: str) -> tuple[int, int]:
+    """(voluntary, involuntary) from /proc/<pid>/status or /proc/<pid>/task/<tid>/status."""
+    with open(f"{path}/status") as f:
+        fields = dict(line.split(":", 1) for line in f)
+    return int(fields["voluntary_ctxt_switches"]), int(fields["nonvoluntary_ctxt_switches"])
+
+
+def process_cputime(pid: int) -> float:
+    """utime + stime of /proc/<pid>/stat: the whole thread group's CPU time, exited threads included,
+    in clock ticks (the kernel scales the tick samples to its exact runtime)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def settle(pid: int, timeout: float = 5.0) -> None:
+    """Wait until every thread of `pid` sleeps: a running slice is counted by neither the probe nor
+    schedstat until the thread leaves the CPU."""
+    deadline = time.monotonic() + timeout
+    while True:
+        states = []
+        for tid in tids_of(pid):
+            try:
+                with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                    states.append(f.read().rsplit(")", 1)[1].split()[0])
+            except FileNotFoundError:
+                pass  # the thread has just exited
+        if all(s == "S" for s in states):
+            return
+        assert time.monotonic() < deadline, f"threads of {pid} still in states {states}"
+        time.sleep(0.005)
+
+
+def wait_until(condition, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
+        time.sleep(0.01)
+
+
+def value(snap, metric: str, **labels):
+    rows = series(snap, metric, **labels)
+    assert len(rows) == 1, f"{metric}{labels}: {rows}"
+    return next(iter(rows.values()))
+
+
+def thread_entries(probe) -> dict[int, tuple]:
+    """tid -> (tgid, pad, enqueued_at, comm, oncpu_ns, ...) straight from the thread_sched map."""
+    keys, values, _ = probe.read("thread_sched")
+    return {tid: v for (tid,), v in zip(struct.iter_unpack("<I", keys), _THREAD_VALUE.iter_unpack(values))}
+
+
+def exited_entries(probe) -> dict[int, tuple]:
+    keys, values, _ = probe.read("exited_sched")
+    return {tgid: v for (tgid,), v in zip(struct.iter_unpack("<I", keys), _PROCESS_VALUE.iter_unpack(values))}
+
+
+def histogram_delta(after: Histogram, before: Histogram) -> Histogram:
+    return Histogram([a - b for a, b in zip(after.cumulative, before.cumulative)],
+                     after.sum - before.sum, after.count - before.count)
+
+
+def waits_not_under(h: Histogram, bound: float) -> int:
+    """Waits of at least `bound`, one of RUNQ_BUCKETS."""
+    return h.count - h.cumulative[RUNQ_BUCKETS.index(bound)]
+
+
+def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn):
+    child = spawn(BURN_IN_THREAD, 0.8)
+    pid, tid = child.pid, child.read()["tid"]
+    task = f"/proc/{pid}/task/{tid}"
+    settle(pid)
+    before = collect(sched_probe)
+    k_before, sw_before, proc_before = schedstat(pid, tid), ctxt_switches(task), process_schedstat(pid)
+
+    child.go()
+    measured = child.read()["cpu"]
+    settle(pid)
+    after = collect(sched_probe)
+    k_after, sw_after, proc_after = schedstat(pid, tid), ctxt_switches(task), process_schedstat(pid)
+
+    labels = {"pid": pid, "tid": tid}
+    assert set(series(after, THREAD_CPU, **labels)) == {(str(pid), str(tid), "burner")}  # renamed after start
+
+    cpu = value(after, THREAD_CPU, **labels) - value(before, THREAD_CPU, **labels)
+    k_cpu = (k_after[0] - k_before[0]) / 1e9
+    print("T1", dict(cpu=cpu, measured=measured, k_cpu=k_cpu, proc=process_cpu_dbg(after, before, pid), kproc=(proc_after - proc_before) / 1e9))
+    assert cpu == pytest.approx(measured, rel=0.05)
+    assert abs(cpu - k_cpu) <= max(0.01 * k_cpu, 0.003), (cpu, k_cpu)
+
+    process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
+    assert process_cpu == pytest.approx((proc_after - proc_before) / 1e9, rel=0.02)
+
+    # The probe's wait starts at the wakeup tracepoint, the kernel's at the enqueue just before it;
+    # both end at the switch. Seen: 0.05-0.5 ms apart on 1-8 ms of waiting.
+    runq = value(after, THREAD_RUNQ, **labels) - value(before, THREAD_RUNQ, **labels)
+    k_runq = (k_after[1] - k_before[1]) / 1e9
+    print("T1R", runq, k_runq, value(after, THREAD_RUNQ_WAITS, **labels) - value(before, THREAD_RUNQ_WAITS, **labels), k_after[2] - k_before[2], sw_after[0]-sw_before[0], sw_after[1]-sw_before[1])
+    assert abs(runq - k_runq) <= 0.002 + 0.2 * k_runq, (runq, k_runq)
+    # A wait ends each time the thread is switched in after waking or being preempted: the kernel
+    # counts the same arrivals (sched_info.pcount).
+    waits = value(after, THREAD_RUNQ_WAITS, **labels) - value(before, THREAD_RUNQ_WAITS, **labels)
+    assert abs(waits - (k_after[2] - k_before[2])) <= 2, (waits, k_after[2] - k_before[2])
+
+    # Same rule as the kernel's nvcsw/nivcsw (__schedule): voluntary when it blocked, involuntary when
+    # preempted. They only differ when a signal arrives as the thread blocks, which this child never gets.
+    switches = tuple(value(after, THREAD_SWITCHES, **labels, kind=kind)
+                     - value(before, THREAD_SWITCHES, **labels, kind=kind) for kind in ("voluntary", "involuntary"))
+    assert switches == (sw_after[0] - sw_before[0], sw_after[1] - sw_before[1])
+    assert sum(switches) > 0
+
+
+def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spawn):
+    child = spawn(PINNED_SPINNERS, 0, 1.0)
+    pid, tids = child.pid, child.read()["tids"]
+    settle(pid)
+    before = collect(sched_probe)
+    child.go()
+    wall = child.read()["wall"]
+    settle(pid)
+    after = collect(sched_probe)
+
+    cpus = []
+    for tid in tids:
+        labels = {"pid": pid, "tid": tid}
+        with open(f"/proc/{pid}/task/{tid}/status") as f:
+            assert "Cpus_allowed_list:\t0\n" in f.read()
+        cpus.append(value(after, THREAD_CPU, **labels) - value(before, THREAD_CPU, **labels))
+        waited = value(after, THREAD_RUNQ, **labels) - value(before, THREAD_RUNQ, **labels)
+        assert waited >= 0.3 * wall, (tid, waited, wall)
+    print("T2", wall, cpus, [value(after, THREAD_RUNQ, pid=pid, tid=t) - value(before, THREAD_RUNQ, pid=pid, tid=t) for t in tids])
+    assert sum(cpus) <= 1.05 * wall  # one CPU between them
+
+    hist = histogram_delta(value(after, PROCESS_RUNQ, pid=pid), value(before, PROCESS_RUNQ, pid=pid))
+    assert hist.cumulative == sorted(hist.cumulative) and hist.cumulative[-1] <= hist.count
+    print("T2H", hist)
+    assert hist.sum >= 0.6 * wall
+    assert waits_not_under(hist, MS_BOUND) >= 10, hist
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2 or 1 not in os.sched_getaffinity(0), reason="needs CPU 1")
+def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
+    # A sleeper waking on its own CPU is switched in within microseconds when that CPU is idle, and
+    # within a wakeup preemption when another task runs there: the bounds hold on a 2-CPU VM whose
+    # other tests run on CPU 1 too, with a margin of 10x on the mean.
+    child = spawn(PINNED_SLEEPER, 1)
+    pid = child.pid
+    child.read()
+    settle(pid)
+    before = collect(sched_probe)
+    k_before = schedstat(pid, pid)
+    child.go()
+    child.read()
+    settle(pid)
+    after = collect(sched_probe)
+    k_after = schedstat(pid, pid)
+
+    hist = histogram_delta(value(after, PROCESS_RUNQ, pid=pid), value(before, PROCESS_RUNQ, pid=pid))
+    print("T3H", hist, (k_after[1] - k_before[1]) / (k_after[2] - k_before[2]) / 1e9)
+    assert hist.count >= 50
+    assert hist.sum / hist.count < 200e-6, hist
+    assert waits_not_under(hist, FOUR_MS_BOUND) == 0, hist
+    k_mean = (k_after[1] - k_before[1]) / (k_after[2] - k_before[2]) / 1e9
+    assert k_mean < 200e-6  # the kernel agrees the sleeper hardly waited
+
+
+def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
+    child = spawn(EXITING_THREAD, 0.5)
+    pid = child.pid
+    child.read()
+    settle(pid)
+    before = collect(sched_probe)
+    main_before = schedstat(pid, pid)[0]
+    child.go()
+    gone = child.read()
+    wait_until(lambda: not os.path.exists(f"/proc/{pid}/task/{gone['tid']}"), 2, "thread exit")
+    settle(pid)
+    after = collect(sched_probe)
+    main_cpu = (schedstat(pid, pid)[0] - main_before) / 1e9
+
+    assert series(after, THREAD_CPU, pid=pid, tid=gone["tid"]) == {}
+    with open(f"/proc/{pid}/comm") as f:
+        assert set(series(after, THREAD_CPU, pid=pid)) == {(str(pid), str(pid), f.read().strip())}
+    process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
+    assert gone["cpu"] * 0.95 <= process_cpu <= gone["cpu"] * 1.05 + main_cpu + 0.01
+    # Whole-process totals since the fork, dead thread included, against the kernel's.
+    assert value(after, PROCESS_CPU, pid=pid) == pytest.approx(process_cputime(pid), rel=0.02, abs=0.02)
+    switches = tuple(value(after, PROCESS_SWITCHES, pid=pid, kind=k) for k in ("voluntary", "involuntary"))
+    dead = [p - m for p, m in zip(gone["process_switches"], gone["main_switches"])]
+    main_now = ctxt_switches(f"/proc/{pid}/task/{pid}")
+    expected = (dead[0] + main_now[0], dead[1] + main_now[1])
+    # Exact, but for the exited thread's last switch (TASK_DEAD): the kernel adds its counts to the
+    # process's (__exit_signal) before that switch, the probe counts it.
+    assert switches == (expected[0] + 1, expected[1])
+
+
+def test_exited_process_series_go(sched_probe, collect, spawn):
+    child = spawn(BURN_IN_THREAD, 0.2)
+    pid, tid = child.pid, child.read()["tid"]
+    child.go()
+    child.read()
+    settle(pid)
+    alive = collect(sched_probe)
+    assert len(series(alive, THREAD_CPU, pid=pid)) == 2
+    cpu = value(alive, PROCESS_CPU, pid=pid)
+
+    child.proc.stdin.close()
+    os.waitid(os.P_PID, pid, os.WEXITED | os.WNOWAIT)  # a zombie, not reaped yet
+    wait_until(lambda: not (set(thread_entries(sched_probe)) & {pid, tid}), 1, "last switch of its threads")
+    zombie = collect(sched_probe)
+    assert series(zombie, THREAD_CPU, pid=pid) == {}
+    assert value(zombie, PROCESS_CPU, pid=pid) >= cpu  # folded: a zombie's counter does not go back
+
+    child.end()
+    reaped = collect(sched_probe)  # the first collect after wait() already drops it
+    for metric in (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
+                   THREAD_SWITCHES):
+        assert series(reaped, metric, pid=pid) == {}, metric
+    # sched_process_free comes an RCU grace period after the reaping.
+    wait_until(lambda: pid not in exited_entries(sched_probe), 2, "exited_sched entry freed")
+
+
+def test_fresh_process_starts_near_zero_even_on_a_reused_pid(sched_probe, collect, spawn):
+    dead = spawn(EXITING_THREAD, 0.5)
+    dead.read()
+    dead.go()
+    dead_cpu = dead.read()["cpu"]
+    dead_total = value(collect(sched_probe), PROCESS_CPU, pid=dead.pid)
+    assert dead_total >= dead_cpu
+    dead.end()
+    collect(sched_probe)
+
+    # Writing N to ns_last_pid makes N + 1 the next PID, unless another fork on the host comes first.
+    for attempt in range(20):
+        with open("/proc/sys/kernel/ns_last_pid", "w") as f:
+            f.write(str(dead.pid - 1))
+        fresh = spawn(IDLE)
+        if fresh.pid == dead.pid or attempt == 19:
+            break
+        fresh.end()
+    own = fresh.read()["cpu"]
+    settle(fresh.pid)
+    snap = collect(sched_probe)
+    cpu = value(snap, PROCESS_CPU, pid=fresh.pid)
+    print("T5", cpu, own, dead_total, fresh.pid, dead.pid, attempt)
+    assert cpu <= own + 0.01, (cpu, own)
+    assert cpu == pytest.approx(process_schedstat(fresh.pid) / 1e9, rel=0.02, abs=0.002)
+    if fresh.pid != dead.pid:
+        pytest.skip(f"PID {dead.pid} was not reused (other forks on the host)")
+    assert cpu < dead_total / 2
+
+
+def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn):
+    count = 200
+    forker = spawn(FORKER, count)
+    forker.read()
+    settle(forker.pid)
+    dropped = sched_probe.read("dropped")[1]
+    threads_before, exited_before = sched_probe.read("thread_sched")[2], sched_probe.read("exited_sched")[2]
+
+    forker.go()
+    done = forker.read()
+    pids, tids = set(done["pids"]), set(done["tids"])
+    assert len(pids) == len(tids) == count
+
+    def left():
+        alive = {int(d) for d in os.listdir("/proc") if d.isdigit()}  # a PID reused since is not a leak
+        threads = {tid for tid, v in thread_entries(sched_probe).items()
+                   if (tid in pids | tids or v[0] in pids) and v[0] not in alive}
+        return threads, set(exited_entries(sched_probe)) & (pids - alive)
+    wait_until(lambda: left() == (set(), set()), 2, f"entries of the dead children {left()}")
+    # Other tests and agents on the host start and end threads too: a margin of 20 against 400 threads.
+    assert sched_probe.read("thread_sched")[2] <= threads_before + 20
+    assert sched_probe.read("exited_sched")[2] <= exited_before + 20
+    assert sched_probe.read("dropped")[1] == dropped
+
+
+# The two tests below fail on the probe as it is: see the report that came with them.
+
+def test_exec_from_a_thread_leaves_no_stale_thread(sched_probe, collect, spawn):
+    child = spawn(EXEC_FROM_THREAD, 0.2)
+    pid, tid = child.pid, child.read()["tid"]
+    assert child.read() == {}  # the exec'd program runs, as the only thread, under the process's PID
+    settle(pid)
+    snap = collect(sched_probe)
+    exported = {int(labels[1]) for labels in series(snap, THREAD_CPU, pid=pid)}
+    stale_series = exported - set(tids_of(pid))
+
+    child.end()
+    wait_until(lambda: pid not in exited_entries(sched_probe), 2, "exited_sched entry freed")
+    left = {t: v[:2] for t, v in thread_entries(sched_probe).items() if t in (pid, tid) or v[0] == pid}
+    # Expected: no series for the thread that became the leader, and nothing left once reaped.
+    assert (stale_series, left) == (set(), {})
+
+
+def test_process_cpu_never_goes_back_while_threads_exit(sched_probe, collect, spawn):
+    child = spawn(THREAD_CHURN, 0.02)
+    child.read()
+    previous, backwards, scrapes = 0.0, [], 0
+    end = time.monotonic() + 3
+    while time.monotonic() < end:
+        cpu = value(collect(sched_probe), PROCESS_CPU, pid=child.pid)
+        scrapes += 1
+        if cpu < previous:
+            backwards.append((previous, cpu))
+        previous = cpu
+    assert backwards == [], f"{len(backwards)} of {scrapes} scrapes went back: {backwards[:3]}"
+
+
+def process_cpu_dbg(after, before, pid):
+    return value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
