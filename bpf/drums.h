@@ -42,4 +42,40 @@
 struct sock;
 struct msghdr;
 
+#ifdef SK_FAMILY_OFF
+// Family, network namespace, ports (host order) and addresses of a socket; IPv4 addresses fill
+// the first 4 bytes. Offsets come from BTF (-D flags).
+static __always_inline void read_endpoints(u64 sk, u16 *family, u32 *netns, u16 *lport, u16 *rport,
+                                           u8 *laddr, u8 *raddr)
+{
+    u64 net = 0;
+    u16 dport = 0;
+    bpf_probe_read_kernel(family, 2, (void *)(sk + SK_FAMILY_OFF));
+    bpf_probe_read_kernel(lport, 2, (void *)(sk + SK_NUM_OFF));
+    bpf_probe_read_kernel(&dport, 2, (void *)(sk + SK_DPORT_OFF));
+    *rport = ntohs(dport);
+    bpf_probe_read_kernel(&net, sizeof(net), (void *)(sk + SK_NET_OFF));
+    if (net)
+        bpf_probe_read_kernel(netns, 4, (void *)(net + NET_INUM_OFF));
+    if (*family == AF_INET) {
+        bpf_probe_read_kernel(laddr, 4, (void *)(sk + SK_RCV_SADDR_OFF));
+        bpf_probe_read_kernel(raddr, 4, (void *)(sk + SK_DADDR_OFF));
+    } else if (*family == AF_INET6) {
+        bpf_probe_read_kernel(laddr, 16, (void *)(sk + SK_V6_RCV_SADDR_OFF));
+        bpf_probe_read_kernel(raddr, 16, (void *)(sk + SK_V6_DADDR_OFF));
+    }
+}
+#endif
+
+// The process a task belongs to if the task is its leader (so the process is being reaped), else 0.
+#ifdef TASK_PID_OFF
+static __always_inline u32 leader_tgid(u64 task)
+{
+    u32 pid = 0, tgid = 0;
+    bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
+    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
+    return pid == tgid ? tgid : 0;
+}
+#endif
+
 #endif

@@ -171,11 +171,8 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
 // sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
 int on_task_free(struct bpf_raw_tracepoint_args *ctx)
 {
-    u64 task = ctx->args[0];
-    u32 pid = 0, tgid = 0;
-    bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
-    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
-    if (pid == tgid)
+    u32 tgid = leader_tgid(ctx->args[0]);
+    if (tgid)
         exited_sched.delete(&tgid);
     return 0;
 }

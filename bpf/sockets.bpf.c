@@ -83,24 +83,9 @@ static __always_inline u64 socket_ino(u64 sk)
 
 static __always_inline void read_identity(struct socket_traffic_t *s, u64 sk)
 {
-    u64 net = 0;
-    bpf_probe_read_kernel(&s->family, 2, (void *)(sk + SK_FAMILY_OFF));
+    read_endpoints(sk, &s->family, &s->netns, &s->lport, &s->rport, s->laddr, s->raddr);
     bpf_probe_read_kernel(&s->protocol, 2, (void *)(sk + SK_PROTOCOL_OFF));
     bpf_probe_read_kernel(&s->type, 2, (void *)(sk + SK_TYPE_OFF));
-    bpf_probe_read_kernel(&s->lport, 2, (void *)(sk + SK_NUM_OFF));
-    u16 dport = 0;
-    bpf_probe_read_kernel(&dport, 2, (void *)(sk + SK_DPORT_OFF));
-    s->rport = ntohs(dport);
-    bpf_probe_read_kernel(&net, sizeof(net), (void *)(sk + SK_NET_OFF));
-    if (net)
-        bpf_probe_read_kernel(&s->netns, 4, (void *)(net + NET_INUM_OFF));
-    if (s->family == AF_INET) {
-        bpf_probe_read_kernel(s->laddr, 4, (void *)(sk + SK_RCV_SADDR_OFF));
-        bpf_probe_read_kernel(s->raddr, 4, (void *)(sk + SK_DADDR_OFF));
-    } else if (s->family == AF_INET6) {
-        bpf_probe_read_kernel(s->laddr, 16, (void *)(sk + SK_V6_RCV_SADDR_OFF));
-        bpf_probe_read_kernel(s->raddr, 16, (void *)(sk + SK_V6_DADDR_OFF));
-    }
     s->klass = classify(s->family, s->protocol);
 }
 
@@ -356,11 +341,8 @@ int on_thread_exit(struct bpf_raw_tracepoint_args *ctx)
 // sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
 int on_task_free(struct bpf_raw_tracepoint_args *ctx)
 {
-    u64 task = ctx->args[0];
-    u32 pid = 0, tgid = 0;
-    bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
-    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
-    if (pid == tgid)
+    u32 tgid = leader_tgid(ctx->args[0]);
+    if (tgid)
         exited_traffic.delete(&tgid);
     return 0;
 }

@@ -34,22 +34,7 @@ BPF_ARRAY(dropped, u64, 1);
 
 static __always_inline void read_identity(struct tcp_conn_t *c, u64 sk)
 {
-    u64 net = 0;
-    u16 dport = 0;
-    bpf_probe_read_kernel(&c->family, 2, (void *)(sk + SK_FAMILY_OFF));
-    bpf_probe_read_kernel(&c->lport, 2, (void *)(sk + SK_NUM_OFF));
-    bpf_probe_read_kernel(&dport, 2, (void *)(sk + SK_DPORT_OFF));
-    c->rport = ntohs(dport);
-    bpf_probe_read_kernel(&net, sizeof(net), (void *)(sk + SK_NET_OFF));
-    if (net)
-        bpf_probe_read_kernel(&c->netns, 4, (void *)(net + NET_INUM_OFF));
-    if (c->family == AF_INET) {
-        bpf_probe_read_kernel(c->laddr, 4, (void *)(sk + SK_RCV_SADDR_OFF));
-        bpf_probe_read_kernel(c->raddr, 4, (void *)(sk + SK_DADDR_OFF));
-    } else {
-        bpf_probe_read_kernel(c->laddr, 16, (void *)(sk + SK_V6_RCV_SADDR_OFF));
-        bpf_probe_read_kernel(c->raddr, 16, (void *)(sk + SK_V6_DADDR_OFF));
-    }
+    read_endpoints(sk, &c->family, &c->netns, &c->lport, &c->rport, c->laddr, c->raddr);
 }
 
 static __always_inline struct tcp_conn_t *conn_entry(u64 sk)

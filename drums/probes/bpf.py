@@ -162,6 +162,20 @@ class BpfProbe(Probe):
             shutil.rmtree(old, ignore_errors=True)
 
 
+# What read_endpoints() in bpf/drums.h reads from a struct sock.
+SOCK_ENDPOINT_FIELDS = {
+    "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
+    "SK_NUM_OFF": ("sock", "__sk_common.skc_num"),
+    "SK_DPORT_OFF": ("sock", "__sk_common.skc_dport"),
+    "SK_DADDR_OFF": ("sock", "__sk_common.skc_daddr"),
+    "SK_RCV_SADDR_OFF": ("sock", "__sk_common.skc_rcv_saddr"),
+    "SK_V6_DADDR_OFF": ("sock", "__sk_common.skc_v6_daddr"),
+    "SK_V6_RCV_SADDR_OFF": ("sock", "__sk_common.skc_v6_rcv_saddr"),
+    "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
+    "NET_INUM_OFF": ("net", "ns.inum"),
+}
+
+
 def offset_defines(btf: Btf, fields: dict[str, tuple[str, str]]) -> dict[str, int]:
     """NAME -> byte offset, for each NAME: (struct, member path)."""
     try:

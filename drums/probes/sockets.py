@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import AttachPath, BpfProbe, needs_fentry, needs_kprobes, needs_tracepoints, offset_defines
+from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_fentry, needs_kprobes,
+                              needs_tracepoints, offset_defines)
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -123,20 +124,11 @@ class SocketsProbe(BpfProbe):
         self._last_counts: dict[int, tuple[int, ...]] = {}
 
     def offsets(self, btf: Btf) -> dict[str, int]:
-        d = offset_defines(btf, {
-            "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
-            "SK_NUM_OFF": ("sock", "__sk_common.skc_num"),
-            "SK_DPORT_OFF": ("sock", "__sk_common.skc_dport"),
-            "SK_DADDR_OFF": ("sock", "__sk_common.skc_daddr"),
-            "SK_RCV_SADDR_OFF": ("sock", "__sk_common.skc_rcv_saddr"),
-            "SK_V6_DADDR_OFF": ("sock", "__sk_common.skc_v6_daddr"),
-            "SK_V6_RCV_SADDR_OFF": ("sock", "__sk_common.skc_v6_rcv_saddr"),
-            "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
+        d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
             "SK_STATE_OFF": ("sock", "__sk_common.skc_state"),
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
             "SK_TYPE_OFF": ("sock", "sk_type"),
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
-            "NET_INUM_OFF": ("net", "ns.inum"),
             "TASK_PID_OFF": ("task_struct", "pid"),
             "TASK_TGID_OFF": ("task_struct", "tgid"),
         })

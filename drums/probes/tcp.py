@@ -15,7 +15,7 @@ from drums.kernel.bpffs import sum_percpu
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import AttachPath, BpfProbe, needs_tracepoints, offset_defines
+from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
@@ -54,17 +54,8 @@ class TcpProbe(BpfProbe):
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = {"RETRANSMIT_HAS_ERR": 1} if len(btf.tracepoint_args("tcp_retransmit_skb") or ()) >= 3 else {}
-        return d | offset_defines(btf, {
-            "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
-            "SK_NUM_OFF": ("sock", "__sk_common.skc_num"),
-            "SK_DPORT_OFF": ("sock", "__sk_common.skc_dport"),
-            "SK_DADDR_OFF": ("sock", "__sk_common.skc_daddr"),
-            "SK_RCV_SADDR_OFF": ("sock", "__sk_common.skc_rcv_saddr"),
-            "SK_V6_DADDR_OFF": ("sock", "__sk_common.skc_v6_daddr"),
-            "SK_V6_RCV_SADDR_OFF": ("sock", "__sk_common.skc_v6_rcv_saddr"),
-            "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
+        return d | offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
-            "NET_INUM_OFF": ("net", "ns.inum"),
         })
 
     def collect(self, snap: Snapshot) -> None:
