@@ -45,3 +45,31 @@ class Snapshot:
 
     def values(self, metric: Metric) -> dict[tuple[str, ...], object]:
         return dict(self.series.get(metric, ()))
+
+
+class Monotonic:
+    """Holds per-process totals at their highest value from one collect to the next.
+
+    A total is read as live threads plus exited threads, from two maps one after the other; a
+    thread that exits between the two reads is missing from both for that one collect. A series
+    not seen in a collect is forgotten, so a process that ends (and a PID reused later) starts
+    afresh.
+    """
+
+    def __init__(self):
+        self._previous: dict = {}
+        self._current: dict = {}
+
+    def __call__(self, key, value):
+        prev = self._previous.get(key)
+        if prev is not None:
+            if isinstance(value, Histogram):
+                value = Histogram([max(a, b) for a, b in zip(prev.cumulative, value.cumulative)],
+                                  max(prev.sum, value.sum), max(prev.count, value.count))
+            else:
+                value = max(prev, value)
+        self._current[key] = value
+        return value
+
+    def next_collect(self) -> None:
+        self._previous, self._current = self._current, {}

@@ -8,7 +8,7 @@ from __future__ import annotations
 import struct
 
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
+from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
 from drums.probes.bpf import AttachPath, BpfProbe, needs_tracepoints, offset_defines
 from drums.proctable import ProcessTable
 
@@ -72,6 +72,7 @@ class SchedProbe(BpfProbe):
     def __init__(self, features, proctable: ProcessTable, **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
+        self._monotonic = Monotonic()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {
@@ -108,12 +109,14 @@ class SchedProbe(BpfProbe):
             snap.add(THREAD_RUNQ_WAITS, labels, runq_waits)
             snap.add(THREAD_SWITCHES, labels + ("voluntary",), vol)
             snap.add(THREAD_SWITCHES, labels + ("involuntary",), invol)
+        m = self._monotonic
         for tgid, s in per_process.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), pt.name(tgid))
-            snap.add(PROCESS_CPU, labels, oncpu / 1e9)
-            snap.add(PROCESS_RUNQ, labels, runq_histogram(s[5:], runq_ns, runq_waits))
-            snap.add(PROCESS_SWITCHES, labels + ("voluntary",), vol)
-            snap.add(PROCESS_SWITCHES, labels + ("involuntary",), invol)
+            snap.add(PROCESS_CPU, labels, m((PROCESS_CPU, labels), oncpu / 1e9))
+            snap.add(PROCESS_RUNQ, labels, m((PROCESS_RUNQ, labels), runq_histogram(s[5:], runq_ns, runq_waits)))
+            for kind, n in (("voluntary", vol), ("involuntary", invol)):
+                snap.add(PROCESS_SWITCHES, labels + (kind,), m((PROCESS_SWITCHES, labels + (kind,)), n))
+        m.next_collect()
         _, values, _ = self.read("dropped")
         self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))

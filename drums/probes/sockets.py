@@ -10,7 +10,7 @@ import struct
 from dataclasses import dataclass
 
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, Metric, Snapshot
+from drums.metrics import COUNTER, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_fentry, needs_kprobes,
                               needs_tracepoints, offset_defines)
@@ -122,6 +122,7 @@ class SocketsProbe(BpfProbe):
         super().__init__(features, **kw)
         self.proctable = proctable
         self._last_counts: dict[int, tuple[int, ...]] = {}
+        self._monotonic = Monotonic()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -169,12 +170,14 @@ class SocketsProbe(BpfProbe):
                 labels = (str(tgid), str(tid), PROTOCOLS[klass])
                 snap.add(THREAD["sent_bytes"], labels, row[0])
                 snap.add(THREAD["received_bytes"], labels, row[2])
+        m = self._monotonic
         for tgid, rows in per_process.items():
             for klass, row in enumerate(rows):
                 if any(row):
                     labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
                     for c, value in zip(_COUNTS, row):
-                        snap.add(PROCESS[c], labels, value)
+                        snap.add(PROCESS[c], labels, m((c, labels), value))
+        m.next_collect()
         _, values, _ = self.read("dropped")
         self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
 
