@@ -156,6 +156,20 @@ int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
+// sched:sched_process_exec (task, old_pid, bprm): a thread other than the leader that calls exec
+// takes over the leader's PID, so its old thread ID is gone without a final switch-out.
+int on_exec(struct bpf_raw_tracepoint_args *ctx)
+{
+    u32 old_tid = (u32)ctx->args[1];
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    if (old_tid == tid)
+        return 0;
+    struct thread_sched_t *t = thread_sched.lookup(&old_tid);
+    if (t)
+        thread_died(old_tid, t);
+    return 0;
+}
+
 // task:task_rename (task, comm): exec and prctl(PR_SET_NAME) rename threads after they started.
 int on_rename(struct bpf_raw_tracepoint_args *ctx)
 {

@@ -63,9 +63,10 @@ class SchedProbe(BpfProbe):
                     ("raw_tracepoint", "sched_wakeup", "on_wakeup"),
                     ("raw_tracepoint", "sched_wakeup_new", "on_wakeup"),
                     ("raw_tracepoint", "sched_process_free", "on_task_free"),
-                    ("raw_tracepoint", "task_rename", "on_rename")),
+                    ("raw_tracepoint", "task_rename", "on_rename"),
+                    ("raw_tracepoint", "sched_process_exec", "on_exec")),
                    needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
-                                     "task_rename"),
+                                     "task_rename", "sched_process_exec"),
                    "Linux >= 4.17 (raw tracepoints); pinned without a resident loader from 5.7"),
     )
 

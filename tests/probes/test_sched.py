@@ -1,5 +1,10 @@
 """sched: children with a known CPU use, run-queue waits and lifetime, read through the real BPF probe and
-checked against the kernel's own accounting in /proc/<pid>/task/<tid>/{schedstat,status,stat}."""
+checked against the kernel's own accounting in /proc/<pid>/task/<tid>/{schedstat,status}.
+
+On a VM the kernel leaves time stolen by the hypervisor out of a thread's runtime (schedstat, thread_time,
+getrusage; CONFIG_PARAVIRT_TIME_ACCOUNTING), while the probe times switches with bpf_ktime_get_ns and
+counts it: CPU comparisons allow the steal that /proc/stat reports during their window.
+"""
 import json
 import os
 import struct
@@ -60,8 +65,8 @@ sys.stdin.read()
 '''
 
 # On "go", a thread burns argv[1] seconds of CPU and exits. Once the kernel has released it, the child
-# says its tid and measured CPU, and the context switches of the whole process (getrusage counts those of
-# released threads) and of the main thread alone.
+# says its tid and measured CPU, and the CPU time and context switches of the whole process (which
+# include those of released threads) and of the main thread alone.
 EXITING_THREAD = r'''
 import resource
 def switches():
@@ -80,7 +85,8 @@ t.join()
 while len(os.listdir("/proc/self/task")) > 1:
     time.sleep(0.001)
 usage = resource.getrusage(resource.RUSAGE_SELF)
-say(**out, process_switches=(usage.ru_nvcsw, usage.ru_nivcsw), main_switches=switches())
+say(**out, process_cpu=time.process_time(), main_cpu=time.thread_time(),
+    process_switches=(usage.ru_nvcsw, usage.ru_nivcsw), main_switches=switches())
 sys.stdin.read()
 '''
 
@@ -242,12 +248,16 @@ def ctxt_switches(path: str) -> tuple[int, int]:
     return int(fields["voluntary_ctxt_switches"]), int(fields["nonvoluntary_ctxt_switches"])
 
 
-def process_cputime(pid: int) -> float:
-    """utime + stime of /proc/<pid>/stat: the whole thread group's CPU time, exited threads included,
-    in clock ticks (the kernel scales the tick samples to its exact runtime)."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def steal_ticks() -> list[int]:
+    """Time stolen by the hypervisor from each CPU, in clock ticks (/proc/stat)."""
+    with open("/proc/stat") as f:
+        return [int(line.split()[8]) for line in f if line.startswith("cpu") and line[3].isdigit()]
+
+
+def stolen_since(before: list[int]) -> float:
+    """Seconds stolen since `before`, plus one tick for each CPU whose count moved: the kernel rounds down."""
+    ticks = sum(d + 1 for d in (a - b for a, b in zip(steal_ticks(), before)) if d > 0)
+    return ticks / os.sysconf("SC_CLK_TCK")
 
 
 def settle(pid: int, timeout: float = 5.0) -> None:
@@ -307,6 +317,7 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     pid, tid = child.pid, child.read()["tid"]
     task = f"/proc/{pid}/task/{tid}"
     settle(pid)
+    steal = steal_ticks()
     before = collect(sched_probe)
     k_before, sw_before, proc_before = schedstat(pid, tid), ctxt_switches(task), process_schedstat(pid)
 
@@ -315,41 +326,44 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     settle(pid)
     after = collect(sched_probe)
     k_after, sw_after, proc_after = schedstat(pid, tid), ctxt_switches(task), process_schedstat(pid)
+    stolen = stolen_since(steal)
 
     labels = {"pid": pid, "tid": tid}
     assert set(series(after, THREAD_CPU, **labels)) == {(str(pid), str(tid), "burner")}  # renamed after start
 
-    cpu = value(after, THREAD_CPU, **labels) - value(before, THREAD_CPU, **labels)
-    k_cpu = (k_after[0] - k_before[0]) / 1e9
-    print("T1", dict(cpu=cpu, measured=measured, k_cpu=k_cpu, proc=process_cpu_dbg(after, before, pid), kproc=(proc_after - proc_before) / 1e9))
-    assert cpu == pytest.approx(measured, rel=0.05)
-    assert abs(cpu - k_cpu) <= max(0.01 * k_cpu, 0.003), (cpu, k_cpu)
+    def delta(metric, **more):
+        return value(after, metric, **labels, **more) - value(before, metric, **labels, **more)
 
+    # Seen: the probe 0.1-1.3 ms above schedstat on 0.8 s when nothing was stolen.
+    cpu, k_cpu = delta(THREAD_CPU), (k_after[0] - k_before[0]) / 1e9
+    assert abs(cpu - measured) <= 0.05 * measured + stolen, (cpu, measured, stolen)
+    assert abs(cpu - k_cpu) <= max(0.01 * k_cpu, 0.003) + stolen, (cpu, k_cpu, stolen)
     process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
-    assert process_cpu == pytest.approx((proc_after - proc_before) / 1e9, rel=0.02)
+    k_process_cpu = (proc_after - proc_before) / 1e9
+    assert abs(process_cpu - k_process_cpu) <= 0.02 * k_process_cpu + stolen, (process_cpu, k_process_cpu)
 
-    # The probe's wait starts at the wakeup tracepoint, the kernel's at the enqueue just before it;
-    # both end at the switch. Seen: 0.05-0.5 ms apart on 1-8 ms of waiting.
-    runq = value(after, THREAD_RUNQ, **labels) - value(before, THREAD_RUNQ, **labels)
-    k_runq = (k_after[1] - k_before[1]) / 1e9
-    print("T1R", runq, k_runq, value(after, THREAD_RUNQ_WAITS, **labels) - value(before, THREAD_RUNQ_WAITS, **labels), k_after[2] - k_before[2], sw_after[0]-sw_before[0], sw_after[1]-sw_before[1])
+    # The probe's wait starts at the wakeup or switch-out tracepoint, the kernel's at its enqueue
+    # (rq_clock); both end at the switch-in. Seen: 0.05-4.5 ms apart on 3-500 ms of waiting.
+    runq, k_runq = delta(THREAD_RUNQ), (k_after[1] - k_before[1]) / 1e9
     assert abs(runq - k_runq) <= 0.002 + 0.2 * k_runq, (runq, k_runq)
-    # A wait ends each time the thread is switched in after waking or being preempted: the kernel
-    # counts the same arrivals (sched_info.pcount).
-    waits = value(after, THREAD_RUNQ_WAITS, **labels) - value(before, THREAD_RUNQ_WAITS, **labels)
-    assert abs(waits - (k_after[2] - k_before[2])) <= 2, (waits, k_after[2] - k_before[2])
+    # The probe counts every switch-in after a wait; an ftrace of sched_switch agreed with it exactly.
+    # The kernel's pcount (third schedstat field) was 0-3 above both in the same windows.
+    waits, k_waits = delta(THREAD_RUNQ_WAITS), k_after[2] - k_before[2]
+    assert 0 <= k_waits - waits <= 3, (waits, k_waits)
 
     # Same rule as the kernel's nvcsw/nivcsw (__schedule): voluntary when it blocked, involuntary when
-    # preempted. They only differ when a signal arrives as the thread blocks, which this child never gets.
-    switches = tuple(value(after, THREAD_SWITCHES, **labels, kind=kind)
-                     - value(before, THREAD_SWITCHES, **labels, kind=kind) for kind in ("voluntary", "involuntary"))
+    # preempted. They could only differ if a signal came as the thread blocked, which this child never gets.
+    switches = (delta(THREAD_SWITCHES, kind="voluntary"), delta(THREAD_SWITCHES, kind="involuntary"))
     assert switches == (sw_after[0] - sw_before[0], sw_after[1] - sw_before[1])
-    assert sum(switches) > 0
+    assert switches[1] > 0  # 0.8 s of spinning is preempted by at least one tick
 
 
 def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spawn):
     child = spawn(PINNED_SPINNERS, 0, 1.0)
     pid, tids = child.pid, child.read()["tids"]
+    for tid in tids:
+        with open(f"/proc/{pid}/task/{tid}/status") as f:
+            assert "Cpus_allowed_list:\t0\n" in f.read()
     settle(pid)
     before = collect(sched_probe)
     child.go()
@@ -357,29 +371,27 @@ def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spa
     settle(pid)
     after = collect(sched_probe)
 
-    cpus = []
+    cpu = 0.0
     for tid in tids:
         labels = {"pid": pid, "tid": tid}
-        with open(f"/proc/{pid}/task/{tid}/status") as f:
-            assert "Cpus_allowed_list:\t0\n" in f.read()
-        cpus.append(value(after, THREAD_CPU, **labels) - value(before, THREAD_CPU, **labels))
+        cpu += value(after, THREAD_CPU, **labels) - value(before, THREAD_CPU, **labels)
+        # Seen: 0.50-0.58 s each over 1 s.
         waited = value(after, THREAD_RUNQ, **labels) - value(before, THREAD_RUNQ, **labels)
         assert waited >= 0.3 * wall, (tid, waited, wall)
-    print("T2", wall, cpus, [value(after, THREAD_RUNQ, pid=pid, tid=t) - value(before, THREAD_RUNQ, pid=pid, tid=t) for t in tids])
-    assert sum(cpus) <= 1.05 * wall  # one CPU between them
+    assert cpu <= 1.05 * wall  # one CPU between them: seen 0.85-1.0 s
 
     hist = histogram_delta(value(after, PROCESS_RUNQ, pid=pid), value(before, PROCESS_RUNQ, pid=pid))
     assert hist.cumulative == sorted(hist.cumulative) and hist.cumulative[-1] <= hist.count
-    print("T2H", hist)
     assert hist.sum >= 0.6 * wall
+    # Seen: 200-250 waits of 240-270 at 1-4 ms, each thread waiting out the other's slice.
     assert waits_not_under(hist, MS_BOUND) >= 10, hist
 
 
-@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2 or 1 not in os.sched_getaffinity(0), reason="needs CPU 1")
+@pytest.mark.skipif(1 not in os.sched_getaffinity(0), reason="needs CPU 1")
 def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
     # A sleeper waking on its own CPU is switched in within microseconds when that CPU is idle, and
-    # within a wakeup preemption when another task runs there: the bounds hold on a 2-CPU VM whose
-    # other tests run on CPU 1 too, with a margin of 10x on the mean.
+    # within a wakeup preemption when another task runs there (other tests on this 2-CPU VM do).
+    # Seen: means of 0-75 us and no wait of 1 ms; the bounds leave a margin of 3x and 4x.
     child = spawn(PINNED_SLEEPER, 1)
     pid = child.pid
     child.read()
@@ -393,7 +405,6 @@ def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
     k_after = schedstat(pid, pid)
 
     hist = histogram_delta(value(after, PROCESS_RUNQ, pid=pid), value(before, PROCESS_RUNQ, pid=pid))
-    print("T3H", hist, (k_after[1] - k_before[1]) / (k_after[2] - k_before[2]) / 1e9)
     assert hist.count >= 50
     assert hist.sum / hist.count < 200e-6, hist
     assert waits_not_under(hist, FOUR_MS_BOUND) == 0, hist
@@ -406,29 +417,35 @@ def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
     pid = child.pid
     child.read()
     settle(pid)
+    steal = steal_ticks()
     before = collect(sched_probe)
     main_before = schedstat(pid, pid)[0]
     child.go()
-    gone = child.read()
-    wait_until(lambda: not os.path.exists(f"/proc/{pid}/task/{gone['tid']}"), 2, "thread exit")
+    gone = child.read()  # sent once the kernel has released the thread
     settle(pid)
     after = collect(sched_probe)
-    main_cpu = (schedstat(pid, pid)[0] - main_before) / 1e9
+    main_now = schedstat(pid, pid)[0]
+    main_switches = ctxt_switches(f"/proc/{pid}/task/{pid}")
+    stolen = stolen_since(steal)
 
+    assert not os.path.exists(f"/proc/{pid}/task/{gone['tid']}")
     assert series(after, THREAD_CPU, pid=pid, tid=gone["tid"]) == {}
     with open(f"/proc/{pid}/comm") as f:
         assert set(series(after, THREAD_CPU, pid=pid)) == {(str(pid), str(pid), f.read().strip())}
+
     process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
-    assert gone["cpu"] * 0.95 <= process_cpu <= gone["cpu"] * 1.05 + main_cpu + 0.01
-    # Whole-process totals since the fork, dead thread included, against the kernel's.
-    assert value(after, PROCESS_CPU, pid=pid) == pytest.approx(process_cputime(pid), rel=0.02, abs=0.02)
-    switches = tuple(value(after, PROCESS_SWITCHES, pid=pid, kind=k) for k in ("voluntary", "involuntary"))
+    main_cpu = (main_now - main_before) / 1e9
+    assert gone["cpu"] * 0.95 <= process_cpu <= gone["cpu"] * 1.05 + main_cpu + 0.003 + stolen
+
+    # Whole-process totals since the fork, the dead thread's included, against the kernel's: what the
+    # child measured when it spoke, plus what its main thread has done since.
+    total = gone["process_cpu"] + main_now / 1e9 - gone["main_cpu"]
+    assert abs(value(after, PROCESS_CPU, pid=pid) - total) <= 0.01 * total + 0.003 + stolen, total
     dead = [p - m for p, m in zip(gone["process_switches"], gone["main_switches"])]
-    main_now = ctxt_switches(f"/proc/{pid}/task/{pid}")
-    expected = (dead[0] + main_now[0], dead[1] + main_now[1])
-    # Exact, but for the exited thread's last switch (TASK_DEAD): the kernel adds its counts to the
+    switches = tuple(value(after, PROCESS_SWITCHES, pid=pid, kind=k) for k in ("voluntary", "involuntary"))
+    # Exact, but for the dead thread's last switch (TASK_DEAD): the kernel adds a thread's counts to its
     # process's (__exit_signal) before that switch, the probe counts it.
-    assert switches == (expected[0] + 1, expected[1])
+    assert switches == (dead[0] + main_switches[0] + 1, dead[1] + main_switches[1])
 
 
 def test_exited_process_series_go(sched_probe, collect, spawn):
@@ -468,6 +485,7 @@ def test_fresh_process_starts_near_zero_even_on_a_reused_pid(sched_probe, collec
     collect(sched_probe)
 
     # Writing N to ns_last_pid makes N + 1 the next PID, unless another fork on the host comes first.
+    steal = steal_ticks()
     for attempt in range(20):
         with open("/proc/sys/kernel/ns_last_pid", "w") as f:
             f.write(str(dead.pid - 1))
@@ -477,14 +495,15 @@ def test_fresh_process_starts_near_zero_even_on_a_reused_pid(sched_probe, collec
         fresh.end()
     own = fresh.read()["cpu"]
     settle(fresh.pid)
-    snap = collect(sched_probe)
-    cpu = value(snap, PROCESS_CPU, pid=fresh.pid)
-    print("T5", cpu, own, dead_total, fresh.pid, dead.pid, attempt)
-    assert cpu <= own + 0.01, (cpu, own)
-    assert cpu == pytest.approx(process_schedstat(fresh.pid) / 1e9, rel=0.02, abs=0.002)
+    cpu = value(collect(sched_probe), PROCESS_CPU, pid=fresh.pid)
+    k_cpu = process_schedstat(fresh.pid) / 1e9
+    stolen = stolen_since(steal)
+    # Seen: 24-26 ms, 0.05-0.1 ms above what the child measured itself.
+    assert cpu <= own + 0.003 + stolen, (cpu, own, stolen)
+    assert abs(cpu - k_cpu) <= 0.02 * k_cpu + 0.002 + stolen, (cpu, k_cpu, stolen)
     if fresh.pid != dead.pid:
-        pytest.skip(f"PID {dead.pid} was not reused (other forks on the host)")
-    assert cpu < dead_total / 2
+        pytest.skip(f"PID {dead.pid} was not reused (other forks on the host came first)")
+    assert cpu < dead_total / 10
 
 
 def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn):
@@ -543,6 +562,3 @@ def test_process_cpu_never_goes_back_while_threads_exit(sched_probe, collect, sp
         previous = cpu
     assert backwards == [], f"{len(backwards)} of {scrapes} scrapes went back: {backwards[:3]}"
 
-
-def process_cpu_dbg(after, before, pid):
-    return value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
