@@ -109,7 +109,7 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
         for _ in range(2):  # the first collects read the names of every new process
             fetch(agent.url, timeout=30)
             time.sleep(interval)
-        latencies, collect, sizes, per_probe = [], [], [], {}
+        latencies, collect, outside, sizes, per_probe = [], [], [], [], {}
         cpu0, t0 = cpu_seconds(agent.proc.pid), time.monotonic()
         next_at = t0
         while time.monotonic() - t0 < seconds:
@@ -120,6 +120,7 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
                 raise BenchError(f"/metrics answered {status}")
             durations = samples(body, "drums_probe_collect_duration_seconds")
             collect.append(sum(durations.values()) * 1000)
+            outside.append(latencies[-1] - collect[-1])
             for labels, v in durations.items():
                 per_probe.setdefault(labels.split('"')[1], []).append(v * 1000)
             sizes.append((len(body), series_count(body)))
@@ -128,15 +129,11 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
         cpu1, t1 = cpu_seconds(agent.proc.pid), time.monotonic()
         mem = memory(agent.proc.pid)
         return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": uss_bytes(agent.proc.pid), "rss": mem.get("Rss", 0),
-                "latencies": latencies, "collect": collect, "sizes": sizes[-1],
+                "latencies": latencies, "collect": collect, "outside": outside, "sizes": sizes[-1],
                 "per_probe": {k: median(v) for k, v in per_probe.items()},
-                "sockets": _socket_series(body)}
+                "sockets": len(samples(body, "drums_socket_sent_bytes_total"))}
     finally:
         agent.stop()
-
-
-def _socket_series(body: bytes) -> int:
-    return len(samples(body, "drums_socket_sent_bytes_total"))
 
 
 def measure_poller(seconds: float, interval: float, pids: list[int], pid_file: str) -> dict:
@@ -232,7 +229,8 @@ def run(args) -> None:
         "cycle is one poll of every process and of net_connections(), with nothing rendered or sent.",
         f"agent's own collect time (sum of drums_probe_collect_duration_seconds): median "
         f"{fmt(median(ours['collect']), 1)} ms; per probe: "
-        + ", ".join(f"{k} {fmt(v, 1)} ms" for k, v in sorted(ours["per_probe"].items())),
+        + ", ".join(f"{k} {fmt(v, 1)} ms" for k, v in sorted(ours["per_probe"].items()))
+        + f"; the rest of a scrape (process table, budget, render, HTTP): median {fmt(median(ours['outside']), 1)} ms",
         f"/metrics body: {series:,} series, {size / 1024:,.0f} KiB; per-socket series "
         f"(drums_socket_sent_bytes_total): {ours['sockets']:,}",
     ]

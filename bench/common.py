@@ -55,10 +55,12 @@ def stop_on_sigterm() -> None:
 
 def main_wrapper(run) -> None:
     """Run a benchmark's main(); one line and exit 1 if it cannot run at all."""
+    from drums.errors import DrumsError
+
     stop_on_sigterm()
     try:
         run()
-    except BenchError as e:
+    except (BenchError, DrumsError) as e:  # DrumsError: a probe that would not load, for one
         print(f"bench: {e}", file=sys.stderr)
         sys.exit(1)
     except KeyboardInterrupt:

@@ -289,16 +289,16 @@ def run(args) -> None:
     rows = []
     for probe_name, (workloads, pairs) in PROBES.items():
         for w in workloads:
-            none = min(added[w, "none"])
-            fl = min(added[w, "floor"]) - none
-            dr = min(added[w, "drums"]) - none
+            none = median(added[w, "none"])
+            fl = median(added[w, "floor"]) - none
+            dr = median(added[w, "drums"]) - none
             events = sum(median(events_per_op.get((w, tp), [0])) for tp, _ in pairs)
             per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
             rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
                          ratio(dr, fl), fmt(events, 2), per_event])
     notes = watch.notes() + [
-        f"ns per operation: the fastest of {args.rounds} rounds x {args.batches} batches (other work on "
-        "the host only ever adds time); "
+        f"ns per operation: median over {args.rounds} rounds of the fastest of {args.batches} batches "
+        "(other work on the host only ever adds time); "
         f"{args.ops:,} socket operations or {args.pingpongs:,} round trips per run, on CPU {args.cpu}; "
         "added = with programs attached minus with none. Goal: Drums at most 1.3x the floor.",
         "per round (ns/op): " + "; ".join(

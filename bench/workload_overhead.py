@@ -8,13 +8,15 @@ of them alike; the table gives the median of the rounds. Goal: the agent costs a
 from __future__ import annotations
 
 import argparse
+import glob
 import json
+import os
 import subprocess
 import tempfile
 import threading
 import time
 
-from common import (Agent, BenchError, ForeignWatch, drums_unload, fetch, fmt, free_port, main_wrapper,
+from common import (PIN_ROOT, Agent, BenchError, ForeignWatch, drums_unload, fetch, fmt, free_port, main_wrapper,
                     median, pin_cpu, print_table, progress, require_root, require_tool, terminate)
 
 CONDITIONS = ("none", "drums", "tcpdump")
@@ -97,6 +99,10 @@ class Monitor:
                 self.notes.append(f"{self.scraper.failures} of {self.scraper.scrapes} scrapes failed")
             self.scraper = None
         if self.agent is not None:
+            # Another agent on the host that stops unpins the shared programs, and ours with them.
+            if not glob.glob(os.path.join(PIN_ROOT, "sockets-*")):
+                self.notes.append("the agent's pins were gone at the end of the run (removed by "
+                                  "another agent or `drums unload` on this host)")
             self.agent.stop()
             self.agent = None
         if self.tcpdump is not None:
