@@ -78,4 +78,17 @@ static __always_inline u32 leader_tgid(u64 task)
 }
 #endif
 
+// When a task's process started: with the PID, what tells a process from a later one that got
+// its PID. Needs TASK_GROUP_LEADER_OFF and TASK_START_TIME_OFF.
+#ifdef TASK_GROUP_LEADER_OFF
+static __always_inline u64 process_start(u64 task)
+{
+    u64 leader = 0, start = 0;
+    bpf_probe_read_kernel(&leader, sizeof(leader), (void *)(task + TASK_GROUP_LEADER_OFF));
+    if (leader)
+        bpf_probe_read_kernel(&start, sizeof(start), (void *)(leader + TASK_START_TIME_OFF));
+    return start;
+}
+#endif
+
 #endif

@@ -26,14 +26,22 @@ struct thread_sched_t {
     u32 tgid;
     u32 pad;
     u64 enqueued_at;  // when the thread became runnable; 0 while running or sleeping
+    u64 process_start;
     char comm[16];
+    struct sched_t s;
+};
+
+// Exited threads of one process. The PID of a process that was just reaped can go to a new process
+// before sched_process_free frees this entry: process_start tells the two apart.
+struct exited_sched_t {
+    u64 process_start;
     struct sched_t s;
 };
 
 // pid_max is 32768 on small systems and 4M on large ones; 65536 live threads covers a robot.
 BPF_HASH(thread_sched, u32, struct thread_sched_t, 65536);
 // Threads that exited, folded per process until the process is reaped.
-BPF_HASH(exited_sched, u32, struct sched_t, 16384);
+BPF_HASH(exited_sched, u32, struct exited_sched_t, 16384);
 // When the current task of each CPU was switched in.
 BPF_PERCPU_ARRAY(switched_in_at, u64, 1);
 BPF_ARRAY(dropped, u64, 2);
@@ -53,6 +61,7 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task)
     struct thread_sched_t fresh = {};
     bpf_probe_read_kernel(&fresh.tgid, 4, (void *)(task + TASK_TGID_OFF));
     bpf_probe_read_kernel(fresh.comm, sizeof(fresh.comm), (void *)(task + TASK_COMM_OFF));
+    fresh.process_start = process_start(task);
     if (thread_sched.insert(&tid, &fresh) != 0) {
         count_drop(DROP_THREAD);
         return 0;
@@ -75,11 +84,19 @@ static __always_inline void fold(struct sched_t *into, struct sched_t *from)
 // The last switch-out of an exiting thread: fold all it did into its process and free its entry.
 static __always_inline void thread_died(u32 tid, struct thread_sched_t *t)
 {
-    struct sched_t zero = {};
     u32 tgid = t->tgid;
-    struct sched_t *p = exited_sched.lookup_or_try_init(&tgid, &zero);
+    struct exited_sched_t *p = exited_sched.lookup(&tgid);
+    if (p && p->process_start != t->process_start) {
+        exited_sched.delete(&tgid);  // left by the process that had this PID before
+        p = 0;
+    }
+    if (!p) {
+        struct exited_sched_t fresh = {.process_start = t->process_start};
+        exited_sched.insert(&tgid, &fresh);
+        p = exited_sched.lookup(&tgid);
+    }
     if (p)
-        fold(p, &t->s);
+        fold(&p->s, &t->s);
     else
         count_drop(DROP_PROCESS);
     thread_sched.delete(&tid);

@@ -35,8 +35,8 @@ THREAD_SWITCHES = Metric("drums_thread_context_switches_total", COUNTER, "Contex
                          ("pid", "tid", "thread", "kind"))
 
 _SCHED = "5Q24I"  # struct sched_t
-_THREAD_VALUE = struct.Struct("<IIQ16s" + _SCHED)
-_PROCESS_VALUE = struct.Struct("<" + _SCHED)
+_THREAD_VALUE = struct.Struct("<IIQQ16s" + _SCHED)
+_PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 
@@ -80,6 +80,8 @@ class SchedProbe(BpfProbe):
             "TASK_PID_OFF": ("task_struct", "pid"),
             "TASK_TGID_OFF": ("task_struct", "tgid"),
             "TASK_COMM_OFF": ("task_struct", "comm"),
+            "TASK_GROUP_LEADER_OFF": ("task_struct", "group_leader"),
+            "TASK_START_TIME_OFF": ("task_struct", "start_time"),
         })
         args = btf.tracepoint_args("sched_switch") or []
         if len(args) >= 4:
@@ -91,18 +93,21 @@ class SchedProbe(BpfProbe):
 
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
-        per_process: dict[int, list] = {}
+        # A process is its PID and its start time: a PID reused by a new process starts afresh.
+        per_process: dict[tuple[int, int], list] = {}
         keys, values, _ = self.read("exited_sched")
-        for (tgid,), v in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
+        for (tgid,), (start, *s) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
             if pt.alive(tgid):
-                per_process[tgid] = list(v)
+                per_process[(tgid, start)] = s
+        live_starts: dict[int, int] = {}
         keys, values, _ = self.read("thread_sched")
         for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
-            tgid, _pad, _enqueued, comm, *s = v
+            tgid, _pad, _enqueued, start, comm, *s = v
             if not pt.alive(tgid):
                 continue
-            acc = per_process.get(tgid)
-            per_process[tgid] = s if acc is None else [a + b for a, b in zip(acc, s)]
+            live_starts[tgid] = start
+            acc = per_process.get((tgid, start))
+            per_process[(tgid, start)] = s if acc is None else [a + b for a, b in zip(acc, s)]
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))
             snap.add(THREAD_CPU, labels, oncpu / 1e9)
@@ -111,13 +116,16 @@ class SchedProbe(BpfProbe):
             snap.add(THREAD_SWITCHES, labels + ("voluntary",), vol)
             snap.add(THREAD_SWITCHES, labels + ("involuntary",), invol)
         m = self._monotonic
-        for tgid, s in per_process.items():
+        for (tgid, start), s in per_process.items():
+            if live_starts.get(tgid, start) != start:
+                continue  # exited threads of the process that had this PID before
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), pt.name(tgid))
-            snap.add(PROCESS_CPU, labels, m((PROCESS_CPU, labels), oncpu / 1e9))
-            snap.add(PROCESS_RUNQ, labels, m((PROCESS_RUNQ, labels), runq_histogram(s[5:], runq_ns, runq_waits)))
+            key = (tgid, start)
+            snap.add(PROCESS_CPU, labels, m((PROCESS_CPU, key), oncpu / 1e9))
+            snap.add(PROCESS_RUNQ, labels, m((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits)))
             for kind, n in (("voluntary", vol), ("involuntary", invol)):
-                snap.add(PROCESS_SWITCHES, labels + (kind,), m((PROCESS_SWITCHES, labels + (kind,)), n))
+                snap.add(PROCESS_SWITCHES, labels + (kind,), m((PROCESS_SWITCHES, key, kind), n))
         m.next_collect()
         _, values, _ = self.read("dropped")
         self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))

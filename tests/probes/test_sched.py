@@ -64,9 +64,9 @@ go.set()
 sys.stdin.read()
 '''
 
-# On "go", a thread burns argv[1] seconds of CPU and exits. Once the kernel has released it, the child
-# says its tid and measured CPU, and the CPU time and context switches of the whole process (which
-# include those of released threads) and of the main thread alone.
+# On "go", a thread burns argv[1] seconds of CPU and exits; once the kernel has released it, the child
+# says its tid and measured CPU. On each further line it says the CPU time and context switches of the
+# whole process (which include those of released threads) and of its main thread alone.
 EXITING_THREAD = r'''
 import resource
 def switches():
@@ -84,10 +84,14 @@ t.start()
 t.join()
 while len(os.listdir("/proc/self/task")) > 1:
     time.sleep(0.001)
-usage = resource.getrusage(resource.RUSAGE_SELF)
-say(**out, process_cpu=time.process_time(), main_cpu=time.thread_time(),
-    process_switches=(usage.ru_nvcsw, usage.ru_nivcsw), main_switches=switches())
-sys.stdin.read()
+say(**out)
+while sys.stdin.readline():
+    main_switches = None
+    while main_switches != switches():  # until the main thread did not switch while it read them
+        main_switches = switches()
+        usage, process_cpu, main_cpu = resource.getrusage(resource.RUSAGE_SELF), time.process_time(), time.thread_time()
+    say(process_cpu=process_cpu, main_cpu=main_cpu, process_switches=(usage.ru_nvcsw, usage.ru_nivcsw),
+        main_switches=main_switches)
 '''
 
 # Two threads pinned to CPU argv[1] keep it busy for argv[2] seconds of wall time after "go", then sleep
@@ -184,10 +188,11 @@ while True:
 
 
 class Child:
-    """A `python -c` child: PRELUDE + script, one JSON line out per step, a line in to go on."""
+    """A `python -c` child: PRELUDE + script, one JSON line out per step, a line in to go on. A script
+    given as a list is run as it is."""
 
-    def __init__(self, script: str, *args):
-        argv = [sys.executable, "-c", PRELUDE + script, *map(str, args)]
+    def __init__(self, script: str | list, *args):
+        argv = script if isinstance(script, list) else [sys.executable, "-c", PRELUDE + script, *map(str, args)]
         self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.pid = self.proc.pid
 
@@ -216,7 +221,7 @@ class Child:
 def spawn():
     children = []
 
-    def start(script: str, *args) -> Child:
+    def start(script: str | list, *args) -> Child:
         children.append(Child(script, *args))
         return children[-1]
     yield start
@@ -241,7 +246,8 @@ def process_schedstat(pid: int) -> int:
 
 
 def ctxt_switches(path: str) -> tuple[int, int]:
-    """(voluntary, involuntary) from /proc/<pid>/status or /proc/<pid>/task/<tid>/status."""
+    """(voluntary, involuntary) of one thread, from /proc/<pid>/task/<tid>/status. (/proc/<pid>/status
+    gives its main thread's alone, not the process's.)"""
     with open(f"{path}/status") as f:
         fields = dict(line.split(":", 1) for line in f)
     return int(fields["voluntary_ctxt_switches"]), int(fields["nonvoluntary_ctxt_switches"])
@@ -264,6 +270,10 @@ def busy_ticks(cpu: int) -> int:
     with open("/proc/stat") as f:
         fields = next(line.split() for line in f if line.startswith(f"cpu{cpu} "))
     return sum(int(x) for x in fields[1:4] + fields[6:9])
+
+
+def pids_alive() -> set[int]:
+    return {int(d) for d in os.listdir("/proc") if d.isdigit()}
 
 
 def settle(pid: int, timeout: float = 5.0) -> None:
@@ -340,28 +350,33 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     def delta(metric, **more):
         return value(after, metric, **labels, **more) - value(before, metric, **labels, **more)
 
-    # Seen: the probe 0.1-1.3 ms above schedstat on 0.8 s when nothing was stolen.
-    cpu, k_cpu = delta(THREAD_CPU), (k_after[0] - k_before[0]) / 1e9
-    assert abs(cpu - measured) <= 0.05 * measured + stolen, (cpu, measured, stolen)
-    assert abs(cpu - k_cpu) <= max(0.01 * k_cpu, 0.003) + stolen, (cpu, k_cpu, stolen)
-    process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
-    k_process_cpu = (proc_after - proc_before) / 1e9
-    assert abs(process_cpu - k_process_cpu) <= 0.02 * k_process_cpu + stolen, (process_cpu, k_process_cpu)
-
-    # The probe's wait starts at the wakeup or switch-out tracepoint, the kernel's at its enqueue
-    # (rq_clock); both end at the switch-in. Seen: 0.05-4.5 ms apart on 3-500 ms of waiting.
-    runq, k_runq = delta(THREAD_RUNQ), (k_after[1] - k_before[1]) / 1e9
-    assert abs(runq - k_runq) <= 0.002 + 0.2 * k_runq, (runq, k_runq)
-    # The probe counts every switch-in after a wait; an ftrace of sched_switch agreed with it exactly.
-    # The kernel's pcount (third schedstat field) was 0-3 above both in the same windows.
-    waits, k_waits = delta(THREAD_RUNQ_WAITS), k_after[2] - k_before[2]
-    assert 0 <= k_waits - waits <= 3, (waits, k_waits)
-
     # Same rule as the kernel's nvcsw/nivcsw (__schedule): voluntary when it blocked, involuntary when
     # preempted. They could only differ if a signal came as the thread blocked, which this child never gets.
     switches = (delta(THREAD_SWITCHES, kind="voluntary"), delta(THREAD_SWITCHES, kind="involuntary"))
     assert switches == (sw_after[0] - sw_before[0], sw_after[1] - sw_before[1])
     assert switches[1] > 0  # 0.8 s of spinning is preempted by at least one tick
+
+    # The kernel reads its clock once at the start of __schedule and stops the thread's runtime and
+    # starts its run-queue wait there; the probe's clock is read at the sched_switch tracepoint, after
+    # the next task was picked. So each switch moves that pick time (seen: 1.8-2 us under heavy
+    # contention) from the thread's wait to its CPU time: allow 3 us a switch. Seen otherwise: the
+    # probe 0-0.3 ms above schedstat on 0.8 s and 200 switches.
+    per_switch = 3e-6 * sum(switches)
+    cpu, k_cpu = delta(THREAD_CPU), (k_after[0] - k_before[0]) / 1e9
+    assert abs(cpu - measured) <= 0.05 * measured + per_switch + stolen, (cpu, measured, stolen)
+    assert abs(cpu - k_cpu) <= max(0.01 * k_cpu, 0.003) + per_switch + stolen, (cpu, k_cpu, switches, stolen)
+    process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
+    k_process_cpu = (proc_after - proc_before) / 1e9
+    assert abs(process_cpu - k_process_cpu) <= 0.02 * k_process_cpu + per_switch + stolen, (process_cpu,
+                                                                                            k_process_cpu)
+    # Waits begin at the wakeup tracepoint or the switch-out, the kernel's at its enqueue or the start of
+    # __schedule; both end at the switch-in. Seen: 0.05-16 ms apart on 3-500 ms of waiting.
+    runq, k_runq = delta(THREAD_RUNQ), (k_after[1] - k_before[1]) / 1e9
+    assert abs(runq - k_runq) <= 0.002 + 0.1 * k_runq + per_switch, (runq, k_runq, switches)
+    # The probe counts every switch-in after a wait; an ftrace of sched_switch agreed with it exactly.
+    # The kernel's pcount (third schedstat field) was 0-3 above both in the same windows.
+    waits, k_waits = delta(THREAD_RUNQ_WAITS), k_after[2] - k_before[2]
+    assert 0 <= k_waits - waits <= 3, (waits, k_waits)
 
 
 def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spawn):
@@ -397,9 +412,9 @@ def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spa
 def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
     # A sleeper waking on an idle CPU is switched in within microseconds. When other tasks run there
     # (other tests and agents on this 2-CPU VM do), EEVDF may let the current task finish its slice
-    # first: waits of 1-5 ms were seen then. So the bounds are checked on the first of up to three
-    # 0.5 s windows in which other tasks used under 10% of CPU 1. Seen in such windows: means of
-    # 0-75 us, no wait of 1 ms.
+    # first: waits of 1-5 ms were seen then. So the test takes up to three 0.5 s windows: it passes on
+    # the first that meets the bounds, fails on one that does not while other tasks used under 10% of
+    # CPU 1, and is skipped if CPU 1 was busy in all. Seen: means of 0-75 us, also with CPU 1 busy.
     child = spawn(PINNED_SLEEPER, 1)
     pid = child.pid
     child.read()
@@ -416,16 +431,15 @@ def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
 
         hist = histogram_delta(value(after, PROCESS_RUNQ, pid=pid), value(before, PROCESS_RUNQ, pid=pid))
         assert hist.count >= 50  # one wait per wakeup at least
-        others = busy / os.sysconf("SC_CLK_TCK") - (k_after[0] - k_before[0]) / 1e9
-        if others > 0.1 * wall:
-            loaded.append((round(others / wall, 2), hist))
-            continue
-        assert hist.sum / hist.count < 200e-6, hist
-        assert waits_not_under(hist, FOUR_MS_BOUND) == 0, hist
         k_mean = (k_after[1] - k_before[1]) / (k_after[2] - k_before[2]) / 1e9
-        assert k_mean < 200e-6  # the kernel agrees the sleeper hardly waited
-        return
-    pytest.skip(f"CPU 1 was never idle enough: (share used by others, histogram) {loaded}")
+        bounds = {"mean": hist.sum / hist.count < 200e-6, "none of 4 ms": waits_not_under(hist, FOUR_MS_BOUND) == 0,
+                  "kernel mean": k_mean < 200e-6}  # the kernel agrees the sleeper hardly waited
+        if all(bounds.values()):
+            return
+        others = busy / os.sysconf("SC_CLK_TCK") - (k_after[0] - k_before[0]) / 1e9
+        assert others > 0.1 * wall, (bounds, hist, k_mean)
+        loaded.append((round(others / wall, 2), hist))
+    pytest.skip(f"CPU 1 was busy and the sleeper waited: (share used by others, histogram) {loaded}")
 
 
 def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
@@ -440,6 +454,8 @@ def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
     gone = child.read()  # sent once the kernel has released the thread
     # Its last switch, which folds it, can come a little after: the kernel releases a thread first.
     wait_until(lambda: gone["tid"] not in thread_entries(sched_probe), 1, "last switch of the thread")
+    child.go()
+    kernel = child.read()
     settle(pid)
     after = collect(sched_probe)
     main_now = schedstat(pid, pid)[0]
@@ -456,14 +472,17 @@ def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
     assert gone["cpu"] * 0.95 <= process_cpu <= gone["cpu"] * 1.05 + main_cpu + 0.003 + stolen
 
     # Whole-process totals since the fork, the dead thread's included, against the kernel's: what the
-    # child measured when it spoke, plus what its main thread has done since.
-    total = gone["process_cpu"] + main_now / 1e9 - gone["main_cpu"]
+    # child read when it spoke, plus what its main thread has done since.
+    total = kernel["process_cpu"] + main_now / 1e9 - kernel["main_cpu"]
     assert abs(value(after, PROCESS_CPU, pid=pid) - total) <= 0.01 * total + 0.003 + stolen, total
-    dead = [p - m for p, m in zip(gone["process_switches"], gone["main_switches"])]
-    switches = tuple(value(after, PROCESS_SWITCHES, pid=pid, kind=k) for k in ("voluntary", "involuntary"))
-    # Exact, but for the dead thread's last switch (TASK_DEAD): the kernel adds a thread's counts to its
-    # process's (__exit_signal) before that switch, the probe counts it.
-    assert switches == (dead[0] + main_switches[0] + 1, dead[1] + main_switches[1])
+    dead = [p - m for p, m in zip(kernel["process_switches"], kernel["main_switches"])]
+    expected = (dead[0] + main_switches[0], dead[1] + main_switches[1])
+    voluntary, involuntary = (value(after, PROCESS_SWITCHES, pid=pid, kind=k) for k in ("voluntary", "involuntary"))
+    # The kernel adds a thread's counts to its process's when it releases it (__exit_signal), before
+    # the thread's last switch (TASK_DEAD, voluntary), which the probe counts: one more. Under heavy
+    # contention the exiting thread can also be preempted in between: 0-1 more involuntary were seen.
+    assert voluntary == expected[0] + 1
+    assert 0 <= involuntary - expected[1] <= 2 + 0.01 * expected[1], (involuntary, expected[1])
 
 
 def test_exited_process_series_go(sched_probe, collect, spawn):
@@ -505,12 +524,26 @@ def test_fresh_process_starts_near_zero(sched_probe, collect, spawn):
     assert abs(cpu - k_cpu) <= 0.02 * k_cpu + 0.002 + stolen, (cpu, k_cpu, stolen)
 
 
+def reuse_pid(pid: int, spawn, script: str | list) -> Child:
+    """A child started on `pid`, which must be free: writing N to ns_last_pid makes N + 1 the next
+    PID, unless another fork on the host comes first."""
+    for _ in range(20):
+        with open("/proc/sys/kernel/ns_last_pid", "w") as f:
+            f.write(str(pid - 1))
+        child = spawn(script)
+        if child.pid == pid:
+            return child
+        child.end()
+    pytest.skip(f"PID {pid} could not be reused: other forks on the host came first")
+
+
 def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn):
     count = 200
     forker = spawn(FORKER, count)
     forker.read()
     settle(forker.pid)
     dropped = sched_probe.read("dropped")[1]
+    alive_before = pids_alive()
     threads_before, exited_before = sched_probe.read("thread_sched")[2], sched_probe.read("exited_sched")[2]
 
     forker.go()
@@ -519,18 +552,20 @@ def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn):
     assert len(pids) == len(tids) == count
 
     def left():
-        alive = {int(d) for d in os.listdir("/proc") if d.isdigit()}  # a PID reused since is not a leak
+        alive = pids_alive()  # a PID reused since by another process is not a leak
         threads = {tid for tid, v in thread_entries(sched_probe).items()
                    if (tid in pids | tids or v[0] in pids) and v[0] not in alive}
         return threads, set(exited_entries(sched_probe)) & (pids - alive)
     wait_until(lambda: left() == (set(), set()), 2, f"entries of the dead children {left()}")
-    # Other tests and agents on the host start and end threads too: a margin of 20 against 400 threads.
-    assert sched_probe.read("thread_sched")[2] <= threads_before + 20
-    assert sched_probe.read("exited_sched")[2] <= exited_before + 20
+
+    # Other tests and agents on the host start processes too: leave out the entries of those that
+    # started meanwhile, and allow 20 against the 400 threads that came and went.
+    newcomers = pids_alive() - alive_before
+    threads_after = [v[0] for v in thread_entries(sched_probe).values() if v[0] not in newcomers]
+    assert len(threads_after) <= threads_before + 20
+    assert len(set(exited_entries(sched_probe)) - newcomers) <= exited_before + 20
     assert sched_probe.read("dropped")[1] == dropped
 
-
-# The two tests below fail on the probe as it is: see the report that came with them.
 
 def test_exec_from_a_thread_leaves_no_stale_thread(sched_probe, collect, spawn):
     child = spawn(EXEC_FROM_THREAD, 0.2)
@@ -561,3 +596,40 @@ def test_process_cpu_never_goes_back_while_threads_exit(sched_probe, collect, sp
         previous = cpu
     assert backwards == [], f"{len(backwards)} of {scrapes} scrapes went back: {backwards[:3]}"
 
+
+def test_reused_pid_starts_from_zero_between_two_scrapes(sched_probe, collect, spawn):
+    # The old process is scraped alive, then reaped, and its PID reused before the next scrape, as
+    # happens on a host that forks a lot. Both are "python".
+    dead = spawn(EXITING_THREAD, 0.5)
+    dead.read()
+    dead.go()
+    dead.read()
+    dead_total = value(collect(sched_probe), PROCESS_CPU, pid=dead.pid)
+    dead.end()
+    wait_until(lambda: dead.pid not in exited_entries(sched_probe), 2, "exited_sched entry freed")
+    fresh = reuse_pid(dead.pid, spawn, IDLE)
+    steal = steal_ticks()
+    own = fresh.read()["cpu"]
+    settle(fresh.pid)
+    cpu = value(collect(sched_probe), PROCESS_CPU, pid=fresh.pid)
+    assert cpu <= own + 0.003 + stolen_since(steal), (cpu, own, dead_total)
+
+
+def test_reused_pid_does_not_get_the_dead_process_totals(sched_probe, collect, spawn):
+    # The kernel frees a reaped process (sched_process_free) one RCU grace period after wait()
+    # returns: 9-55 ms were seen. A process that gets the PID sooner must not show the old totals.
+    # `cat` starts in 1-3 ms, so the scrape below comes within that time.
+    seen = []  # (the new process's cpu, the kernel's, the dead process's)
+    for _ in range(3):
+        dead = spawn(EXITING_THREAD, 0.2)
+        dead.read()
+        dead.go()
+        dead.read()
+        settle(dead.pid)
+        dead_total = value(collect(sched_probe), PROCESS_CPU, pid=dead.pid)
+        dead.end()
+        collect(sched_probe)  # the old process is gone from this scrape
+        fresh = reuse_pid(dead.pid, spawn, ["cat"])
+        cpu = value(collect(sched_probe), PROCESS_CPU, pid=fresh.pid)
+        seen.append((cpu, process_schedstat(fresh.pid) / 1e9, dead_total))
+    assert all(cpu <= k_cpu + 0.002 for cpu, k_cpu, _ in seen), seen
