@@ -44,10 +44,14 @@ struct socket_traffic_t {
 struct thread_traffic_t {
     u32 tgid;
     u32 pad;
+    u64 process_start;
     struct traffic_t by_class[NCLASSES];
 };
 
+// Exited threads of one process. The PID of a process that was just reaped can go to a new process
+// before sched_process_free frees this entry: process_start tells the two apart.
 struct process_traffic_t {
+    u64 process_start;
     struct traffic_t by_class[NCLASSES];
 };
 
@@ -161,6 +165,7 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 k
     if (!th) {
         struct thread_traffic_t fresh = {};
         fresh.tgid = tgid;
+        fresh.process_start = process_start(bpf_get_current_task());
         if (thread_traffic.insert(&tid, &fresh) != 0) {
             count_drop(DROP_THREAD);
             return;
@@ -310,17 +315,24 @@ int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
-// sched:sched_process_exit (task, group_dead) runs in the exiting thread: fold its traffic into
-// its process so that the process totals never go backwards.
-int on_thread_exit(struct bpf_raw_tracepoint_args *ctx)
+// A thread is gone: fold its traffic into its process, so that the process totals never go
+// backwards, and free its entry.
+static __always_inline void thread_gone(u32 tid)
 {
-    u64 id = bpf_get_current_pid_tgid();
-    u32 tid = (u32)id, tgid = id >> 32;
     struct thread_traffic_t *th = thread_traffic.lookup(&tid);
     if (!th)
-        return 0;
-    struct process_traffic_t zero = {};
-    struct process_traffic_t *p = exited_traffic.lookup_or_try_init(&tgid, &zero);
+        return;
+    u32 tgid = th->tgid;
+    struct process_traffic_t *p = exited_traffic.lookup(&tgid);
+    if (p && p->process_start != th->process_start) {
+        exited_traffic.delete(&tgid);  // left by the process that had this PID before
+        p = 0;
+    }
+    if (!p) {
+        struct process_traffic_t fresh = {.process_start = th->process_start};
+        exited_traffic.insert(&tgid, &fresh);
+        p = exited_traffic.lookup(&tgid);
+    }
     if (p) {
 #pragma unroll
         for (int i = 0; i < NCLASSES; i++) {
@@ -335,6 +347,22 @@ int on_thread_exit(struct bpf_raw_tracepoint_args *ctx)
         count_drop(DROP_THREAD);
     }
     thread_traffic.delete(&tid);
+}
+
+// sched:sched_process_exit (task, group_dead) runs in the exiting thread.
+int on_thread_exit(struct bpf_raw_tracepoint_args *ctx)
+{
+    thread_gone((u32)bpf_get_current_pid_tgid());
+    return 0;
+}
+
+// sched:sched_process_exec (task, old_pid, bprm): a thread other than the leader that calls exec
+// takes over the leader's PID, so its old thread ID is gone without an exit.
+int on_exec(struct bpf_raw_tracepoint_args *ctx)
+{
+    u32 old_tid = (u32)ctx->args[1];
+    if (old_tid != (u32)bpf_get_current_pid_tgid())
+        thread_gone(old_tid);
     return 0;
 }
 

@@ -41,8 +41,8 @@ THREAD = {c: Metric(f"drums_thread_socket_{c}_total", COUNTER,
 
 # Map layouts, as in bpf/sockets.bpf.c.
 _SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6Q")
-_THREAD_VALUE = struct.Struct("<II24Q")
-_PROCESS_VALUE = struct.Struct("<24Q")
+_THREAD_VALUE = struct.Struct("<IIQ24Q")
+_PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
 
@@ -51,8 +51,9 @@ LIFECYCLE = (
     ("raw_tracepoint", "inet_sock_set_state", "on_tcp_state"),
     ("raw_tracepoint", "sched_process_exit", "on_thread_exit"),
     ("raw_tracepoint", "sched_process_free", "on_task_free"),
+    ("raw_tracepoint", "sched_process_exec", "on_exec"),
 )
-_LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_exit", "sched_process_free")
+_LIFECYCLE_EVENTS = tuple(event for _, event, _ in LIFECYCLE)
 
 
 @dataclass
@@ -83,13 +84,9 @@ def decode_sockets(keys: bytes, values: bytes) -> list[SocketCounts]:
     return out
 
 
-def _by_class(flat: tuple[int, ...]) -> list[tuple[int, ...]]:
-    """24 counters -> 4 protocol classes x 6 counts, reordered to _COUNTS."""
-    rows = []
-    for i in range(len(PROTOCOLS)):
-        sb, sc, rb, rc, se, re_ = flat[6 * i: 6 * i + 6]
-        rows.append((sb, sc, rb, rc, se, re_))
-    return rows
+def _by_class(flat) -> list[tuple[int, ...]]:
+    """24 counters -> 4 protocol classes x 6 counts, in _COUNTS order (the C struct's order)."""
+    return [tuple(flat[6 * i: 6 * i + 6]) for i in range(len(PROTOCOLS))]
 
 
 class SocketsProbe(BpfProbe):
@@ -132,6 +129,8 @@ class SocketsProbe(BpfProbe):
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
             "TASK_PID_OFF": ("task_struct", "pid"),
             "TASK_TGID_OFF": ("task_struct", "tgid"),
+            "TASK_GROUP_LEADER_OFF": ("task_struct", "group_leader"),
+            "TASK_START_TIME_OFF": ("task_struct", "start_time"),
         })
         # The socket's inode sits right after struct socket in struct socket_alloc.
         d["SOCKET_INO_OFF"] = (btf.field("socket_alloc", "vfs_inode").offset
@@ -152,17 +151,20 @@ class SocketsProbe(BpfProbe):
             for c, value in zip(_COUNTS, s.counts):
                 snap.add(SOCKET[c], labels, value)
 
-        per_process: dict[int, list[list[int]]] = {}
+        # A process is its PID and its start time: a PID reused by a new process starts afresh.
+        per_process: dict[tuple[int, int], list[list[int]]] = {}
         keys, values, _ = self.read("exited_traffic")
-        for (tgid,), flat in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
+        for (tgid,), (start, *flat) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
             if pt.alive(tgid):
-                per_process[tgid] = [list(row) for row in _by_class(flat)]
+                per_process[(tgid, start)] = [list(row) for row in _by_class(flat)]
+        live_starts: dict[int, int] = {}
         keys, values, _ = self.read("thread_traffic")
-        for (tid,), (tgid, _pad, *flat) in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
+        for (tid,), (tgid, _pad, start, *flat) in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
             if not pt.alive(tgid):
                 continue
-            rows = _by_class(tuple(flat))
-            acc = per_process.setdefault(tgid, [[0] * len(_COUNTS) for _ in PROTOCOLS])
+            live_starts[tgid] = start
+            rows = _by_class(flat)
+            acc = per_process.setdefault((tgid, start), [[0] * len(_COUNTS) for _ in PROTOCOLS])
             for klass, row in enumerate(rows):
                 if not any(row):
                     continue
@@ -171,12 +173,14 @@ class SocketsProbe(BpfProbe):
                 snap.add(THREAD["sent_bytes"], labels, row[0])
                 snap.add(THREAD["received_bytes"], labels, row[2])
         m = self._monotonic
-        for tgid, rows in per_process.items():
+        for (tgid, start), rows in per_process.items():
+            if live_starts.get(tgid, start) != start:
+                continue  # exited threads of the process that had this PID before
             for klass, row in enumerate(rows):
                 if any(row):
                     labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
                     for c, value in zip(_COUNTS, row):
-                        snap.add(PROCESS[c], labels, m((c, labels), value))
+                        snap.add(PROCESS[c], labels, m((c, tgid, start, klass), value))
         m.next_collect()
         _, values, _ = self.read("dropped")
         self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))

@@ -597,3 +597,36 @@ def test_next_socket_does_not_inherit_a_socket_used_after_reset(sockets_probe, c
                 rows = socket_rows(collect(sockets_probe), pid=os.getpid(), protocol="tcp")
                 carrying = {(lv[3], lv[6]) for lv, counts in rows.items() if counts["sent_bytes"] == 1234}
                 assert carrying == {(name(c.getsockname()), str(inode(c)))}
+
+
+# ---- a thread that execs ------------------------------------------------------------------------
+
+EXEC_FROM_THREAD = r"""
+import time
+s = socket.socket(fileno=int(sys.argv[1]))
+def sender():
+    report(tid=threading.get_native_id(), calls=send_in_calls(s, int(sys.argv[2]), 4096))
+    command()
+    # The kernel gives the leader's PID to this thread, and ends every other thread.
+    os.execv(sys.executable, [sys.executable, "-c", "import sys; print('{}', flush=True); sys.stdin.read()"])
+threading.Thread(target=sender).start()
+while True:
+    time.sleep(1)
+"""
+
+
+def test_thread_that_execs_keeps_its_bytes_in_the_process(sockets_probe, collect, spawn):
+    size = 300_007
+    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    with mine, theirs:
+        child = spawn(EXEC_FROM_THREAD, theirs.fileno(), size, pass_fds=(theirs.fileno(),))
+        recv_exactly(mine, size)
+        sender = child.expect()
+        assert thread_bytes(collect(sockets_probe), child.pid, "unix") == {sender["tid"]: (size, 0)}
+        child.tell("exec")
+        assert child.expect() == {}  # the new program runs under the same PID
+        snap = collect(sockets_probe)
+        assert thread_bytes(snap, child.pid, "unix") == {}  # the old thread ID is gone
+        assert process_counts(snap, child.pid, "unix") == dict(ZERO, sent_bytes=size, send_calls=sender["calls"])
+        keys, _, _ = sockets_probe.read("thread_traffic")
+        assert sender["tid"] not in {tid for (tid,) in struct.iter_unpack("<I", keys)}, "map entry leaked"
