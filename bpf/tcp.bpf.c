@@ -1,4 +1,4 @@
-// TCP health: retransmitted segments and state changes per connection; those and resets per host.
+// TCP health: retransmitted segments, resets and state changes, per connection and per host.
 // The kernel keeps no per-connection count of these; the smoothed RTT it does keep is read by the
 // agent from tcp_info. All hooks are on slow paths, never on the data path.
 //
@@ -12,11 +12,13 @@ struct tcp_conn_t {
     u16 family;
     u16 lport;        // host byte order
     u16 rport;        // host byte order
-    u16 state;
+    u16 state;        // TCP_CLOSE: closed, kept until the agent has exported it once
     u8 laddr[16];
     u8 raddr[16];
     u64 retransmits;
     u64 state_changes;
+    u64 resets_sent;
+    u64 resets_received;
 };
 
 // Host-wide totals: never deleted, so they never go backwards when connections close.
@@ -27,8 +29,9 @@ struct tcp_totals_t {
     u64 entered[TCP_STATES];  // transitions into each state
 };
 
-// Connections come and go with the sockets probe's; sized alike.
-BPF_HASH(tcp_conns, u64, struct tcp_conn_t, 32768);
+// Sized like the sockets probe's map. Closed connections stay until the agent exports them (a
+// reset comes with or right after the close); LRU, so that without an agent the oldest go first.
+BPF_TABLE("lru_hash", u64, struct tcp_conn_t, tcp_conns, 32768);
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
 BPF_ARRAY(dropped, u64, 1);
 
@@ -72,15 +75,22 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
     struct tcp_totals_t *tot = totals();
     if (tot && newstate < TCP_STATES)
         tot->entered[newstate]++;
-    if (newstate == TCP_CLOSE) {
-        tcp_conns.delete(&sk);
-        return 0;
+    struct tcp_conn_t *c = tcp_conns.lookup(&sk);
+    if (c && c->state == TCP_CLOSE && newstate != TCP_CLOSE) {
+        tcp_conns.delete(&sk);  // the struct sock now holds a new connection
+        c = 0;
     }
-    struct tcp_conn_t *c = conn_entry(sk);
-    if (!c)
-        return 0;
-    // A connecting socket enters SYN_SENT before it has a local port: refresh the identity.
-    read_identity(c, sk);
+    if (!c) {
+        if (newstate == TCP_CLOSE)
+            return 0;
+        c = conn_entry(sk);
+        if (!c)
+            return 0;
+    }
+    // A connecting socket enters SYN_SENT before it has a local port: refresh the identity, but
+    // not at CLOSE, where the kernel has already released the port.
+    if (newstate != TCP_CLOSE)
+        read_identity(c, sk);
     c->state = newstate;
     __sync_fetch_and_add(&c->state_changes, 1);
     return 0;
@@ -100,27 +110,37 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
     if (tot)
         tot->retransmits++;
     struct tcp_conn_t *c = conn_entry(sk);
-    if (c) {
+    if (c)
         __sync_fetch_and_add(&c->retransmits, 1);
-        }
     return 0;
 }
 
-// tcp:tcp_send_reset (sk, skb[, reason]). A connection that aborts moves to CLOSE before it sends
-// its reset, so resets are counted for the host only.
+static __always_inline void count_reset(u64 sk, int sent)
+{
+    struct tcp_totals_t *tot = totals();
+    if (tot) {
+        if (sent)
+            tot->resets_sent++;
+        else
+            tot->resets_received++;
+    }
+    if (!sk)
+        return;  // a reset answering a segment for no socket
+    struct tcp_conn_t *c = tcp_conns.lookup(&sk);
+    if (c)
+        __sync_fetch_and_add(sent ? &c->resets_sent : &c->resets_received, 1);
+}
+
+// tcp:tcp_send_reset (sk, skb[, reason])
 int on_send_reset(struct bpf_raw_tracepoint_args *ctx)
 {
-    struct tcp_totals_t *tot = totals();
-    if (tot)
-        tot->resets_sent++;
+    count_reset(ctx->args[0], 1);
     return 0;
 }
 
-// tcp:tcp_receive_reset (sk): the connection is about to close, so only the host totals keep it.
+// tcp:tcp_receive_reset (sk)
 int on_receive_reset(struct bpf_raw_tracepoint_args *ctx)
 {
-    struct tcp_totals_t *tot = totals();
-    if (tot)
-        tot->resets_received++;
+    count_reset(ctx->args[0], 0);
     return 0;
 }

@@ -20,6 +20,10 @@ from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_t
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
                           "Segments this connection retransmitted", CONN_LABELS)
+CONN_RESETS_SENT = Metric("drums_tcp_connection_resets_sent_total", COUNTER,
+                          "Resets this connection sent", CONN_LABELS)
+CONN_RESETS_RECEIVED = Metric("drums_tcp_connection_resets_received_total", COUNTER,
+                              "Resets this connection received", CONN_LABELS)
 CONN_STATE_CHANGES = Metric("drums_tcp_connection_state_changes_total", COUNTER,
                             "TCP state transitions of this connection", CONN_LABELS)
 CONN_RTT = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE,
@@ -32,7 +36,8 @@ RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
 STATE_ENTERED = Metric("drums_tcp_state_transitions_total", COUNTER,
                        "TCP connections entering each state", ("state",))
 
-_CONN_VALUE = struct.Struct("<IHHHH16s16s4x2Q")
+_CONN_VALUE = struct.Struct("<IHHHH16s16s4x4Q")
+TCP_CLOSE = 7
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
 EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
@@ -42,7 +47,7 @@ class TcpProbe(BpfProbe):
     name = "tcp"
     source = "tcp.bpf.c"
     maps = ("tcp_conns", "tcp_totals", "dropped")
-    metrics = (CONN_RETRANSMITS, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
+    metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_RESETS_RECEIVED, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
                RESETS_RECEIVED, STATE_ENTERED)
     paths = (
         AttachPath("raw_tracepoint",
@@ -60,11 +65,18 @@ class TcpProbe(BpfProbe):
 
     def collect(self, snap: Snapshot) -> None:
         keys, values, _ = self.read("tcp_conns")
-        for v in _CONN_VALUE.iter_unpack(values):
-            netns, family, lport, rport, _state, laddr, raddr, retrans, changes = v
+        closed = []
+        for key, v in zip(_U64.iter_unpack(keys), _CONN_VALUE.iter_unpack(values)):
+            netns, family, lport, rport, state, laddr, raddr, retrans, changes, rst_sent, rst_received = v
             labels = (endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns))
             snap.add(CONN_RETRANSMITS, labels, retrans)
+            snap.add(CONN_RESETS_SENT, labels, rst_sent)
+            snap.add(CONN_RESETS_RECEIVED, labels, rst_received)
             snap.add(CONN_STATE_CHANGES, labels, changes)
+            if state == TCP_CLOSE:
+                closed.append(_U64.pack(*key))
+        # A closed connection is exported once, with the reset that closed it, then forgotten.
+        self.opened["tcp_conns"].delete(closed)
         _, values, _ = self.read("tcp_totals")
         totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]
         snap.add(RETRANSMITS, (), totals[0])

@@ -132,6 +132,36 @@ def test_abortive_close_sends_one_reset(tcp_probe, collect, family):
 
 
 @pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
+def test_reset_shows_on_both_connections_once_then_they_go(tcp_probe, collect, family):
+    with tcp_listener(family) as lst:
+        client = socket.create_connection(lst.getsockname()[:2])
+        server, _ = lst.accept()
+        ends = {"client": (name(client.getsockname()), name(client.getpeername())),
+                "server": (name(server.getsockname()), name(server.getpeername()))}
+        abort(client)
+        with server, pytest.raises(ConnectionResetError):
+            server.recv(1)
+    snap = collect(tcp_probe)
+
+    def value(metric, end):
+        local, remote = ends[end]
+        rows = series(snap, metric, local=local, remote=remote)
+        assert len(rows) == 1, (metric, end, rows)
+        return next(iter(rows.values()))
+
+    assert value("drums_tcp_connection_resets_sent_total", "client") == 1
+    assert value("drums_tcp_connection_resets_received_total", "client") == 0
+    assert value("drums_tcp_connection_resets_sent_total", "server") == 0
+    assert value("drums_tcp_connection_resets_received_total", "server") == 1
+    # Client: SYN_SENT, ESTABLISHED, CLOSE; server: SYN_RECV, ESTABLISHED, CLOSE.
+    assert value("drums_tcp_connection_state_changes_total", "client") == 3
+    assert value("drums_tcp_connection_state_changes_total", "server") == 3
+    after = collect(tcp_probe)
+    for local, remote in ends.values():
+        assert series(after, "drums_tcp_connection_state_changes_total", local=local, remote=remote) == {}
+
+
+@pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
 def test_connecting_to_a_closed_port_is_reset(tcp_probe, collect, family):
     with tcp_listener(family) as lst:
         port = lst.getsockname()[1]  # closed, and nobody else's port for a moment
