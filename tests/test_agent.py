@@ -134,3 +134,32 @@ def test_strict_refuses_when_a_probe_cannot_attach(tmp_path):
                          capture_output=True, text=True, timeout=30, cwd=tmp_path)
     assert out.returncode == 2
     assert out.stderr.startswith("drums: probe sockets: not root") and "(--strict)" in out.stderr
+
+
+def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
+    """As an unprivileged user no BPF program can load: the agent runs on /proc and sock_diag."""
+    port = _free_port()
+    proc = subprocess.Popen(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable,
+                             "-m", "drums", "agent", "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                text = scrape(f"http://127.0.0.1:{port}/metrics")
+                break
+            except OSError:
+                assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()
+                time.sleep(0.1)
+        attached = {dict(k)["probe"]: (dict(k)["attach_type"], v)
+                    for k, v in samples(text, "drums_probe_attached").items()}
+        assert attached == {"sockets": ("sock_diag", 1), "sched": ("proc", 1), "tcp": ("sock_diag", 1),
+                            "host": ("psutil", 1), "process": ("psutil", 1)}
+        assert samples(text, "drums_process_cpu_seconds_total")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    log = proc.stdout.read()
+    assert "Traceback" not in log
+    for probe in ("sockets", "sched", "tcp"):
+        assert f"probe {probe} uses" in log and "not root" in log, log

@@ -15,7 +15,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
     from drums.probes.sched import SchedProbe
     from drums.probes.sockdiag_sockets import SockDiagSocketsProbe
     from drums.probes.sockets import SocketsProbe
-    from drums.probes.tcp import TcpProbe
+    from drums.probes.tcp import SockDiagTcpProbe, TcpProbe
 
     makers = {
         "sockets": lambda: SocketsProbe(features, proctable),
@@ -28,6 +28,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
     fallbacks = {
         "sockets": lambda: SockDiagSocketsProbe(proctable),
         "sched": lambda: ProcSchedProbe(proctable),
+        "tcp": SockDiagTcpProbe,
     }
     probes = []
     for name in PROBES:

@@ -6,6 +6,7 @@ in a map that is never pruned, so they survive the connections that produced the
 """
 from __future__ import annotations
 
+import os
 import socket
 import struct
 
@@ -15,6 +16,7 @@ from drums.kernel.bpffs import sum_percpu
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.netfmt import endpoint
+from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
 
 CONN_LABELS = ("local", "remote", "netns")
@@ -85,12 +87,64 @@ class TcpProbe(BpfProbe):
         for state, name in sockdiag.TCP_STATES.items():
             snap.add(STATE_ENTERED, (name.lower(),), totals[3 + state])
         try:
-            for c in sockdiag.dump_tcp(1 << 1):  # ESTABLISHED only
-                local = endpoint(c.family, socket.inet_pton(c.family, c.local_address), c.local_port)
-                remote = endpoint(c.family, socket.inet_pton(c.family, c.remote_address), c.remote_port)
+            for c, local, remote in established():
                 snap.add(CONN_RTT, (local, remote), c.srtt_us / 1e6)
         except KernelError as e:
             self.status.reason = f"no RTT: {e}"
         _, values, _ = self.read("dropped")
         self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
 
+
+
+def established():
+    """(connection, local, remote) of the established TCP connections in this network namespace."""
+    for c in sockdiag.dump_tcp(1 << 1):
+        local = endpoint(c.family, socket.inet_pton(c.family, c.local_address), c.local_port)
+        remote = endpoint(c.family, socket.inet_pton(c.family, c.remote_address), c.remote_port)
+        yield c, local, remote
+
+
+def parse_snmp_tcp(text: str) -> dict[str, int]:
+    """The Tcp: counters of /proc/net/snmp (a header line of names, then a line of values)."""
+    lines = [line.split()[1:] for line in text.splitlines() if line.startswith("Tcp:")]
+    if len(lines) < 2 or len(lines[0]) != len(lines[1]):
+        return {}
+    try:
+        return {name: int(value) for name, value in zip(lines[0], lines[1])}
+    except ValueError:
+        return {}
+
+
+class SockDiagTcpProbe(Probe):
+    """Without eBPF: RTT and retransmits of open connections from tcp_info, host counters from
+    /proc/net/snmp. Resets and state changes per connection, and closed connections, are lost."""
+
+    name = "tcp"
+    metrics = (CONN_RETRANSMITS, CONN_RTT, RETRANSMITS, RESETS_SENT)
+
+    def __init__(self, snmp: str = "/proc/net/snmp"):
+        super().__init__()
+        self.snmp = snmp
+        self.netns = ""
+
+    def start(self) -> None:
+        sockdiag.dump_tcp(1 << 1)  # fails here, not at each collect, where netlink is missing
+        self.netns = str(os.stat("/proc/self/ns/net").st_ino)
+        self.status.attached = True
+        self.status.attach_type = "sock_diag"
+        self.status.reason = ("open connections of the agent's network namespace only; no resets or "
+                              "state changes per connection")
+
+    def collect(self, snap: Snapshot) -> None:
+        for c, local, remote in established():
+            snap.add(CONN_RTT, (local, remote), c.srtt_us / 1e6)
+            snap.add(CONN_RETRANSMITS, (local, remote, self.netns), c.total_retrans)
+        try:
+            with open(self.snmp) as f:
+                counters = parse_snmp_tcp(f.read())
+        except OSError:
+            counters = {}
+        if "RetransSegs" in counters:
+            snap.add(RETRANSMITS, (), counters["RetransSegs"])
+        if "OutRsts" in counters:
+            snap.add(RESETS_SENT, (), counters["OutRsts"])

@@ -5,6 +5,7 @@ import os
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -23,6 +24,7 @@ from drums.probes.procsched import (
 )
 from drums.probes.sched import PROCESS_CPU, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS, THREAD_SWITCHES
 from drums.probes.sockdiag_sockets import SockDiagSocketsProbe, application_bytes
+from drums.probes import tcp
 from drums.probes.sockets import SOCKET
 from drums.proctable import ProcessTable
 
@@ -360,6 +362,7 @@ from drums.metrics import Snapshot
 from drums.probes.procsched import ProcSchedProbe
 from drums.probes.sched import THREAD_CPU
 from drums.probes.sockdiag_sockets import SockDiagSocketsProbe
+from drums.probes import tcp
 from drums.probes.sockets import SOCKET
 from drums.proctable import ProcessTable
 n = 300_001
@@ -422,3 +425,34 @@ def test_both_fallbacks_work_as_an_unprivileged_user():
     assert (out["sent"], out["received"]) == ({"client": n, "server": 0}, {"client": 0, "server": n})
     (cpu,) = out["thread_cpu"]
     assert abs(cpu - out["thread_time"]) <= 0.02 * out["thread_time"]
+
+
+# ---- TCP health without eBPF ----------------------------------------------------------------------
+
+def test_tcp_fallback_reads_rtt_and_host_counters_from_the_kernel():
+    from drums.probes.tcp import SockDiagTcpProbe, parse_snmp_tcp
+
+    probe = SockDiagTcpProbe()
+    probe.start()
+    assert probe.status.attach_type == "sock_diag"
+    with socket.create_server(("127.0.0.1", 0)) as lst:
+        client = socket.create_connection(lst.getsockname())
+        server, _ = lst.accept()
+        with client, server:
+            client.sendall(b"x" * 1000)
+            server.recv(1000)
+            snap = Snapshot()
+            probe.collect(snap)
+            info = client.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 104)
+            srtt_us = struct.unpack_from("=I", info, 68)[0]
+            local = "%s:%d" % client.getsockname()
+            remote = "%s:%d" % client.getpeername()
+            rtt = {k: v for k, v in snap.values(tcp.CONN_RTT).items() if k == (local, remote)}
+            assert rtt == {(local, remote): srtt_us / 1e6}
+            netns = str(os.stat("/proc/self/ns/net").st_ino)
+            assert snap.values(tcp.CONN_RETRANSMITS)[(local, remote, netns)] == 0
+    with open("/proc/net/snmp") as f:
+        after = parse_snmp_tcp(f.read())
+    assert 0 <= after["RetransSegs"] - snap.values(tcp.RETRANSMITS)[()] <= 5  # only what others did since
+    assert parse_snmp_tcp("Tcp: RtoAlgorithm\nTcp: banana\n") == {}
+    assert parse_snmp_tcp("") == {}
