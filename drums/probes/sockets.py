@@ -84,6 +84,22 @@ def decode_sockets(keys: bytes, values: bytes) -> list[SocketCounts]:
     return out
 
 
+def unix_paths(path: str) -> dict[int, str]:
+    """Inode -> bound path of the unix sockets in /proc/net/unix (this network namespace's);
+    abstract names are shown with a leading @, as ss does."""
+    out = {}
+    try:
+        with open(path) as f:
+            next(f, None)
+            for line in f:
+                fields = line.split(None, 7)
+                if len(fields) == 8 and fields[6].isdigit():
+                    out[int(fields[6])] = fields[7].rstrip("\n")
+    except OSError:
+        pass
+    return out
+
+
 def _by_class(flat) -> list[tuple[int, ...]]:
     """24 counters -> 4 protocol classes x 6 counts, in _COUNTS order (the C struct's order)."""
     return [tuple(flat[6 * i: 6 * i + 6]) for i in range(len(PROTOCOLS))]
@@ -115,9 +131,10 @@ class SocketsProbe(BpfProbe):
                    "older kernels with kprobes (Ubuntu 20.04/22.04, Jetson): TCP and UDP only"),
     )
 
-    def __init__(self, features, proctable: ProcessTable, **kw):
+    def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix", **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
+        self.proc_net_unix = proc_net_unix
         self._last_counts: dict[int, tuple[int, ...]] = {}
         self._monotonic = Monotonic()
 
@@ -144,10 +161,12 @@ class SocketsProbe(BpfProbe):
         stale = self._stale(sockets)
         if stale:
             self.opened["socket_traffic"].delete([_U64.pack(sk) for sk in stale])
+        paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s in sockets) else {}
         for s in sockets:
             if s.sk in stale:
                 continue
-            labels = (str(s.pid), pt.name(s.pid), s.protocol, s.local, s.remote, str(s.netns), str(s.inode))
+            local = paths.get(s.inode, "") if s.protocol == "unix" else s.local
+            labels = (str(s.pid), pt.name(s.pid), s.protocol, local, s.remote, str(s.netns), str(s.inode))
             for c, value in zip(_COUNTS, s.counts):
                 snap.add(SOCKET[c], labels, value)
 

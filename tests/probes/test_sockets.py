@@ -630,3 +630,33 @@ def test_thread_that_execs_keeps_its_bytes_in_the_process(sockets_probe, collect
         assert process_counts(snap, child.pid, "unix") == dict(ZERO, sent_bytes=size, send_calls=sender["calls"])
         keys, _, _ = sockets_probe.read("thread_traffic")
         assert sender["tid"] not in {tid for (tid,) in struct.iter_unpack("<I", keys)}, "map entry leaked"
+
+
+# ---- unix socket names ----------------------------------------------------------------------------
+
+UNIX_NAMED_SENDER = r"""
+s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+s.bind(sys.argv[1] if sys.argv[1][0] != "@" else "\0" + sys.argv[1][1:])
+s.connect(sys.argv[2])
+s.send(b"n" * int(sys.argv[3]))
+report(inode=inode(s))
+command()
+"""
+
+
+@pytest.mark.parametrize("kind", ["path", "abstract"])
+def test_unix_sockets_are_named_by_their_bound_path(sockets_probe, collect, spawn, tmp_path, kind):
+    size = 4_321
+    receiver_path = str(tmp_path / "receiver")
+    sender_name = str(tmp_path / "sender") if kind == "path" else f"@drums-test-{os.getpid()}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as receiver:
+        receiver.bind(receiver_path)
+        child = spawn(UNIX_NAMED_SENDER, sender_name, receiver_path, size)
+        assert len(receiver.recv(65536)) == size
+        sent = child.expect()
+        snap = collect(sockets_probe)
+        labels, counts = one_socket(snap, pid=child.pid, inode=sent["inode"])
+        assert (labels["protocol"], labels["local"]) == ("unix", sender_name)
+        assert counts == dict(ZERO, sent_bytes=size, send_calls=1)
+        labels, counts = one_socket(snap, pid=os.getpid(), inode=inode(receiver))
+        assert labels["local"] == receiver_path and counts["received_bytes"] == size
