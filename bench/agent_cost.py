@@ -140,7 +140,8 @@ def measure_poller(seconds: float, interval: float, pids: list[int], pid_file: s
     with open(pid_file, "w") as f:
         f.write("\n".join(map(str, pids)))
     proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--poller", pid_file,
-                             "--interval", str(interval)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                             "--interval", str(interval)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         if proc.stdout.readline().strip() != "ready":
             raise BenchError("the psutil poller did not start")
@@ -208,12 +209,13 @@ def run(args) -> None:
             pass
 
     lat, cyc = ours["latencies"], peer["cycles"]
+    mb = 2 ** 20
     rows = [
         [f"CPU, % of one core (goal <= {GOALS['cpu']})", fmt(ours["cpu"]), fmt(peer["cpu"]),
          ratio(ours["cpu"], peer["cpu"])],
-        [f"USS MB at the end (goal <= {GOALS['uss_mb']})", fmt(ours["uss"] / 2**20, 1), fmt(peer["uss"] / 2**20, 1),
+        [f"USS MB at the end (goal <= {GOALS['uss_mb']})", fmt(ours["uss"] / mb, 1), fmt(peer["uss"] / mb, 1),
          ratio(ours["uss"], peer["uss"])],
-        ["RSS MB at the end", fmt(ours["rss"] / 2**20, 1), fmt(peer["rss"] / 2**20, 1), ratio(ours["rss"], peer["rss"])],
+        ["RSS MB at the end", fmt(ours["rss"] / mb, 1), fmt(peer["rss"] / mb, 1), ratio(ours["rss"], peer["rss"])],
         [f"ms per cycle, median (goal <= {GOALS['metrics_ms']})", fmt(median(lat), 1), fmt(median(cyc), 1),
          ratio(median(lat), median(cyc))],
         ["ms per cycle, p95", fmt(percentile(lat, 95), 1), fmt(percentile(cyc, 95), 1),
@@ -230,7 +232,8 @@ def run(args) -> None:
         f"agent's own collect time (sum of drums_probe_collect_duration_seconds): median "
         f"{fmt(median(ours['collect']), 1)} ms; per probe: "
         + ", ".join(f"{k} {fmt(v, 1)} ms" for k, v in sorted(ours["per_probe"].items()))
-        + f"; the rest of a scrape (process table, budget, render, HTTP): median {fmt(median(ours['outside']), 1)} ms",
+        + f"; the rest of a scrape (process table, budget, render, HTTP): median "
+          f"{fmt(median(ours['outside']), 1)} ms",
         f"/metrics body: {series:,} series, {size / 1024:,.0f} KiB; per-socket series "
         f"(drums_socket_sent_bytes_total): {ours['sockets']:,}",
     ]

@@ -11,7 +11,7 @@ socketpair and on a loopback TCP connection (two sock_send_length/sock_recv_leng
 operation), and a pipe ping-pong between two processes on one CPU (per round trip two
 sched_switch and two sched_wakeup events). Goal: the probes cost at most 1.3x the floor.
 
-    .venv/bin/python bench/event_cost.py [--rounds 5] [--ops 200000] [--pingpongs 100000]
+    .venv/bin/python bench/event_cost.py [--rounds 15] [--ops 50000] [--pingpongs 25000]
 """
 from __future__ import annotations
 
@@ -24,8 +24,8 @@ import subprocess
 import sys
 import textwrap
 
-from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, print_table,
-                    progress, ratio, require_root, require_tool)
+from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, percentile,
+                    print_table, progress, ratio, require_root, require_tool)
 
 PIN_ROOT = "/sys/fs/bpf/drums_bench"
 STATS_SYSCTL = "/proc/sys/kernel/bpf_stats_enabled"
@@ -290,31 +290,40 @@ def run(args) -> None:
     for probe_name, (workloads, pairs) in PROBES.items():
         for w in workloads:
             none = median(added[w, "none"])
-            fl = median(added[w, "floor"]) - none
-            dr = median(added[w, "drums"]) - none
+            # Paired by round: a slow drift of the host (another session's programs coming and
+            # going, a busy neighbour) cancels out within a round.
+            fl = median(f - n for f, n in zip(added[w, "floor"], added[w, "none"]))
+            dr = median(d - n for d, n in zip(added[w, "drums"], added[w, "none"]))
             events = sum(median(events_per_op.get((w, tp), [0])) for tp, _ in pairs)
             per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
             rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
                          ratio(dr, fl), fmt(events, 2), per_event])
     notes = watch.notes() + [
-        f"ns per operation: median over {args.rounds} rounds of the fastest of {args.batches} batches "
-        "(other work on the host only ever adds time); "
+        f"ns per operation: the fastest of {args.batches} batches of a run (other work on the host only "
+        f"ever adds time); added ns: median over {args.rounds} rounds of the difference to the same round's "
+        "run without programs; "
         f"{args.ops:,} socket operations or {args.pingpongs:,} round trips per run, on CPU {args.cpu}; "
         "added = with programs attached minus with none. Goal: Drums at most 1.3x the floor.",
-        "per round (ns/op): " + "; ".join(
-            f"{w}/{c} " + ",".join(fmt(v, 0) for v in vals) for (w, c), vals in sorted(added.items())),
+        "spread of the added ns/op over the rounds (25th to 75th percentile): " + "; ".join(
+            f"{w} {c} {_spread(added[w, c], added[w, 'none'])}"
+            for w in WORKLOAD_LABEL for c in ("floor", "drums") if (w, c) in added),
     ]
     print_table("Per-event cost: time added to a workload",
                 ["workload (probe)", "no program ns/op", "empty added ns/op", "Drums added ns/op",
                  "Drums / empty", "events/op", "added ns/event empty / Drums"], rows, notes)
 
 
+def _spread(with_programs: list[float], without: list[float]) -> str:
+    diffs = [a - b for a, b in zip(with_programs, without)]
+    return f"{fmt(percentile(diffs, 25), 0)}..{fmt(percentile(diffs, 75), 0)}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rounds", type=int, default=5, help="rounds of none/floor/drums (default 5)")
-    parser.add_argument("--ops", type=int, default=200_000, help="socket operations per run (default 200000)")
-    parser.add_argument("--pingpongs", type=int, default=100_000, help="round trips per run (default 100000)")
-    parser.add_argument("--batches", type=int, default=10, help="timed batches per run (default 10)")
+    parser.add_argument("--rounds", type=int, default=15, help="rounds of none/floor/drums (default 15)")
+    parser.add_argument("--ops", type=int, default=50_000, help="socket operations per run (default 50000)")
+    parser.add_argument("--pingpongs", type=int, default=25_000, help="round trips per run (default 25000)")
+    parser.add_argument("--batches", type=int, default=5, help="timed batches per run (default 5)")
     parser.add_argument("--cpu", type=int, default=1, help="CPU the workload runs on (default 1)")
     args = parser.parse_args()
     main_wrapper(lambda: run(args))

@@ -19,7 +19,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 BENCHMARKS = (
     ("render", ["--repeats", "5"]),
     ("startup", ["--runs", "1"]),
-    ("event_cost", ["--rounds", "2", "--ops", "50000", "--pingpongs", "20000"]),
+    ("event_cost", ["--rounds", "3", "--ops", "20000", "--pingpongs", "10000"]),
     ("workload_overhead", ["--rounds", "1", "--seconds", "2"]),
     ("agent_cost", ["--seconds", "5"]),
 )

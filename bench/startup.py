@@ -51,7 +51,8 @@ def run(args) -> None:
                 [f"median of {args.runs} runs; 'to first metrics' runs from launching the process (Python "
                  "imports included) until /metrics shows "
                  'drums_probe_attached{probe="sockets",attach_type="raw_tracepoint"} 1, polled every 10 ms',
-                 "per run (s): " + "; ".join(f"{k} " + ", ".join(fmt(s) for s, _ in v) for k, v in results.items()),
+                 "per run (s): " + "; ".join(f"{kind} " + ", ".join(fmt(seen) for seen, _ in runs)
+                                             for kind, runs in results.items()),
                  "pins are removed at the end (drums unload)"])
 
 

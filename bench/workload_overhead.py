@@ -16,8 +16,8 @@ import tempfile
 import threading
 import time
 
-from common import (PIN_ROOT, Agent, BenchError, ForeignWatch, drums_unload, fetch, fmt, free_port, main_wrapper,
-                    median, pin_cpu, print_table, progress, require_root, require_tool, terminate)
+from common import (PIN_ROOT, Agent, BenchError, ForeignWatch, cpu_seconds, drums_unload, fetch, fmt, free_port,
+                    main_wrapper, median, pin_cpu, print_table, progress, require_root, require_tool, terminate)
 
 CONDITIONS = ("none", "drums", "tcpdump")
 WORKLOADS = {
@@ -55,8 +55,16 @@ def iperf_client(port: int, args: list[str], seconds: float, cpu: int | None) ->
         raise BenchError(f"iperf3 printed no JSON: {proc.stderr.strip()[-300:]}") from None
     if "error" in data:
         raise BenchError(f"iperf3: {data['error']}")
-    received = data["end"]["sum_received"]
-    return {"gbps": received["bits_per_second"] / 1e9, "loss": received.get("lost_percent", 0.0)}
+    end = data["end"]
+    sent, received, cpu = end["sum_sent"], end["sum_received"], end["cpu_utilization_percent"]
+    # iperf3's own CPU (getrusage of client and server), where the probes' per-event work is
+    # charged: it measures the cost per message even when other work on the host slows the flow.
+    client_cpu = cpu["host_total"] / 100 * sent["seconds"]
+    server_cpu = cpu["remote_total"] / 100 * received["seconds"]
+    kib_sent, kib_received = max(1, sent["bytes"] / 1024), max(1, received["bytes"] / 1024)
+    cpu_us_per_kib = (client_cpu / kib_sent + server_cpu / kib_received) * 1e6
+    return {"gbps": received["bits_per_second"] / 1e9, "loss": received.get("lost_percent", 0.0),
+            "cpu_us_per_kib": cpu_us_per_kib}
 
 
 class Monitor:
@@ -70,6 +78,13 @@ class Monitor:
         self.scraper: Scraper | None = None
         self.tcpdump: subprocess.Popen | None = None
         self.notes: list[str] = []
+
+    @property
+    def pid(self) -> int | None:
+        """The monitor's own process, whose CPU is counted beside the workload's."""
+        if self.agent is not None:
+            return self.agent.proc.pid
+        return self.tcpdump.pid if self.tcpdump is not None else None
 
     def start(self) -> None:
         if self.condition == "drums":
@@ -142,8 +157,12 @@ def run(args) -> None:
                     monitor = Monitor(condition, args.scrape_interval, args.snaplen)
                     monitor.start()
                     try:
-                        results[workload, condition].append(
-                            iperf_client(port, client_args, args.seconds, client_cpu))
+                        cpu0, t0 = (cpu_seconds(monitor.pid) if monitor.pid else 0.0), time.monotonic()
+                        result = iperf_client(port, client_args, args.seconds, client_cpu)
+                        if monitor.pid:
+                            busy = cpu_seconds(monitor.pid) - cpu0
+                            result["monitor_cpu"] = busy / (time.monotonic() - t0) * 100
+                        results[workload, condition].append(result)
                     finally:
                         monitor.stop()
                     if condition == "tcpdump":
@@ -163,6 +182,11 @@ def run(args) -> None:
         if workload == "udp":
             loss = {c: median(r["loss"] for r in results[workload, c]) for c in CONDITIONS}
             rows.append([f"{label}: loss %", fmt(loss["none"]), fmt(loss["drums"]), fmt(loss["tcpdump"]), "", ""])
+        cpu = {c: median(r["cpu_us_per_kib"] for r in results[workload, c]) for c in CONDITIONS}
+        rows.append([f"{label}: iperf3 CPU us per KiB", fmt(cpu["none"], 3), fmt(cpu["drums"], 3),
+                     fmt(cpu["tcpdump"], 3), _cost(cpu["drums"], cpu["none"]), _cost(cpu["tcpdump"], cpu["none"])])
+        own = {c: median(r.get("monitor_cpu", 0.0) for r in results[workload, c]) for c in CONDITIONS}
+        rows.append([f"{label}: monitor's own CPU %", "", fmt(own["drums"], 1), fmt(own["tcpdump"], 1), "", ""])
     for workload in WORKLOADS:
         for c in CONDITIONS:
             runs = ", ".join(fmt(r["gbps"]) for r in results[workload, c])
@@ -174,13 +198,15 @@ def run(args) -> None:
     pinning = "no CPU pinning" if args.no_pin else "iperf3 client on CPU 0, server on CPU 1"
     notes.insert(0, f"median of {args.rounds} interleaved rounds of {args.seconds} s each; {pinning}; "
                     f"the agent runs all probes and is scraped every {args.scrape_interval:g} s; "
-                    f"tcpdump -s {args.snaplen}. Goal: the agent costs at most 3%.")
+                    f"tcpdump -s {args.snaplen}. iperf3 CPU per KiB: client CPU per KiB sent plus server CPU per "
+                    "KiB received, from iperf3's own accounting; a monitor's own CPU: % of one core during "
+                    "the run. Goal: the agent costs at most 3%.")
     print_table("Workload overhead: iperf3 over loopback",
                 ["workload", "no monitor", "Drums", "tcpdump", "Drums / none", "tcpdump / none"], rows, notes)
 
 
 def _cost(with_monitor: float, without: float) -> str:
-    """Throughput with the monitor over throughput without, and the change in percent."""
+    """A figure with the monitor over the figure without, and the change in percent."""
     if not without:
         return "n/a"
     r = with_monitor / without

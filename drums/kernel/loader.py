@@ -1,8 +1,8 @@
 """Compiles a probe's BPF C with bcc, attaches it and pins its maps and links in bpffs.
 
 bcc keeps LLVM in the process that compiles (about 100 MB), so the agent runs this module as a
-short-lived child (`python -m drums.kernel.loader`, a JSON request on stdin, a JSON answer on
-stdout) and afterwards only reads the pins. Attachments that the kernel cannot pin (kprobes made
+short-lived child (`python -m drums.kernel.loader`: a JSON request on stdin; exit status 0, or 1
+and one error line on stdout) and afterwards only reads the pins. Attachments that the kernel cannot pin (kprobes made
 through perf events) are loaded in the agent itself instead; see drums.probes.bpf.
 """
 from __future__ import annotations
