@@ -182,7 +182,7 @@ class Agent:
         last collect, then the newest others up to the budget."""
         chosen = self._chosen()
         limit = self.budget.limit("process")
-        kept = [int(pid) for (pid,) in self.budget.kept("process") if pid.isdigit() and int(pid) in chosen]
+        kept = [int(pid) for pid in self.budget.kept("process") if pid.isdigit() and int(pid) in chosen]
         rest = sorted(chosen - set(kept), reverse=True)
         return (kept + rest)[:limit]
 

@@ -9,6 +9,7 @@ baseline.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from operator import itemgetter
 
 from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Histogram, Metric, Snapshot
 
@@ -58,8 +59,9 @@ class Budget:
         """Entities of each kind whose series are currently summed into `other`."""
         return {kind: st.folded_now for kind, st in self.kinds.items()}
 
-    def kept(self, kind: str) -> set[tuple]:
-        """Entities of a kind that had their own series at the last collect."""
+    def kept(self, kind: str) -> set:
+        """Entities of a kind that had their own series at the last collect: a label value for
+        kinds named by one label (a pid, an inode), a tuple of values for the others."""
         return set(self.kinds[kind].kept)
 
     def limit(self, kind: str) -> int:
@@ -84,46 +86,51 @@ class Budget:
         totals: dict[tuple, float] = {}  # (entity, ranking metric) -> value now
         entities = set()
         for metric in metrics:
-            idx = [metric.labels.index(label) for label in ident]
-            ranking = metric.name in rank_names
-            for labels, value in snap.series[metric]:
-                entity = tuple(labels[i] for i in idx)
-                entities.add(entity)
-                if ranking:
-                    key = (entity, metric.name)
+            entity_of = itemgetter(*[metric.labels.index(label) for label in ident])
+            rows = snap.series[metric]
+            entities.update(entity_of(labels) for labels, _ in rows)
+            if metric.name in rank_names:
+                for labels, value in rows:
+                    key = (entity_of(labels), metric.name)
                     totals[key] = totals.get(key, 0.0) + value
         self._choose(st, entities, totals)
 
-        folded_now: dict[tuple, dict] = {}
+        kept = st.kept
+        folded_now: dict = {}
         sums: dict[tuple, object] = {}
         for metric in metrics:
-            idx = [metric.labels.index(label) for label in ident]
-            keep_idx = [i for i, label in enumerate(metric.labels) if label in DIMENSIONS]
+            entity_of = itemgetter(*[metric.labels.index(label) for label in ident])
+            dims = [i for i, label in enumerate(metric.labels) if label in DIMENSIONS]
+            template = [OTHER] * len(metric.labels)
+            counter = metric.kind in (COUNTER, HISTOGRAM)
             for labels, value in snap.series[metric]:
-                entity = tuple(labels[i] for i in idx)
-                if entity in st.kept:
+                entity = entity_of(labels)
+                if entity in kept:
                     out.add(metric, labels, value)
                     continue
-                other = tuple(labels[i] if i in keep_idx else OTHER for i in range(len(labels)))
-                key = (metric, other)
-                sums[key] = value if key not in sums else _add(sums[key], value)
-                if metric.kind in (COUNTER, HISTOGRAM):
-                    folded_now.setdefault(entity, {})[key] = value
+                for i in dims:
+                    template[i] = labels[i]
+                key = (metric, tuple(template))
+                previous = sums.get(key)
+                sums[key] = value if previous is None else _add(previous, value)
+                if counter:
+                    folded_now.setdefault(entity, []).append((key, value))
         # Folded entities that left (ended or promoted) leave their last values in the baseline.
+        baseline = st.baseline
         for entity, values in st.folded_last.items():
             if entity not in folded_now:
-                for key, value in values.items():
-                    st.baseline[key] = _add(st.baseline[key], value) if key in st.baseline else value
+                for key, value in values:
+                    baseline[key] = _add(baseline[key], value) if key in baseline else value
         st.folded_last = folded_now
-        st.folded_now = len(entities - st.kept)
-        for key in set(sums) | set(st.baseline):
+        st.folded_now = len(entities - kept)
+        for key in sums.keys() | baseline.keys():
             metric, labels = key
             if metric.kind == GAUGE:
                 if key in sums:
                     out.add(metric, labels, sums[key])
                 continue
             value = sums.get(key)
-            base = st.baseline.get(key)
+            base = baseline.get(key)
             out.add(metric, labels, value if base is None else base if value is None else _add(base, value))
 
     @staticmethod

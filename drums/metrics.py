@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 COUNTER, GAUGE, HISTOGRAM, INFO = "counter", "gauge", "histogram", "info"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # each metric is declared once: identity is equality, and hashes fast
 class Metric:
     name: str  # full Prometheus name, base units, `_total` on counters
     kind: str

@@ -1,7 +1,7 @@
 """Prometheus text exposition of a Snapshot, served over HTTP at /metrics.
 
 The text is rendered here rather than by prometheus_client's generate_latest, which builds a
-Python object per sample and took about 100 ms for 10,000 series (bench/bench_render.py compares
+Python object per sample and took about 100 ms for 10,000 series (bench/render.py compares
 the two); tests parse our output with prometheus_client's own parser to keep it honest.
 """
 from __future__ import annotations

@@ -213,7 +213,8 @@ def test_one_connection_walks_the_state_machine(tcp_probe, collect):
 # ---- RTT ----------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
-def test_smoothed_rtt_of_a_loopback_connection(tcp_probe, collect, family):
+def test_smoothed_rtt_of_a_loopback_connection(tcp_probe, collect, family, monkeypatch):
+    monkeypatch.setattr(tcp_probe, "rtt_interval", 0)  # sample RTT at this collect
     with tcp_listener(family) as lst, socket.create_connection(lst.getsockname()[:2]) as client, \
             lst.accept()[0] as server:
         for _ in range(5):  # round trips give both ends RTT samples
