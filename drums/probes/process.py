@@ -4,6 +4,7 @@ Only the chosen PIDs are read, since the agent may watch a thousand processes on
 """
 from __future__ import annotations
 
+import time
 from typing import Iterable
 
 import psutil
@@ -31,10 +32,14 @@ class ProcessProbe(Probe):
     name = "process"
     metrics = (RESIDENT_MEMORY, UNIQUE_MEMORY, THREADS, OPEN_FDS, READ_BYTES, WRITTEN_BYTES, START_TIME)
 
-    def __init__(self):
+    def __init__(self, interval: float = 5.0):
         super().__init__()
+        # Each process costs several /proc reads (smaps_rollup above all), and memory, threads and
+        # open files change slowly: a process is read at most once per interval (seconds).
+        self.interval = interval
         self._pids: frozenset[int] = frozenset()
         self._procs: dict[int, psutil.Process] = {}
+        self._read_at: dict[int, tuple[float, tuple, list]] = {}
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
@@ -43,14 +48,23 @@ class ProcessProbe(Probe):
         self._pids = frozenset(pids)
         for pid in self._procs.keys() - self._pids:
             del self._procs[pid]
+        for pid in self._read_at.keys() - self._pids:
+            del self._read_at[pid]
 
     def collect(self, snap: Snapshot) -> None:
+        now = time.monotonic()
         for pid in self._pids:
-            try:
-                labels, values = self._read(pid)
-            except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
-                self._procs.pop(pid, None)
-                continue
+            cached = self._read_at.get(pid)
+            if cached and now - cached[0] < self.interval and self._procs[pid].is_running():
+                _, labels, values = cached
+            else:
+                try:
+                    labels, values = self._read(pid)
+                except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
+                    self._procs.pop(pid, None)
+                    self._read_at.pop(pid, None)
+                    continue
+                self._read_at[pid] = (now, labels, values)
             for metric, value in values:
                 snap.add(metric, labels, value)
 

@@ -7,6 +7,7 @@ backwards; a closed socket's own series simply ends.
 from __future__ import annotations
 
 import struct
+import time
 from dataclasses import dataclass
 
 from drums.kernel.btf import Btf
@@ -45,6 +46,10 @@ _THREAD_VALUE = struct.Struct("<IIQ24Q")
 _PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
+
+# Listing a process's open files costs a readlink per file: a process's idle non-TCP sockets are
+# checked for having closed at most this often (seconds).
+FD_CHECK_INTERVAL = 10.0
 
 SEND_RECV = ("sock_send_length", "sock_recv_length")
 LIFECYCLE = (
@@ -137,6 +142,7 @@ class SocketsProbe(BpfProbe):
         self.proc_net_unix = proc_net_unix
         self._last_counts: dict[int, tuple[int, ...]] = {}
         self._monotonic = Monotonic()
+        self._fds_read_at: dict[int, float] = {}
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -207,8 +213,10 @@ class SocketsProbe(BpfProbe):
     def _stale(self, sockets: list[SocketCounts]) -> set[int]:
         """Entries of sockets that are gone: their process exited, or (for sockets the kernel
         frees without a tracepoint) the process no longer holds the inode. Only sockets idle since
-        the last collect are checked, which keeps the /proc reads few."""
+        the last collect are checked, each process at most once per FD_CHECK_INTERVAL, which keeps
+        the /proc reads few."""
         stale = set()
+        now = time.monotonic()
         inodes_of: dict[int, set[int]] = {}
         last, self._last_counts = self._last_counts, {s.sk: s.counts for s in sockets}
         for s in sockets:
@@ -216,7 +224,11 @@ class SocketsProbe(BpfProbe):
                 stale.add(s.sk)
             elif s.protocol != "tcp" and last.get(s.sk) == s.counts:
                 if s.pid not in inodes_of:
+                    if now - self._fds_read_at.get(s.pid, float("-inf")) < FD_CHECK_INTERVAL:
+                        continue
+                    self._fds_read_at[s.pid] = now
                     inodes_of[s.pid] = self.proctable.socket_inodes(s.pid)
                 if s.inode not in inodes_of[s.pid]:
                     stale.add(s.sk)
+        self._fds_read_at = {pid: t for pid, t in self._fds_read_at.items() if self.proctable.alive(pid)}
         return stale

@@ -88,7 +88,7 @@ def fstype_of(path) -> str:
 
 @pytest.fixture
 def probe():
-    probe = ProcessProbe()
+    probe = ProcessProbe(interval=0)
     probe.start()
     return probe
 
