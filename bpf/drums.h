@@ -68,13 +68,17 @@ static __always_inline void read_endpoints(u64 sk, u16 *family, u32 *netns, u16 
 #endif
 
 // The process a task belongs to if the task is its leader (so the process is being reaped), else 0.
-#ifdef TASK_PID_OFF
+// Before Linux 5.12 a thread that execs shares the old leader's PID until that leader is released:
+// only the task that is its own group leader counts.
+#ifdef TASK_GROUP_LEADER_OFF
 static __always_inline u32 leader_tgid(u64 task)
 {
     u32 pid = 0, tgid = 0;
+    u64 leader = 0;
     bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
     bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
-    return pid == tgid ? tgid : 0;
+    bpf_probe_read_kernel(&leader, sizeof(leader), (void *)(task + TASK_GROUP_LEADER_OFF));
+    return pid == tgid && leader == task ? tgid : 0;
 }
 #endif
 

@@ -1,8 +1,9 @@
 // On-CPU time, run-queue latency and context switches of every thread, from the scheduler's own
 // tracepoints. One hash entry per thread holds everything, so a context switch costs two lookups
-// and no atomics: an entry is only written by the CPU that switches its thread in or out.
+// and no atomics: a thread's counters are only written by the CPU that switches it in or out (the
+// waker's CPU writes enqueued_at alone).
 //
-// Task offsets (TASK_PID_OFF, TASK_TGID_OFF, TASK_COMM_OFF, TASK_STATE_OFF) come from BTF.
+// Task offsets (TASK_*_OFF) come from BTF.
 #include "drums.h"
 
 // Run-queue latency histogram: slot i counts waits of [2^i, 2^(i+1)) microseconds (slot 0 also
@@ -44,6 +45,9 @@ BPF_HASH(thread_sched, u32, struct thread_sched_t, 65536);
 BPF_HASH(exited_sched, u32, struct exited_sched_t, 16384);
 // When the current task of each CPU was switched in.
 BPF_PERCPU_ARRAY(switched_in_at, u64, 1);
+
+// Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
+// main file, so each program declares this map and its helper itself.)
 BPF_ARRAY(dropped, u64, 2);
 
 static __always_inline void count_drop(int which)
@@ -69,16 +73,17 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task)
     return thread_sched.lookup(&tid);
 }
 
+// Atomic: threads of one process can exit on several CPUs at once (a slow path: once per thread).
 static __always_inline void fold(struct sched_t *into, struct sched_t *from)
 {
-    into->oncpu_ns += from->oncpu_ns;
-    into->runq_ns += from->runq_ns;
-    into->runq_waits += from->runq_waits;
-    into->voluntary += from->voluntary;
-    into->involuntary += from->involuntary;
+    __sync_fetch_and_add(&into->oncpu_ns, from->oncpu_ns);
+    __sync_fetch_and_add(&into->runq_ns, from->runq_ns);
+    __sync_fetch_and_add(&into->runq_waits, from->runq_waits);
+    __sync_fetch_and_add(&into->voluntary, from->voluntary);
+    __sync_fetch_and_add(&into->involuntary, from->involuntary);
 #pragma unroll
     for (int i = 0; i < RUNQ_SLOTS; i++)
-        into->runq_hist[i] += from->runq_hist[i];
+        __sync_fetch_and_add(&into->runq_hist[i], from->runq_hist[i]);
 }
 
 // The last switch-out of an exiting thread: fold all it did into its process and free its entry.

@@ -31,7 +31,7 @@ struct socket_traffic_t {
     u32 netns;
     u16 family;
     u16 protocol;
-    u16 type;
+    u16 unused;
     u16 lport;        // host byte order
     u16 rport;        // host byte order
     u16 klass;
@@ -61,7 +61,17 @@ BPF_HASH(socket_traffic, u64, struct socket_traffic_t, 32768);
 BPF_HASH(thread_traffic, u32, struct thread_traffic_t, 32768);
 // Traffic of threads that exited, kept per process until the process is reaped.
 BPF_HASH(exited_traffic, u32, struct process_traffic_t, 16384);
+
+// Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
+// main file, so each program declares this map and its helper itself.)
 BPF_ARRAY(dropped, u64, 2);
+
+static __always_inline void count_drop(int which)
+{
+    u64 *d = dropped.lookup(&which);
+    if (d)
+        __sync_fetch_and_add(d, 1);
+}
 
 static __always_inline u16 classify(u16 family, u16 protocol)
 {
@@ -89,15 +99,7 @@ static __always_inline void read_identity(struct socket_traffic_t *s, u64 sk)
 {
     read_endpoints(sk, &s->family, &s->netns, &s->lport, &s->rport, s->laddr, s->raddr);
     bpf_probe_read_kernel(&s->protocol, 2, (void *)(sk + SK_PROTOCOL_OFF));
-    bpf_probe_read_kernel(&s->type, 2, (void *)(sk + SK_TYPE_OFF));
     s->klass = classify(s->family, s->protocol);
-}
-
-static __always_inline void count_drop(int which)
-{
-    u64 *d = dropped.lookup(&which);
-    if (d)
-        __sync_fetch_and_add(d, 1);
 }
 
 // The socket's entry, created at first use; *klass gets its protocol class even when there is none.
@@ -334,14 +336,15 @@ static __always_inline void thread_gone(u32 tid)
         p = exited_traffic.lookup(&tgid);
     }
     if (p) {
+        // Atomic: threads of one process can exit on several CPUs at once (once per thread).
 #pragma unroll
         for (int i = 0; i < NCLASSES; i++) {
-            p->by_class[i].sent_bytes += th->by_class[i].sent_bytes;
-            p->by_class[i].sent_calls += th->by_class[i].sent_calls;
-            p->by_class[i].recv_bytes += th->by_class[i].recv_bytes;
-            p->by_class[i].recv_calls += th->by_class[i].recv_calls;
-            p->by_class[i].send_errors += th->by_class[i].send_errors;
-            p->by_class[i].recv_errors += th->by_class[i].recv_errors;
+            __sync_fetch_and_add(&p->by_class[i].sent_bytes, th->by_class[i].sent_bytes);
+            __sync_fetch_and_add(&p->by_class[i].sent_calls, th->by_class[i].sent_calls);
+            __sync_fetch_and_add(&p->by_class[i].recv_bytes, th->by_class[i].recv_bytes);
+            __sync_fetch_and_add(&p->by_class[i].recv_calls, th->by_class[i].recv_calls);
+            __sync_fetch_and_add(&p->by_class[i].send_errors, th->by_class[i].send_errors);
+            __sync_fetch_and_add(&p->by_class[i].recv_errors, th->by_class[i].recv_errors);
         }
     } else {
         count_drop(DROP_THREAD);

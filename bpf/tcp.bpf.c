@@ -33,7 +33,17 @@ struct tcp_totals_t {
 // reset comes with or right after the close); LRU, so that without an agent the oldest go first.
 BPF_TABLE("lru_hash", u64, struct tcp_conn_t, tcp_conns, 32768);
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
-BPF_ARRAY(dropped, u64, 1);
+
+// Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
+// main file, so each program declares this map and its helper itself.)
+BPF_ARRAY(dropped, u64, 2);
+
+static __always_inline void count_drop(int which)
+{
+    u64 *d = dropped.lookup(&which);
+    if (d)
+        __sync_fetch_and_add(d, 1);
+}
 
 static __always_inline void read_identity(struct tcp_conn_t *c, u64 sk)
 {
@@ -48,10 +58,7 @@ static __always_inline struct tcp_conn_t *conn_entry(u64 sk)
     struct tcp_conn_t fresh = {};
     read_identity(&fresh, sk);
     if (tcp_conns.insert(&sk, &fresh) != 0) {
-        int zero = 0;
-        u64 *d = dropped.lookup(&zero);
-        if (d)
-            __sync_fetch_and_add(d, 1);
+        count_drop(0);
         return 0;
     }
     return tcp_conns.lookup(&sk);

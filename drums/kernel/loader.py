@@ -92,8 +92,8 @@ def load_in_child(req: LoadRequest, timeout: float = 60) -> None:
     if proc.returncode != 0:
         # The loader prints its one-line error on stdout; stderr holds bcc's verifier log.
         lines = [line for line in proc.stdout.splitlines() if line.strip()]
-        raise ProbeError(lines[-1] if lines else f"loader exited with {proc.returncode}: "
-                         + " ".join(proc.stderr.strip().splitlines()[-1:]))
+        errors = [line for line in proc.stderr.splitlines() if "error:" in line]
+        raise ProbeError(" ".join((lines[-1:] or [f"loader exited with {proc.returncode}"]) + errors[:1]))
 
 
 def can_load_fentry(headers: str | None) -> bool:

@@ -148,7 +148,6 @@ class SocketsProbe(BpfProbe):
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
             "SK_STATE_OFF": ("sock", "__sk_common.skc_state"),
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
-            "SK_TYPE_OFF": ("sock", "sk_type"),
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
             "TASK_PID_OFF": ("task_struct", "pid"),
             "TASK_TGID_OFF": ("task_struct", "tgid"),
