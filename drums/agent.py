@@ -107,6 +107,8 @@ class Agent:
         self.selection = selection or Selection()
         self.budget = budget or Budget({})
         self._lock = threading.Lock()
+        self._replaced: list[Probe] = []
+        self._reasons: dict[str, str] = {}
         self._durations: dict[str, float] = {}
         self._success: dict[str, int] = {}
 
@@ -134,9 +136,10 @@ class Agent:
                         probe.status.reason, replacement.status.reason)
             replacement.status.reason = f"{probe.status.reason}; missing: {replacement.status.reason}"
             self.probes[i] = replacement
+            self._replaced.append(probe)  # it may have pinned programs before it failed
 
     def stop(self, unload: bool) -> None:
-        for probe in self.probes:
+        for probe in self.probes + self._replaced:
             if unload and hasattr(probe, "unload"):
                 probe.unload()
             else:
@@ -161,10 +164,14 @@ class Agent:
             try:
                 probe.collect(raw)
                 self._success[probe.name] = 1
-            except DrumsError as e:
+            except Exception as e:  # one probe's failure must not cost the others their scrape
                 self._success[probe.name] = 0
-                log.warning("probe %s failed to collect: %s", probe.name, e)
+                log.warning("probe %s failed to collect: %s", probe.name, e,
+                            exc_info=log.isEnabledFor(logging.DEBUG))
             self._durations[probe.name] = time.perf_counter() - start
+            if probe.status.reason != self._reasons.get(probe.name, probe.status.reason):
+                log.warning("probe %s: %s", probe.name, probe.status.reason or "recovered")
+            self._reasons[probe.name] = probe.status.reason
         if not self.selection.everything:
             raw = self._select(raw)
         snap = self.budget.apply(raw)

@@ -108,6 +108,8 @@ class Budget:
                 if entity in kept:
                     out.add(metric, labels, value)
                     continue
+                if not metric.additive:
+                    continue  # folded entities of a non-additive gauge have no `other`
                 for i in dims:
                     template[i] = labels[i]
                 key = (metric, tuple(template))

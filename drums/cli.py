@@ -88,29 +88,34 @@ def run_agent(args) -> int:
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
     agent = Agent(probes, proctable, selection, budget)
-    server = MetricsServer(agent.collect, args.address, args.port)
-    start = time.perf_counter()
-    agent.start(strict=args.strict)
-    features.release_btf()
-    server.start()
-    attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in probes if p.status.attached)
-    log.info("serving http://%s:%d/metrics after %.2f s; probes: %s", args.address, server.port,
-             time.perf_counter() - start, attached or "none")
-
-    done = threading.Event()
+    done = threading.Event()  # set by SIGINT or SIGTERM, even while the probes are still loading
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
-    done.wait()
-    server.stop()
-    agent.stop(unload=not args.keep_loaded)
+    server = MetricsServer(agent.collect, args.address, args.port)
+    try:
+        start = time.perf_counter()
+        agent.start(strict=args.strict)
+        features.release_btf()
+        server.start()
+        attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)
+        log.info("serving http://%s:%d/metrics after %.2f s; probes: %s", args.address, server.port,
+                 time.perf_counter() - start, attached or "none")
+        done.wait()
+    finally:
+        server.stop()
+        agent.stop(unload=not args.keep_loaded)
     return 0
 
 
 def run_unload(_args) -> int:
+    import os
     import shutil
 
+    from drums.errors import KernelError
     from drums.kernel.bpffs import PIN_ROOT
     shutil.rmtree(PIN_ROOT, ignore_errors=True)
+    if os.path.exists(PIN_ROOT):
+        raise KernelError(f"could not remove {PIN_ROOT} (root is needed)")
     print(f"removed {PIN_ROOT}")
     return 0
 

@@ -85,9 +85,9 @@ def report(f: Features) -> tuple[list[str], bool]:
                 why = path.requires(f)
                 state = "available" if why is None else f"unavailable: {why}"
                 lines.append(f"      {path.name:<15} {state} ({path.serves})")
-    can_run = importlib.util.find_spec("psutil") is not None and os.path.isdir("/proc/self")
+    can_run = os.path.isdir("/proc/self")
     if not can_run:
-        lines.append("NO  the agent cannot run: it needs /proc and psutil (pip install psutil)")
+        lines.append("NO  the agent cannot run: /proc is not mounted (mount -t proc proc /proc)")
     return lines, can_run
 
 

@@ -17,6 +17,7 @@ class Metric:
     help: str
     labels: tuple[str, ...] = ()
     buckets: tuple[float, ...] = ()  # upper bounds, for histograms; +Inf is implied
+    additive: bool = True  # whether a sum over entities means something (not for an RTT or a time)
 
     def __post_init__(self):
         if self.kind == COUNTER and not self.name.endswith("_total"):

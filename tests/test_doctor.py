@@ -20,7 +20,7 @@ class Kernel(Features):
         return event in self._tracepoints
 
 
-LIFECYCLE = {"inet_sock_set_state", "sched_process_exit", "sched_process_free"}
+LIFECYCLE = {"inet_sock_set_state", "sched_process_exit", "sched_process_free", "sched_process_exec"}
 LINUX_6_6 = LIFECYCLE | {"sock_send_length", "sock_recv_length"}
 
 

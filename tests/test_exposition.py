@@ -69,3 +69,13 @@ def test_readme_metric_table_is_current():
     with open("README.md") as f:
         text = f.read()
     assert docs.rewrite(text) == text, "run `make readme`"
+
+
+def test_non_additive_gauges_have_no_other_series():
+    rtt = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE, "rtt", ("local", "remote"), additive=False)
+    b = Budget({"connection": 1})
+    snap = Snapshot()
+    snap.add(rtt, ("a:1", "b:2"), 0.001)
+    snap.add(rtt, ("c:3", "d:4"), 0.002)
+    out = b.apply(snap).values(rtt)
+    assert len(out) == 1 and ("other", "other") not in out

@@ -107,12 +107,6 @@ class PinnedMap:
             os.close(self.fd)
             self.fd = -1
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
     def read(self) -> tuple[bytes, bytes, int]:
         """All entries as (keys, values, count): contiguous buffers, as the kernel returned them."""
         if self._batch_ok:
@@ -162,17 +156,14 @@ class PinnedMap:
             prev = ctypes.create_string_buffer(key.raw, self.key_size)
         return b"".join(keys), b"".join(values), len(keys)
 
-    def delete(self, keys: list[bytes]) -> None:
-        """Delete entries; one that is already gone is not an error."""
+    def delete_unchanged(self, entries: list[tuple[bytes, bytes]]) -> None:
+        """Delete entries that still hold the value read; one that changed since (its key now
+        names a new socket) or is gone already stays as it is."""
         lib = libbpf()
-        for key in keys:
-            lib.bpf_map_delete_elem(self.fd, key)
-
-    def lookup(self, key: bytes) -> bytes | None:
-        value = ctypes.create_string_buffer(self.value_stride)
-        if libbpf().bpf_map_lookup_elem(self.fd, key, value) != 0:
-            return None
-        return value.raw
+        current = ctypes.create_string_buffer(self.value_stride)
+        for key, value in entries:
+            if lib.bpf_map_lookup_elem(self.fd, key, current) == 0 and current.raw == value:
+                lib.bpf_map_delete_elem(self.fd, key)
 
 
 def sum_percpu(values: bytes, fmt: str, ncpus: int) -> list[tuple]:

@@ -14,7 +14,7 @@ import subprocess
 import sys
 from dataclasses import asdict, dataclass
 
-from drums.errors import ProbeError
+from drums.errors import DrumsError, ProbeError
 from drums.kernel import bpffs
 
 BPF_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bpf")
@@ -87,8 +87,11 @@ def load_and_pin(req: LoadRequest) -> None:
 
 def load_in_child(req: LoadRequest, timeout: float = 60) -> None:
     """Run load_and_pin in a child process so that LLVM never enters the agent."""
-    proc = subprocess.run([sys.executable, "-m", "drums.kernel.loader"], input=json.dumps(asdict(req)),
-                          capture_output=True, text=True, timeout=timeout)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "drums.kernel.loader"], input=json.dumps(asdict(req)),
+                              capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise ProbeError(f"{req.source}: compiling took over {timeout:.0f} s") from None
     if proc.returncode != 0:
         # The loader prints its one-line error on stdout; stderr holds bcc's verifier log.
         lines = [line for line in proc.stdout.splitlines() if line.strip()]
@@ -122,7 +125,7 @@ def main() -> int:
         req = LoadRequest(**data)
         req.attachments = [tuple(a) for a in req.attachments]
         load_and_pin(req)
-    except ProbeError as e:
+    except (DrumsError, OSError) as e:
         print(e)
         return 1
     return 0

@@ -91,6 +91,14 @@ class TcpConnection:
     retransmits: int = 0
 
 
+def own_netns() -> str:
+    """The inode of this process's network namespace: the only one a sock_diag dump sees."""
+    try:
+        return str(os.stat("/proc/self/ns/net").st_ino)
+    except OSError as e:
+        raise KernelError(f"cannot read /proc/self/ns/net: {e.strerror}") from None
+
+
 def dump_tcp(states: int = ALL_STATES) -> list[TcpConnection]:
     """Every IPv4 and IPv6 TCP socket of this network namespace whose state bit is set in `states`."""
     try:

@@ -99,8 +99,11 @@ class BpfProbe(Probe):
     def _stamp(self, path: AttachPath) -> str:
         h = hashlib.sha256()
         for name in (self.source, "drums.h"):
-            with open(os.path.join(loader.BPF_DIR, name), "rb") as f:
-                h.update(f.read())
+            try:
+                with open(os.path.join(loader.BPF_DIR, name), "rb") as f:
+                    h.update(f.read())
+            except OSError as e:
+                raise ProbeError(f"BPF source {name} not found in {loader.BPF_DIR}: {e.strerror}") from None
         h.update(f"{path.name}\0{self.features.kernel_release}\0{_boot_id()}".encode())
         return h.hexdigest()[:16]
 
@@ -116,7 +119,12 @@ class BpfProbe(Probe):
             if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):
                 self._remove_pins()
                 loader.load_in_child(self._request(path, pin_dir))
-            self.opened = {m: bpffs.PinnedMap(os.path.join(pin_dir, m)) for m in self.maps}
+            for m in self.maps:
+                try:
+                    self.opened[m] = bpffs.PinnedMap(os.path.join(pin_dir, m))
+                except ProbeError:
+                    self.stop()
+                    raise
         else:
             self._in_process, _ = loader.attach(self._request(path, pin_dir))
             self.opened = {m: bpffs.PinnedMap.from_fd(self._in_process[m.encode()].map_fd, m)
@@ -126,6 +134,8 @@ class BpfProbe(Probe):
         self.status.reason = ""
 
     def _request(self, path: AttachPath, pin_dir: str) -> loader.LoadRequest:
+        if self.features.btf is None:
+            raise KernelError("cannot parse the kernel's BTF (/sys/kernel/btf/vmlinux)")
         defines = dict(self.offsets(self.features.btf), DRUMS_ATTACH=ATTACH_DEFINES[path.name])
         return loader.LoadRequest(
             source=self.source,

@@ -25,7 +25,8 @@ READ_BYTES = Metric(
 WRITTEN_BYTES = Metric(
     "drums_process_written_bytes_total", COUNTER, "Bytes the process caused to be written to storage", LABELS
 )
-START_TIME = Metric("drums_process_start_time_seconds", GAUGE, "Process start time, Unix seconds", LABELS)
+START_TIME = Metric("drums_process_start_time_seconds", GAUGE, "Process start time, Unix seconds", LABELS,
+                    additive=False)
 
 
 class ProcessProbe(Probe):

@@ -4,11 +4,10 @@ for the processes the agent passes to set_pids().
 """
 from __future__ import annotations
 
-import os
 import socket
 from typing import Iterable
 
-from drums.kernel.sockdiag import TCP_STATES, TcpConnection, dump_tcp
+from drums.kernel.sockdiag import TCP_STATES, TcpConnection, dump_tcp, own_netns
 from drums.metrics import Snapshot
 from drums.netfmt import endpoint
 from drums.probes.base import Probe, ProbeStatus
@@ -61,7 +60,7 @@ class SockDiagSocketsProbe(Probe):
 
     def start(self) -> None:
         dump_tcp(1 << LISTEN)  # raises KernelError, with the reason, if sock_diag is unusable
-        self._netns = str(os.stat("/proc/self/ns/net").st_ino)
+        self._netns = own_netns()
         self.status = ProbeStatus(attached=True, attach_type="sock_diag", reason=REASON)
 
     def set_pids(self, pids: Iterable[int]) -> None:

@@ -165,7 +165,9 @@ class SocketsProbe(BpfProbe):
         sockets = decode_sockets(keys, values)
         stale = self._stale(sockets)
         if stale:
-            self.opened["socket_traffic"].delete([_U64.pack(sk) for sk in stale])
+            size = _SOCKET_VALUE.size
+            self.opened["socket_traffic"].delete_unchanged(
+                [(_U64.pack(s.sk), values[i * size:(i + 1) * size]) for i, s in enumerate(sockets) if s.sk in stale])
         paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s in sockets) else {}
         for s in sockets:
             if s.sk in stale:

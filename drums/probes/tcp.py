@@ -6,7 +6,6 @@ in a map that is never pruned, so they survive the connections that produced the
 """
 from __future__ import annotations
 
-import os
 import socket
 import struct
 import time
@@ -31,7 +30,8 @@ CONN_STATE_CHANGES = Metric("drums_tcp_connection_state_changes_total", COUNTER,
                             "TCP state transitions of this connection", CONN_LABELS)
 CONN_RTT = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE,
                   "The kernel's smoothed round-trip time of this connection (tcp_info), for "
-                  "established connections of the agent's network namespace, sampled every 5 s", ("local", "remote"))
+                  "established connections of the agent's network namespace, sampled every 5 s",
+                  ("local", "remote"), additive=False)
 RETRANSMITS = Metric("drums_tcp_retransmits_total", COUNTER, "TCP segments retransmitted on this host")
 RESETS_SENT = Metric("drums_tcp_resets_sent_total", COUNTER, "TCP resets sent by this host")
 RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
@@ -78,7 +78,8 @@ class TcpProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         keys, values, _ = self.read("tcp_conns")
         closed = []
-        for key, v in zip(_U64.iter_unpack(keys), _CONN_VALUE.iter_unpack(values)):
+        size = _CONN_VALUE.size
+        for i, (key, v) in enumerate(zip(_U64.iter_unpack(keys), _CONN_VALUE.iter_unpack(values))):
             netns, family, lport, rport, state, laddr, raddr, retrans, changes, rst_sent, rst_received = v
             labels = (endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns))
             snap.add(CONN_RETRANSMITS, labels, retrans)
@@ -86,9 +87,9 @@ class TcpProbe(BpfProbe):
             snap.add(CONN_RESETS_RECEIVED, labels, rst_received)
             snap.add(CONN_STATE_CHANGES, labels, changes)
             if state == TCP_CLOSE:
-                closed.append(_U64.pack(*key))
+                closed.append((_U64.pack(*key), values[i * size:(i + 1) * size]))
         # A closed connection is exported once, with the reset that closed it, then forgotten.
-        self.opened["tcp_conns"].delete(closed)
+        self.opened["tcp_conns"].delete_unchanged(closed)
         _, values, _ = self.read("tcp_totals")
         totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]
         snap.add(RETRANSMITS, (), totals[0])
@@ -145,7 +146,7 @@ class SockDiagTcpProbe(Probe):
 
     def start(self) -> None:
         sockdiag.dump_tcp(1 << 1)  # fails here, not at each collect, where netlink is missing
-        self.netns = str(os.stat("/proc/self/ns/net").st_ino)
+        self.netns = sockdiag.own_netns()
         self.status.attached = True
         self.status.attach_type = "sock_diag"
         self.status.reason = ("open connections of the agent's network namespace only; no resets or "
