@@ -239,6 +239,8 @@ KRETFUNC_PROBE(udp_recvmsg, struct sock *sk, struct msghdr *msg, size_t len, int
 #endif
 
 #if DRUMS_ATTACH == ATTACH_KPROBE
+#include <uapi/linux/ptrace.h>  // struct pt_regs for PT_REGS_RC
+
 // A kprobe sees the arguments, its kretprobe the result: the socket waits here in between.
 struct call_t {
     u64 sk;

@@ -67,7 +67,7 @@ class SchedProbe(BpfProbe):
                     ("raw_tracepoint", "sched_process_exec", "on_exec")),
                    needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
                                      "task_rename", "sched_process_exec"),
-                   "Linux >= 4.17 (raw tracepoints); pinned without a resident loader from 5.7"),
+                   "Linux >= 5.7 (raw tracepoint links that outlive the loader)"),
     )
 
     def __init__(self, features, proctable: ProcessTable, **kw):

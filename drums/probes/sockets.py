@@ -123,7 +123,7 @@ class SocketsProbe(BpfProbe):
                    "Linux >= 6.6: every socket family, one event per send and receive call"),
         AttachPath("fentry", (("fentry", "", ""),) + LIFECYCLE,
                    lambda f: needs_fentry(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
-                   "Linux 5.5 to 6.5 with BTF and BPF trampolines: TCP and UDP only"),
+                   "Linux 5.7 to 6.5 with BPF trampolines (Ubuntu 22.04): TCP and UDP only"),
         AttachPath("kprobe",
                    (("kprobe", "tcp_sendmsg", "enter_tcp_sendmsg"),
                     ("kretprobe", "tcp_sendmsg", "exit_tcp_sendmsg"),
@@ -133,7 +133,7 @@ class SocketsProbe(BpfProbe):
                     ("kprobe", "udp_recvmsg", "enter_udp_recvmsg"),
                     ("kretprobe", "udp_recvmsg", "exit_udp_recvmsg")) + LIFECYCLE,
                    lambda f: needs_kprobes(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
-                   "older kernels with kprobes (Ubuntu 20.04/22.04, Jetson): TCP and UDP only"),
+                   "Linux 5.7 to 6.5 with kprobes but no BPF trampolines: TCP and UDP only, loaded in the agent"),
     )
 
     def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix", **kw):

@@ -60,7 +60,7 @@ class TcpProbe(BpfProbe):
                    tuple(("raw_tracepoint", e, f) for e, f in zip(
                        EVENTS, ("on_state", "on_retransmit", "on_send_reset", "on_receive_reset"))),
                    needs_tracepoints(*EVENTS),
-                   "Linux >= 5.5 (tcp_send_reset and tcp_receive_reset tracepoints)"),
+                   "Linux >= 5.7 (raw tracepoint links; tcp_send_reset and tcp_receive_reset since 5.5)"),
     )
 
     def __init__(self, features, rtt_interval: float = RTT_INTERVAL, **kw):
