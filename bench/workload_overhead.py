@@ -1,7 +1,10 @@
 """What monitoring costs a network workload: iperf3 over loopback with no monitor, with the Drums
 agent (all probes, scraped every second), and with tcpdump capturing headers (the paper's pcap
 socket monitor). Conditions are interleaved round by round so that drift of the host hits all
-of them alike; the table gives the median of the rounds. Goal: the agent costs at most 3%.
+of them alike; the table gives the median of the rounds. Beside throughput it gives iperf3's own
+CPU time per KiB, where the probes' per-event work is charged: on a host shared with other work,
+throughput swings from run to run and that figure is the steadier one. Goal: the agent costs at
+most 3%.
 
     .venv/bin/python bench/workload_overhead.py [--rounds 3] [--seconds 5]
 """
