@@ -40,7 +40,7 @@ class _KindState:
     limit: int
     kept: set = field(default_factory=set)
     last_score: dict = field(default_factory=dict)  # entity -> its ranking total at the last collect
-    folded_last: dict = field(default_factory=dict)  # entity -> {(metric, folded labels): value}
+    folded_last: dict = field(default_factory=dict)  # metric -> entity -> (other key, value)
     baseline: dict = field(default_factory=dict)  # (metric, folded labels) -> value
     folded_now: int = 0
 
@@ -81,6 +81,7 @@ class Budget:
         return out
 
     def _apply_kind(self, kind: str, metrics: list[Metric], snap: Snapshot, out: Snapshot) -> None:
+        # Tens of thousands of rows pass here at each scrape: the loops stay flat on purpose.
         st = self.kinds[kind]
         ident, rank_names = KINDS[kind]
         totals: dict[tuple, float] = {}  # (entity, ranking metric) -> value now
@@ -88,7 +89,7 @@ class Budget:
         for metric in metrics:
             entity_of = itemgetter(*[metric.labels.index(label) for label in ident])
             rows = snap.series[metric]
-            entities.update(entity_of(labels) for labels, _ in rows)
+            entities.update(map(entity_of, [labels for labels, _ in rows]))
             if metric.name in rank_names:
                 for labels, value in rows:
                     key = (entity_of(labels), metric.name)
@@ -96,33 +97,46 @@ class Budget:
         self._choose(st, entities, totals)
 
         kept = st.kept
-        folded_now: dict = {}
+        baseline = st.baseline
+        folded_now: dict[Metric, dict] = {}  # metric -> entity -> (other key, value)
         sums: dict[tuple, object] = {}
         for metric in metrics:
             entity_of = itemgetter(*[metric.labels.index(label) for label in ident])
             dims = [i for i, label in enumerate(metric.labels) if label in DIMENSIONS]
-            template = [OTHER] * len(metric.labels)
-            counter = metric.kind in (COUNTER, HISTOGRAM)
+            other_keys: dict[tuple, tuple] = {}  # dimension values -> (metric, labels of other)
+            histogram = metric.kind == HISTOGRAM
+            counter = metric.kind == COUNTER or histogram
+            folded = folded_now[metric] = {}
+            own = out.rows(metric)
             for labels, value in snap.series[metric]:
                 entity = entity_of(labels)
                 if entity in kept:
-                    out.add(metric, labels, value)
+                    own.append((labels, value))
                     continue
                 if not metric.additive:
                     continue  # folded entities of a non-additive gauge have no `other`
-                for i in dims:
-                    template[i] = labels[i]
-                key = (metric, tuple(template))
+                dimvals = tuple([labels[i] for i in dims])
+                key = other_keys.get(dimvals)
+                if key is None:
+                    template = [OTHER] * len(labels)
+                    for i, v in zip(dims, dimvals):
+                        template[i] = v
+                    key = other_keys[dimvals] = (metric, tuple(template))
                 previous = sums.get(key)
-                sums[key] = value if previous is None else _add(previous, value)
+                if previous is None:
+                    sums[key] = value
+                else:
+                    sums[key] = _add(previous, value) if histogram else previous + value
                 if counter:
-                    folded_now.setdefault(entity, []).append((key, value))
-        # Folded entities that left (ended or promoted) leave their last values in the baseline.
-        baseline = st.baseline
-        for entity, values in st.folded_last.items():
-            if entity not in folded_now:
-                for key, value in values:
-                    baseline[key] = _add(baseline[key], value) if key in baseline else value
+                    folded[entity] = (key, value)
+            # Folded entities that left (ended or promoted) leave their last values in the baseline.
+            last = st.folded_last.get(metric, {})
+            for entity in last.keys() - folded.keys():
+                key, value = last[entity]
+                baseline[key] = _add(baseline[key], value) if key in baseline else value
+        for metric in st.folded_last.keys() - folded_now.keys():  # no series of it at all this time
+            for key, value in st.folded_last[metric].values():
+                baseline[key] = _add(baseline[key], value) if key in baseline else value
         st.folded_last = folded_now
         st.folded_now = len(entities - kept)
         for key in sums.keys() | baseline.keys():

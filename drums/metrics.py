@@ -44,6 +44,10 @@ class Snapshot:
     def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
         self.series.setdefault(metric, []).append((labels, value))
 
+    def rows(self, metric: Metric) -> list:
+        """The metric's (labels, value) list, to append to in bulk."""
+        return self.series.setdefault(metric, [])
+
     def values(self, metric: Metric) -> dict[tuple[str, ...], object]:
         return dict(self.series.get(metric, ()))
 

@@ -169,13 +169,14 @@ class SocketsProbe(BpfProbe):
             self.opened["socket_traffic"].delete_unchanged(
                 [(_U64.pack(s.sk), values[i * size:(i + 1) * size]) for i, s in enumerate(sockets) if s.sk in stale])
         paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s in sockets) else {}
+        rows = [snap.rows(SOCKET[c]) for c in _COUNTS]
         for s in sockets:
             if s.sk in stale:
                 continue
             local = paths.get(s.inode, "") if s.protocol == "unix" else s.local
             labels = (str(s.pid), pt.name(s.pid), s.protocol, local, s.remote, str(s.netns), str(s.inode))
-            for c, value in zip(_COUNTS, s.counts):
-                snap.add(SOCKET[c], labels, value)
+            for r, value in zip(rows, s.counts):
+                r.append((labels, value))
 
         # A process is its PID and its start time: a PID reused by a new process starts afresh.
         per_process: dict[tuple[int, int], list[list[int]]] = {}
