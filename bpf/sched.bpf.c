@@ -86,8 +86,10 @@ static __always_inline void fold(struct sched_t *into, struct sched_t *from)
         __sync_fetch_and_add(&into->runq_hist[i], from->runq_hist[i]);
 }
 
-// The last switch-out of an exiting thread: fold all it did into its process and free its entry.
-static __always_inline void thread_died(u32 tid, struct thread_sched_t *t)
+// Fold a thread that is gone into its process and free its entry. `create` is false after the
+// thread has left its thread group: its process may have been reaped already, and an entry made
+// then would never be freed.
+static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool create)
 {
     u32 tgid = t->tgid;
     struct exited_sched_t *p = exited_sched.lookup(&tgid);
@@ -95,15 +97,15 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t)
         exited_sched.delete(&tgid);  // left by the process that had this PID before
         p = 0;
     }
-    if (!p) {
+    if (!p && create) {
         struct exited_sched_t fresh = {.process_start = t->process_start};
         exited_sched.insert(&tgid, &fresh);
         p = exited_sched.lookup(&tgid);
+        if (!p)
+            count_drop(DROP_PROCESS);
     }
     if (p)
         fold(&p->s, &t->s);
-    else
-        count_drop(DROP_PROCESS);
     thread_sched.delete(&tid);
 }
 
@@ -135,7 +137,9 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
     bool preempt = ctx->args[0] & 1;
 
     if (prev_tid) {  // tid 0 is the idle task
-        struct thread_sched_t *t = thread_entry(prev_tid, prev);
+        // A dead thread's last switch: its entry is only looked up, never made (see thread_died).
+        struct thread_sched_t *t = (state & TASK_DEAD) ? thread_sched.lookup(&prev_tid)
+                                                       : thread_entry(prev_tid, prev);
         if (t) {
             if (*since)
                 t->s.oncpu_ns += now - *since;
@@ -147,7 +151,17 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
             if (state == 0)
                 t->enqueued_at = now;  // still runnable: it waits on the run queue from now
             if (state & TASK_DEAD)
-                thread_died(prev_tid, t);
+                thread_died(prev_tid, t, false);
+        } else if (state & TASK_DEAD) {
+            // Folded at exit: the slice it ran since then joins its process's totals.
+            u32 tgid = 0;
+            bpf_probe_read_kernel(&tgid, 4, (void *)(prev + TASK_TGID_OFF));
+            struct exited_sched_t *p = exited_sched.lookup(&tgid);
+            if (p) {
+                if (*since)
+                    __sync_fetch_and_add(&p->s.oncpu_ns, now - *since);
+                __sync_fetch_and_add(preempt ? &p->s.involuntary : &p->s.voluntary, 1);
+            }
         }
     }
     if (next_tid) {
@@ -178,6 +192,18 @@ int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
+// sched:sched_process_exit (task, group_dead) runs in the exiting thread while it still belongs to
+// its process: fold it now. What it does until its last switch-out joins the fold while the
+// process entry lasts.
+int on_exit(struct bpf_raw_tracepoint_args *ctx)
+{
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    struct thread_sched_t *t = thread_sched.lookup(&tid);
+    if (t)
+        thread_died(tid, t, true);
+    return 0;
+}
+
 // sched:sched_process_exec (task, old_pid, bprm): a thread other than the leader that calls exec
 // takes over the leader's PID, so its old thread ID is gone without a final switch-out.
 int on_exec(struct bpf_raw_tracepoint_args *ctx)
@@ -188,7 +214,7 @@ int on_exec(struct bpf_raw_tracepoint_args *ctx)
         return 0;
     struct thread_sched_t *t = thread_sched.lookup(&old_tid);
     if (t)
-        thread_died(old_tid, t);
+        thread_died(old_tid, t, true);
     return 0;
 }
 

@@ -64,9 +64,10 @@ class SchedProbe(BpfProbe):
                     ("raw_tracepoint", "sched_wakeup_new", "on_wakeup"),
                     ("raw_tracepoint", "sched_process_free", "on_task_free"),
                     ("raw_tracepoint", "task_rename", "on_rename"),
-                    ("raw_tracepoint", "sched_process_exec", "on_exec")),
+                    ("raw_tracepoint", "sched_process_exec", "on_exec"),
+                    ("raw_tracepoint", "sched_process_exit", "on_exit")),
                    needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
-                                     "task_rename", "sched_process_exec"),
+                                     "task_rename", "sched_process_exec", "sched_process_exit"),
                    "Linux >= 5.7 (raw tracepoint links that outlive the loader)"),
     )
 
