@@ -99,6 +99,14 @@ def _memory() -> tuple[int, int]:
     return rss, uss
 
 
+def _of_chosen(metric: Metric, rows: list, chosen: set[str]) -> list:
+    """The rows of the chosen processes; metrics not about a process pass whole."""
+    if "pid" not in metric.labels:
+        return rows
+    i = metric.labels.index("pid")
+    return [row for row in rows if row[0][i] in chosen]
+
+
 class Agent:
     def __init__(self, probes: list[Probe], proctable: ProcessTable, selection: Selection | None = None,
                  budget: Budget | None = None):
@@ -194,14 +202,12 @@ class Agent:
         return (kept + rest)[:limit]
 
     def _select(self, snap: Snapshot) -> Snapshot:
-        chosen = self._chosen()
+        chosen = {str(pid) for pid in self._chosen()}
         out = Snapshot()
-        for metric, rows in snap.series.items():
-            if "pid" not in metric.labels:
-                out.series[metric] = rows
-                continue
-            i = metric.labels.index("pid")
-            out.series[metric] = [(labels, v) for labels, v in rows if labels[i].isdigit() and int(labels[i]) in chosen]
+        for metric, rows in snap.singles.items():
+            out.rows(metric).extend(_of_chosen(metric, rows, chosen))
+        for metrics, rows in snap.groups.items():
+            out.group_rows(metrics).extend(_of_chosen(metrics[0], rows, chosen))
         return out
 
     def _self_metrics(self, snap: Snapshot) -> None:

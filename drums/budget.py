@@ -9,9 +9,9 @@ baseline.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from operator import itemgetter
+from operator import add, itemgetter
 
-from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Histogram, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Metric, Snapshot
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
 DIMENSIONS = {"protocol", "kind"}
@@ -40,15 +40,10 @@ class _KindState:
     limit: int
     kept: set = field(default_factory=set)
     last_score: dict = field(default_factory=dict)  # entity -> its ranking total at the last collect
-    folded_last: dict = field(default_factory=dict)  # metric -> entity -> (other key, value)
-    baseline: dict = field(default_factory=dict)  # (metric, folded labels) -> value
+    folded_last: dict = field(default_factory=dict)  # group -> entity -> (other key, values)
+    baseline: dict = field(default_factory=dict)  # (group, labels of other) -> values
     folded_now: int = 0
 
-
-def _add(a, b):
-    if isinstance(a, Histogram):
-        return Histogram([x + y for x, y in zip(a.cumulative, b.cumulative)], a.sum + b.sum, a.count + b.count)
-    return a + b
 
 
 class Budget:
@@ -69,51 +64,58 @@ class Budget:
 
     def apply(self, snap: Snapshot) -> Snapshot:
         out = Snapshot()
-        by_kind: dict[str, list[Metric]] = {}
-        for metric in snap.series:
+        by_kind: dict[str, list[tuple[tuple[Metric, ...], list]]] = {}
+        for metric, rows in snap.singles.items():
             kind = kind_of(metric)
             if kind is None:
-                out.series[metric] = snap.series[metric]
+                out.rows(metric).extend(rows)
+            else:  # a metric alone is a group of one
+                by_kind.setdefault(kind, []).append(((metric,), [(labels, (v,)) for labels, v in rows]))
+        for metrics, rows in snap.groups.items():
+            kind = kind_of(metrics[0])
+            if kind is None:
+                out.group_rows(metrics).extend(rows)
             else:
-                by_kind.setdefault(kind, []).append(metric)
-        for kind, metrics in by_kind.items():
-            self._apply_kind(kind, metrics, snap, out)
+                by_kind.setdefault(kind, []).append((metrics, rows))
+        for kind, groups in by_kind.items():
+            self._apply_kind(kind, groups, out)
         return out
 
-    def _apply_kind(self, kind: str, metrics: list[Metric], snap: Snapshot, out: Snapshot) -> None:
+    def _apply_kind(self, kind: str, groups: list, out: Snapshot) -> None:
         # Tens of thousands of rows pass here at each scrape: the loops stay flat on purpose.
         st = self.kinds[kind]
         ident, rank_names = KINDS[kind]
         totals: dict[tuple, float] = {}  # (entity, ranking metric) -> value now
         entities = set()
-        for metric in metrics:
-            entity_of = itemgetter(*[metric.labels.index(label) for label in ident])
-            rows = snap.series[metric]
+        for metrics, rows in groups:
+            entity_of = itemgetter(*[metrics[0].labels.index(label) for label in ident])
             entities.update(map(entity_of, [labels for labels, _ in rows]))
-            if metric.name in rank_names:
-                for labels, value in rows:
-                    key = (entity_of(labels), metric.name)
-                    totals[key] = totals.get(key, 0.0) + value
+            for i, metric in enumerate(metrics):
+                if metric.name in rank_names:
+                    for labels, values in rows:
+                        key = (entity_of(labels), metric.name)
+                        totals[key] = totals.get(key, 0.0) + values[i]
         self._choose(st, entities, totals)
 
         kept = st.kept
         baseline = st.baseline
-        folded_now: dict[Metric, dict] = {}  # metric -> entity -> (other key, value)
-        sums: dict[tuple, object] = {}
-        for metric in metrics:
-            entity_of = itemgetter(*[metric.labels.index(label) for label in ident])
-            dims = [i for i, label in enumerate(metric.labels) if label in DIMENSIONS]
-            other_keys: dict[tuple, tuple] = {}  # dimension values -> (metric, labels of other)
-            histogram = metric.kind == HISTOGRAM
-            counter = metric.kind == COUNTER or histogram
-            folded = folded_now[metric] = {}
-            own = out.rows(metric)
-            for labels, value in snap.series[metric]:
+        folded_now: dict[tuple, dict] = {}  # group -> entity -> (other key, values)
+        sums: dict[tuple, tuple] = {}
+        for metrics, rows in groups:
+            labels_of = metrics[0].labels
+            entity_of = itemgetter(*[labels_of.index(label) for label in ident])
+            dims = [i for i, label in enumerate(labels_of) if label in DIMENSIONS]
+            other_keys: dict[tuple, tuple] = {}  # dimension values -> (group, labels of other)
+            additive = all(m.additive for m in metrics)
+            counters = all(m.kind in (COUNTER, HISTOGRAM) for m in metrics)
+            folded = folded_now[metrics] = {}
+            own = out.group_rows(metrics)
+            for labels, values in rows:
                 entity = entity_of(labels)
                 if entity in kept:
-                    own.append((labels, value))
+                    own.append((labels, values))
                     continue
-                if not metric.additive:
+                if not additive:
                     continue  # folded entities of a non-additive gauge have no `other`
                 dimvals = tuple([labels[i] for i in dims])
                 key = other_keys.get(dimvals)
@@ -121,33 +123,35 @@ class Budget:
                     template = [OTHER] * len(labels)
                     for i, v in zip(dims, dimvals):
                         template[i] = v
-                    key = other_keys[dimvals] = (metric, tuple(template))
+                    key = other_keys[dimvals] = (metrics, tuple(template))
                 previous = sums.get(key)
-                if previous is None:
-                    sums[key] = value
-                else:
-                    sums[key] = _add(previous, value) if histogram else previous + value
-                if counter:
-                    folded[entity] = (key, value)
+                sums[key] = values if previous is None else tuple(map(add, previous, values))
+                if counters:
+                    folded[entity] = (key, values)
             # Folded entities that left (ended or promoted) leave their last values in the baseline.
-            last = st.folded_last.get(metric, {})
+            last = st.folded_last.get(metrics, {})
             for entity in last.keys() - folded.keys():
-                key, value = last[entity]
-                baseline[key] = _add(baseline[key], value) if key in baseline else value
-        for metric in st.folded_last.keys() - folded_now.keys():  # no series of it at all this time
-            for key, value in st.folded_last[metric].values():
-                baseline[key] = _add(baseline[key], value) if key in baseline else value
+                self._to_baseline(baseline, *last[entity])
+        for metrics in st.folded_last.keys() - folded_now.keys():  # no series of it at all this time
+            for key, values in st.folded_last[metrics].values():
+                self._to_baseline(baseline, key, values)
         st.folded_last = folded_now
         st.folded_now = len(entities - kept)
         for key in sums.keys() | baseline.keys():
-            metric, labels = key
-            if metric.kind == GAUGE:
-                if key in sums:
-                    out.add(metric, labels, sums[key])
-                continue
+            metrics, labels = key
             value = sums.get(key)
+            if all(m.kind == GAUGE for m in metrics):
+                if value is not None:
+                    out.group_rows(metrics).append((labels, value))
+                continue
             base = baseline.get(key)
-            out.add(metric, labels, value if base is None else base if value is None else _add(base, value))
+            total = value if base is None else base if value is None else tuple(map(add, base, value))
+            out.group_rows(metrics).append((labels, total))
+
+    @staticmethod
+    def _to_baseline(baseline: dict, key: tuple, values: tuple) -> None:
+        previous = baseline.get(key)
+        baseline[key] = values if previous is None else tuple(map(add, previous, values))
 
     @staticmethod
     def _choose(st: _KindState, entities: set, totals: dict[tuple, float]) -> None:

@@ -5,7 +5,7 @@ later the HTTP API, the ZeroMQ stream and `drums top` all read the same Snapshot
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 COUNTER, GAUGE, HISTOGRAM, INFO = "counter", "gauge", "histogram", "info"
 
@@ -34,19 +34,46 @@ class Histogram:
     sum: float
     count: int
 
+    def __add__(self, other: "Histogram") -> "Histogram":
+        return Histogram([a + b for a, b in zip(self.cumulative, other.cumulative)], self.sum + other.sum,
+                         self.count + other.count)
 
-@dataclass
+
 class Snapshot:
-    """What the agent knows at one instant: metric -> [(label values, value)]."""
+    """What the agent knows at one instant: metric -> [(label values, value)].
 
-    series: dict[Metric, list[tuple[tuple[str, ...], object]]] = field(default_factory=dict)
+    Metrics that always come together with the same labels (the six counters of a socket) can be
+    added as one group row: the budget then handles ten thousand sockets as ten thousand rows,
+    not sixty thousand. `series` shows every row, groups spread out.
+    """
+
+    def __init__(self):
+        self._series: dict[Metric, list[tuple[tuple[str, ...], object]]] = {}
+        self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]]] = {}
+
+    @property
+    def series(self) -> dict[Metric, list[tuple[tuple[str, ...], object]]]:
+        for metrics, rows in self.groups.items():
+            for i, metric in enumerate(metrics):
+                self._series.setdefault(metric, []).extend((labels, values[i]) for labels, values in rows)
+        self.groups = {}
+        return self._series
+
+    @property
+    def singles(self) -> dict[Metric, list[tuple[tuple[str, ...], object]]]:
+        """The rows added one metric at a time, groups left out."""
+        return self._series
 
     def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
-        self.series.setdefault(metric, []).append((labels, value))
+        self._series.setdefault(metric, []).append((labels, value))
 
     def rows(self, metric: Metric) -> list:
         """The metric's (labels, value) list, to append to in bulk."""
-        return self.series.setdefault(metric, [])
+        return self._series.setdefault(metric, [])
+
+    def group_rows(self, metrics: tuple[Metric, ...]) -> list:
+        """The (labels, values) list of metrics that share their labels, values in their order."""
+        return self.groups.setdefault(metrics, [])
 
     def values(self, metric: Metric) -> dict[tuple[str, ...], object]:
         return dict(self.series.get(metric, ()))

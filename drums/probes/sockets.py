@@ -33,6 +33,7 @@ THREAD_LABELS = ("pid", "tid", "protocol")
 
 SOCKET = {c: Metric(f"drums_socket_{c}_total", COUNTER, f"{_HELP[c]} on this socket", SOCKET_LABELS)
           for c in _COUNTS}
+SOCKET_GROUP = tuple(SOCKET[c] for c in _COUNTS)  # a socket's counters, in SocketCounts.counts order
 PROCESS = {c: Metric(f"drums_process_socket_{c}_total", COUNTER,
                      f"{_HELP[c]} by this process on sockets of this protocol, closed ones included",
                      PROCESS_LABELS) for c in _COUNTS}
@@ -169,14 +170,13 @@ class SocketsProbe(BpfProbe):
             self.opened["socket_traffic"].delete_unchanged(
                 [(_U64.pack(s.sk), values[i * size:(i + 1) * size]) for i, s in enumerate(sockets) if s.sk in stale])
         paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s in sockets) else {}
-        rows = [snap.rows(SOCKET[c]) for c in _COUNTS]
+        rows = snap.group_rows(SOCKET_GROUP)
         for s in sockets:
             if s.sk in stale:
                 continue
             local = paths.get(s.inode, "") if s.protocol == "unix" else s.local
-            labels = (str(s.pid), pt.name(s.pid), s.protocol, local, s.remote, str(s.netns), str(s.inode))
-            for r, value in zip(rows, s.counts):
-                r.append((labels, value))
+            rows.append(((str(s.pid), pt.name(s.pid), s.protocol, local, s.remote, str(s.netns), str(s.inode)),
+                         s.counts))
 
         # A process is its PID and its start time: a PID reused by a new process starts afresh.
         per_process: dict[tuple[int, int], list[list[int]]] = {}
