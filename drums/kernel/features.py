@@ -8,7 +8,6 @@ from __future__ import annotations
 import importlib.util
 import os
 import platform
-from dataclasses import dataclass
 from functools import cached_property
 
 from drums.errors import KernelError
@@ -18,14 +17,8 @@ TRACEFS = "/sys/kernel/tracing"
 HEADERS_CACHE = "/var/cache/drums/kernel-headers"  # made by scripts/setup.sh for custom kernels
 
 
-@dataclass
 class Features:
-    """Lazily evaluated facts about the running kernel; tests build one with fixed values."""
-
-    root_dir: str = "/"
-
-    def _path(self, path: str) -> str:
-        return os.path.join(self.root_dir, path.lstrip("/"))
+    """Lazily evaluated facts about the running kernel; tests override them in a subclass."""
 
     @cached_property
     def kernel_release(self) -> str:
@@ -33,13 +26,13 @@ class Features:
 
     @cached_property
     def has_btf(self) -> bool:
-        return os.path.exists(self._path(VMLINUX_BTF))
+        return os.path.exists(VMLINUX_BTF)
 
     @cached_property
     def btf(self) -> Btf | None:
         """The parsed BTF (about 20 MB in memory): only loading a probe needs it."""
         try:
-            return Btf.load(self._path(VMLINUX_BTF))
+            return Btf.load(VMLINUX_BTF)
         except KernelError:
             return None
 
@@ -54,11 +47,11 @@ class Features:
 
     @cached_property
     def tracefs(self) -> bool:
-        return os.path.isdir(self._path(f"{TRACEFS}/events"))
+        return os.path.isdir(f"{TRACEFS}/events")
 
     @cached_property
     def bpffs(self) -> bool:
-        return _is_mount_of_type(self._path("/proc/mounts"), "/sys/fs/bpf", "bpf")
+        return _is_mount_of_type("/proc/mounts", "/sys/fs/bpf", "bpf")
 
     @cached_property
     def bcc(self) -> bool:
@@ -70,14 +63,14 @@ class Features:
         candidates = [os.environ.get("BCC_KERNEL_SOURCE", ""),
                       f"/lib/modules/{self.kernel_release}/build", HEADERS_CACHE]
         for path in candidates:
-            if path and os.path.isdir(self._path(os.path.join(path, "include"))):
+            if path and os.path.isdir(os.path.join(path, "include")):
                 return path
         return None
 
     @cached_property
     def kprobes(self) -> bool:
         # CONFIG_KPROBES registers this PMU; without it no kprobe can attach.
-        return os.path.isdir(self._path("/sys/bus/event_source/devices/kprobe"))
+        return os.path.isdir("/sys/bus/event_source/devices/kprobe")
 
     def tracepoint(self, event: str) -> bool:
         """Whether a raw tracepoint exists: from tracefs when mounted (cheap), else from BTF."""
@@ -87,7 +80,7 @@ class Features:
 
     @cached_property
     def _tracefs_events(self) -> set[str]:
-        root = self._path(f"{TRACEFS}/events")
+        root = f"{TRACEFS}/events"
         return {event for category in _listdir(root) for event in _listdir(os.path.join(root, category))}
 
     @cached_property
