@@ -35,12 +35,14 @@ PROBE_DROPPED = Metric("drums_probe_dropped_events_total", COUNTER,
                        "Events the probe could not count because a BPF map was full", ("probe",))
 FOLDED = Metric("drums_budget_folded_entities", GAUGE,
                 "Entities over the cardinality budget, summed into the series labelled other", ("kind",))
+AGENT_COLLECT = Metric("drums_agent_collect_duration_seconds", GAUGE,
+                       "How long this snapshot took to collect: every probe, selection and budget")
 AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER, "CPU time used by the agent process")
 AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE, "Resident memory of the agent process")
 AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
                    "Memory only the agent process uses (private pages: what stopping it would free)")
 SELF_METRICS = (PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
-                AGENT_CPU, AGENT_RSS, AGENT_USS)
+                AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
 
 @dataclass
@@ -159,6 +161,7 @@ class Agent:
             return self._collect()
 
     def _collect(self) -> Snapshot:
+        began = time.perf_counter()
         self.proctable.refresh()
         pids = self._process_pids()
         for probe in self.probes:
@@ -184,6 +187,7 @@ class Agent:
             raw = self._select(raw)
         snap = self.budget.apply(raw)
         self._self_metrics(snap)
+        snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
         return snap
 
     def _chosen(self) -> set[int]:
