@@ -5,6 +5,7 @@ from __future__ import annotations
 import glob
 import os
 import shutil
+import time
 
 import pytest
 
@@ -67,6 +68,26 @@ def series(snap: Snapshot, metric_name: str, **labels) -> dict[tuple, object]:
             idx = {k: metric.labels.index(k) for k in labels}
             return {lv: v for lv, v in rows if all(lv[i] == str(labels[k]) for k, i in idx.items())}
     return {}
+
+
+def eventually(check, timeout: float = 3.0):
+    """Retry `check` (which asserts) until it passes or `timeout` runs out; return its result."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return check()
+        except AssertionError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
+def wait_until(condition, what: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.01)
 
 
 def pytest_sessionstart(session):

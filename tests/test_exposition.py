@@ -51,7 +51,6 @@ def test_budget_keeps_the_most_active_and_folds_the_rest_into_other():
 
 def test_other_never_goes_backwards_when_folded_entities_end_or_get_promoted():
     b = Budget({"process": 1})
-    seen = []
     rounds = [
         ({"1": 100.0, "2": 1.0, "3": 2.0}, 3.0),    # 1 kept; 2 and 3 folded
         ({"1": 101.0, "2": 1.25, "3": 2.0}, 3.25),  # 1 stays busiest

@@ -16,7 +16,7 @@ import pytest
 
 from drums.metrics import Histogram
 from drums.probes.sched import _PROCESS_VALUE, _THREAD_VALUE, RUNQ_BUCKETS
-from tests.conftest import series
+from tests.conftest import series, wait_until
 
 PROCESS_CPU = "drums_process_cpu_seconds_total"
 PROCESS_RUNQ = "drums_process_runqueue_latency_seconds"
@@ -294,12 +294,6 @@ def settle(pid: int, timeout: float = 5.0) -> None:
         time.sleep(0.005)
 
 
-def wait_until(condition, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
-        time.sleep(0.01)
-
 
 def value(snap, metric: str, **labels):
     rows = series(snap, metric, **labels)
@@ -453,7 +447,7 @@ def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
     child.go()
     gone = child.read()  # sent once the kernel has released the thread
     # Its last switch, which folds it, can come a little after: the kernel releases a thread first.
-    wait_until(lambda: gone["tid"] not in thread_entries(sched_probe), 1, "last switch of the thread")
+    wait_until(lambda: gone["tid"] not in thread_entries(sched_probe), "last switch of the thread", timeout=1)
     child.go()
     kernel = child.read()
     settle(pid)
@@ -497,7 +491,7 @@ def test_exited_process_series_go(sched_probe, collect, spawn):
 
     child.proc.stdin.close()
     os.waitid(os.P_PID, pid, os.WEXITED | os.WNOWAIT)  # a zombie, not reaped yet
-    wait_until(lambda: not (set(thread_entries(sched_probe)) & {pid, tid}), 1, "last switch of its threads")
+    wait_until(lambda: not (set(thread_entries(sched_probe)) & {pid, tid}), "last switch of its threads", timeout=1)
     zombie = collect(sched_probe)
     assert series(zombie, THREAD_CPU, pid=pid) == {}
     assert value(zombie, PROCESS_CPU, pid=pid) >= cpu  # folded: a zombie's counter does not go back
@@ -508,7 +502,7 @@ def test_exited_process_series_go(sched_probe, collect, spawn):
                    THREAD_SWITCHES):
         assert series(reaped, metric, pid=pid) == {}, metric
     # sched_process_free comes an RCU grace period after the reaping.
-    wait_until(lambda: pid not in exited_entries(sched_probe), 2, "exited_sched entry freed")
+    wait_until(lambda: pid not in exited_entries(sched_probe), "exited_sched entry freed", timeout=2)
 
 
 def test_fresh_process_starts_near_zero(sched_probe, collect, spawn):
@@ -556,7 +550,7 @@ def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn):
         threads = {tid for tid, v in thread_entries(sched_probe).items()
                    if (tid in pids | tids or v[0] in pids) and v[0] not in alive}
         return threads, set(exited_entries(sched_probe)) & (pids - alive)
-    wait_until(lambda: left() == (set(), set()), 2, f"entries of the dead children {left()}")
+    wait_until(lambda: left() == (set(), set()), f"entries of the dead children {left()}", timeout=2)
 
     # Other tests and agents on the host start processes too: leave out the entries of those that
     # started meanwhile, and allow 20 against the 400 threads that came and went.
@@ -577,7 +571,7 @@ def test_exec_from_a_thread_leaves_no_stale_thread(sched_probe, collect, spawn):
     stale_series = exported - set(tids_of(pid))
 
     child.end()
-    wait_until(lambda: pid not in exited_entries(sched_probe), 2, "exited_sched entry freed")
+    wait_until(lambda: pid not in exited_entries(sched_probe), "exited_sched entry freed", timeout=2)
     left = {t: v[:2] for t, v in thread_entries(sched_probe).items() if t in (pid, tid) or v[0] == pid}
     # Expected: no series for the thread that became the leader, and nothing left once reaped.
     assert (stale_series, left) == (set(), {})
@@ -606,7 +600,7 @@ def test_reused_pid_starts_from_zero_between_two_scrapes(sched_probe, collect, s
     dead.read()
     dead_total = value(collect(sched_probe), PROCESS_CPU, pid=dead.pid)
     dead.end()
-    wait_until(lambda: dead.pid not in exited_entries(sched_probe), 2, "exited_sched entry freed")
+    wait_until(lambda: dead.pid not in exited_entries(sched_probe), "exited_sched entry freed", timeout=2)
     fresh = reuse_pid(dead.pid, spawn, IDLE)
     steal = steal_ticks()
     own = fresh.read()["cpu"]

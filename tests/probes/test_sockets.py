@@ -16,7 +16,7 @@ import time
 import pytest
 
 from drums.probes.sockets import decode_sockets
-from tests.conftest import series
+from tests.conftest import eventually, series, wait_until
 
 COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
 ZERO = dict.fromkeys(COUNTS, 0)
@@ -181,24 +181,6 @@ def recv_to_eof(sock: socket.socket) -> tuple[int, int]:
             return total, calls
 
 
-def eventually(check, timeout: float = 3.0):
-    """Retry `check` (which asserts) until it passes or `timeout` runs out; return its result."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return check()
-        except AssertionError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.02)
-
-
-def wait_until(condition, what: str, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.01)
 
 
 def tcp_listener(family=socket.AF_INET) -> socket.socket:

@@ -14,7 +14,7 @@ from collections import Counter
 
 import pytest
 
-from tests.conftest import series
+from tests.conftest import eventually, series, wait_until
 
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
 LOOPBACK = {socket.AF_INET: "127.0.0.1", socket.AF_INET6: "::1"}
@@ -67,23 +67,6 @@ def host_delta(tcp_probe, collect, action, expected: dict, attempts: int = 10) -
     warnings.warn(f"other TCP traffic on the host: checked {dict(want)} as lower bounds only, saw {seen}")
 
 
-def eventually(check, timeout: float = 3.0):
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return check()
-        except AssertionError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.02)
-
-
-def wait_until(condition, what: str, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
 
 
 def tcp_listener(family=socket.AF_INET, address=None) -> socket.socket:
