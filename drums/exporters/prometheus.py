@@ -11,7 +11,7 @@ import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Callable
 
-from drums.errors import DrumsError, UsageError
+from drums.errors import DrumsError
 from drums.metrics import HISTOGRAM, INFO, Metric, Snapshot
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -77,8 +77,6 @@ class MetricsServer:
     """Serves /metrics from a fresh snapshot per request; anything else is 404."""
 
     def __init__(self, collect: Callable[[], Snapshot], address: str, port: int):
-        if not 0 <= port <= 65535:
-            raise UsageError(f"--port {port}: a port is a number from 0 to 65535")
         handler = _handler(collect)
         try:
             self.httpd = ThreadingHTTPServer((address, port), handler)

@@ -62,9 +62,10 @@ def attach(req: LoadRequest):
                 pass  # bcc attached KFUNC_PROBE/KRETFUNC_PROBE functions when it loaded them
             else:
                 raise ProbeError(f"unknown attach kind {kind}")
-    except ProbeError:
-        raise
     except Exception as e:
+        b.cleanup()  # detach what did attach
+        if isinstance(e, ProbeError):
+            raise
         raise ProbeError(f"attach {kind} {target}: {e}") from None
     if any(kind == "fentry" for kind, _, _ in req.attachments):
         fds.extend(list(b.kfunc_entry_fds.values()) + list(b.kfunc_exit_fds.values()))

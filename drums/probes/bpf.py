@@ -11,6 +11,7 @@ import glob
 import hashlib
 import os
 import shutil
+import struct
 from dataclasses import dataclass
 from typing import Callable
 
@@ -152,6 +153,11 @@ class BpfProbe(Probe):
         if m.type not in bpffs.ARRAY_TYPES:  # arrays are always full; hash maps fill up
             self.status.map_fill[name] = count / m.max_entries
         return keys, values, count
+
+    def read_dropped(self) -> None:
+        """Events lost to full maps: every program counts them in its `dropped` array."""
+        _, values, _ = self.read("dropped")
+        self.status.dropped = sum(v for (v,) in struct.iter_unpack("<Q", values))
 
     def stop(self) -> None:
         for m in self.opened.values():

@@ -38,7 +38,6 @@ _SCHED = "5Q24I"  # struct sched_t
 _THREAD_VALUE = struct.Struct("<IIQQ16s" + _SCHED)
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -128,5 +127,4 @@ class SchedProbe(BpfProbe):
             for kind, n in (("voluntary", vol), ("involuntary", invol)):
                 snap.add(PROCESS_SWITCHES, labels + (kind,), m((PROCESS_SWITCHES, key, kind), n))
         m.next_collect()
-        _, values, _ = self.read("dropped")
-        self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
+        self.read_dropped()

@@ -209,8 +209,7 @@ class SocketsProbe(BpfProbe):
                     for c, value in zip(_COUNTS, row):
                         snap.add(PROCESS[c], labels, m((c, tgid, start, klass), value))
         m.next_collect()
-        _, values, _ = self.read("dropped")
-        self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
+        self.read_dropped()
 
     def _stale(self, sockets: list[SocketCounts]) -> set[int]:
         """Entries of sockets that are gone: their process exited, or (for sockets the kernel

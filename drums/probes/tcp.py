@@ -108,8 +108,7 @@ class TcpProbe(BpfProbe):
             self._rtt_at = now
         for labels, rtt in self._rtt:
             snap.add(CONN_RTT, labels, rtt)
-        _, values, _ = self.read("dropped")
-        self.status.dropped = sum(v for (v,) in _U64.iter_unpack(values))
+        self.read_dropped()
 
 
 
