@@ -176,6 +176,10 @@ class BpfProbe(Probe):
     def _remove_pins(self) -> None:
         for old in glob.glob(os.path.join(self.pin_root, f"{self.name}-*")):
             shutil.rmtree(old, ignore_errors=True)
+        try:
+            os.rmdir(self.pin_root)  # the last probe out leaves no empty folder behind
+        except OSError:
+            pass
 
 
 # What read_endpoints() in bpf/drums.h reads from a struct sock.

@@ -43,6 +43,8 @@ THREAD = {c: Metric(f"drums_thread_socket_{c}_total", COUNTER,
 
 # Map layouts, as in bpf/sockets.bpf.c.
 _SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6Q")
+_IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
+_COUNTS6 = struct.Struct("<6Q")
 _THREAD_VALUE = struct.Struct("<IIQ24Q")
 _PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
@@ -76,17 +78,28 @@ class SocketCounts:
     counts: tuple[int, ...]  # in _COUNTS order
 
 
-def decode_sockets(keys: bytes, values: bytes) -> list[SocketCounts]:
+def _identity(raw: bytes) -> tuple:
+    """(inode, pid, netns, protocol, local, remote) from the identity part of a map value."""
+    ino, tgid, netns, family, _proto, _unused, lport, rport, klass, _pad, laddr, raddr = _IDENTITY.unpack(raw)
+    return (ino, tgid, netns, PROTOCOLS[klass] if klass < len(PROTOCOLS) else "other",
+            endpoint(family, laddr, lport), endpoint(family, raddr, rport))
+
+
+def decode_sockets(keys: bytes, values: bytes, known: dict | None = None, seen: dict | None = None
+                   ) -> list[SocketCounts]:
+    """Map entries to sockets. Identities decoded at an earlier collect (`known`, by their bytes)
+    are reused: most of ten thousand sockets keep theirs, and only their counts need decoding.
+    `seen` receives this collect's identities."""
+    known = {} if known is None else known
+    seen = {} if seen is None else seen
     out = []
-    for (sk,), v in zip(_U64.iter_unpack(keys), _SOCKET_VALUE.iter_unpack(values)):
-        ino, tgid, netns, family, _proto, _type, lport, rport, klass, _pad, laddr, raddr, *t = v
-        sent_bytes, sent_calls, recv_bytes, recv_calls, send_err, recv_err = t
-        out.append(SocketCounts(
-            sk=sk, inode=ino, pid=tgid, netns=netns,
-            protocol=PROTOCOLS[klass] if klass < len(PROTOCOLS) else "other",
-            local=endpoint(family, laddr, lport), remote=endpoint(family, raddr, rport),
-            counts=(sent_bytes, sent_calls, recv_bytes, recv_calls, send_err, recv_err),
-        ))
+    size, head = _SOCKET_VALUE.size, _IDENTITY.size
+    for i, (sk,) in enumerate(_U64.iter_unpack(keys)):
+        base = i * size
+        raw = values[base:base + head]
+        ident = known.get(raw) or _identity(raw)
+        seen[raw] = ident
+        out.append(SocketCounts(sk, *ident, _COUNTS6.unpack_from(values, base + head)))
     return out
 
 
@@ -144,6 +157,7 @@ class SocketsProbe(BpfProbe):
         self._last_counts: dict[int, tuple[int, ...]] = {}
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
+        self._identities: dict[bytes, tuple] = {}
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -163,7 +177,8 @@ class SocketsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         keys, values, _ = self.read("socket_traffic")
-        sockets = decode_sockets(keys, values)
+        known, self._identities = self._identities, {}
+        sockets = decode_sockets(keys, values, known, self._identities)
         stale = self._stale(sockets)
         if stale:
             size = _SOCKET_VALUE.size
