@@ -1,0 +1,65 @@
+"""Selection of processes by PID, name pattern and cgroup, through the agent and the real sched probe."""
+import os
+import subprocess
+
+import pytest
+
+from drums.agent import Agent, Selection
+from drums.budget import Budget
+from drums.errors import UsageError
+from tests.conftest import series
+
+# A hierarchy to make a test group in: v1's pids controller here, else the cgroup2 root. The
+# selection matches a process's path in any hierarchy it is in.
+CGROUP_ROOT = next(d for d in ("/sys/fs/cgroup/pids", "/sys/fs/cgroup/unified", "/sys/fs/cgroup")
+                   if os.path.exists(os.path.join(d, "cgroup.procs")))
+
+
+def pids_with_series(snap) -> set[int]:
+    return {int(labels[0]) for labels in series(snap, "drums_process_cpu_seconds_total")}
+
+
+@pytest.fixture
+def sleepers():
+    procs = [subprocess.Popen(["sleep", "60"]) for _ in range(2)]
+    procs.append(subprocess.Popen(["cat"], stdin=subprocess.PIPE))
+    yield procs
+    for p in procs:
+        p.kill()
+        p.wait()
+
+
+def collect(sched_probe, proctable, selection):
+    return Agent([sched_probe], proctable, selection, Budget({"process": 1000, "thread": 1000})).collect()
+
+
+def test_by_pid(sched_probe, proctable, sleepers):
+    target = sleepers[0].pid
+    assert pids_with_series(collect(sched_probe, proctable, Selection.parse(pids=[target]))) == {target}
+
+
+def test_by_name_pattern(sched_probe, proctable, sleepers):
+    got = pids_with_series(collect(sched_probe, proctable, Selection.parse(names=["^cat$"])))
+    assert sleepers[2].pid in got and sleepers[0].pid not in got
+    assert all(proctable.name(pid) == "cat" for pid in got)
+
+
+def test_by_cgroup(sched_probe, proctable, sleepers, tmp_path):
+    group = os.path.join(CGROUP_ROOT, f"drums-test-{os.getpid()}")
+    os.mkdir(group)
+    try:
+        with open(os.path.join(group, "cgroup.procs"), "w") as f:
+            f.write(str(sleepers[1].pid))
+        got = pids_with_series(collect(sched_probe, proctable, Selection.parse(cgroups=[group[len(CGROUP_ROOT):]])))
+        assert got == {sleepers[1].pid}
+    finally:
+        with open(os.path.join(CGROUP_ROOT, "cgroup.procs"), "w") as f:
+            f.write(str(sleepers[1].pid))
+        os.rmdir(group)
+
+
+def test_bad_selections_are_usage_errors():
+    with pytest.raises(UsageError, match="no such process"):
+        Selection.parse(pids=[2 ** 22 + 7])
+    with pytest.raises(UsageError, match="not a regular expression"):
+        Selection.parse(names=["(["])
