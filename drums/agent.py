@@ -33,6 +33,9 @@ PROBE_MAP_FILL = Metric("drums_probe_map_fill_ratio", GAUGE,
                         "Used fraction of each of the probe's BPF hash maps", ("probe", "map"))
 PROBE_DROPPED = Metric("drums_probe_dropped_events_total", COUNTER,
                        "Events the probe could not count because a BPF map was full", ("probe",))
+FOLDED_TOTAL = Metric("drums_budget_folded_entities_total", COUNTER,
+                      "Entities that went over the cardinality budget into the series labelled other, "
+                      "since the agent started", ("kind",))
 FOLDED = Metric("drums_budget_folded_entities", GAUGE,
                 "Entities over the cardinality budget, summed into the series labelled other", ("kind",))
 AGENT_COLLECT = Metric("drums_agent_collect_duration_seconds", GAUGE,
@@ -42,7 +45,7 @@ AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE, "Resident memory 
 AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
                    "Memory only the agent process uses (private pages: what stopping it would free)")
 SELF_METRICS = (PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
-                AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
+                FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
 
 @dataclass
@@ -228,6 +231,8 @@ class Agent:
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
         for kind, count in self.budget.folded().items():
             snap.add(FOLDED, (kind,), count)
+        for kind, count in self.budget.folded_total().items():
+            snap.add(FOLDED_TOTAL, (kind,), count)
         usage = resource.getrusage(resource.RUSAGE_SELF)
         snap.add(AGENT_CPU, (), usage.ru_utime + usage.ru_stime)
         rss, uss = _memory()

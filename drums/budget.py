@@ -43,12 +43,18 @@ class _KindState:
     folded_last: dict = field(default_factory=dict)  # group -> entity -> (other key, values)
     baseline: dict = field(default_factory=dict)  # (group, labels of other) -> values
     folded_now: int = 0
+    folded_set: set = field(default_factory=set)  # entities summed into `other` at the last collect
+    folded_total: int = 0  # entities that went into `other`, ever
 
 
 
 class Budget:
     def __init__(self, limits: dict[str, int]):
         self.kinds = {kind: _KindState(limits.get(kind, 0)) for kind in KINDS}
+
+    def folded_total(self) -> dict[str, int]:
+        """How many entities of each kind went into `other` since the agent started."""
+        return {kind: st.folded_total for kind, st in self.kinds.items()}
 
     def folded(self) -> dict[str, int]:
         """Entities of each kind whose series are currently summed into `other`."""
@@ -136,7 +142,10 @@ class Budget:
             for key, values in st.folded_last[metrics].values():
                 self._to_baseline(baseline, key, values)
         st.folded_last = folded_now
-        st.folded_now = len(entities - kept)
+        folded_set = entities - kept
+        st.folded_total += len(folded_set - st.folded_set)
+        st.folded_set = folded_set
+        st.folded_now = len(folded_set)
         for key in sums.keys() | baseline.keys():
             metrics, labels = key
             value = sums.get(key)

@@ -47,6 +47,8 @@ def test_budget_keeps_the_most_active_and_folds_the_rest_into_other():
     assert out.values(SENT) == {("2", "p2", "tcp"): 10, ("other", "other", "tcp"): 1}  # dimensions survive
     assert out.values(MEM) == {("1", "p1"): 7, ("2", "p2"): 8, ("other", "other"): 19}
     assert b.folded()["process"] == 2
+    b.apply(_snap({"1": 10.0, "2": 1.0, "3": 5.0, "5": 0.0}))  # 4 ended, 5 came and was folded
+    assert b.folded()["process"] == 2 and b.folded_total()["process"] == 3
 
 
 def test_other_never_goes_backwards_when_folded_entities_end_or_get_promoted():
