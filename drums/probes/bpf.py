@@ -182,6 +182,14 @@ class BpfProbe(Probe):
             pass
 
 
+# What leader_tgid() and process_start() in bpf/drums.h read from a struct task_struct.
+TASK_IDENTITY_FIELDS = {
+    "TASK_PID_OFF": ("task_struct", "pid"),
+    "TASK_TGID_OFF": ("task_struct", "tgid"),
+    "TASK_GROUP_LEADER_OFF": ("task_struct", "group_leader"),
+    "TASK_START_TIME_OFF": ("task_struct", "start_time"),
+}
+
 # What read_endpoints() in bpf/drums.h reads from a struct sock.
 SOCK_ENDPOINT_FIELDS = {
     "SK_FAMILY_OFF": ("sock", "__sk_common.skc_family"),
@@ -194,6 +202,30 @@ SOCK_ENDPOINT_FIELDS = {
     "SK_NET_OFF": ("sock", "__sk_common.skc_net"),
     "NET_INUM_OFF": ("net", "ns.inum"),
 }
+
+
+class ProcessTotals:
+    """A process's totals from two maps: its exited threads (folded per process by the kernel) and
+    its live threads. A process is its PID and its start time, so the folded threads of a process
+    that had the PID before are left out."""
+
+    def __init__(self):
+        self._totals: dict[tuple[int, int], list] = {}
+        self._live_start: dict[int, int] = {}
+
+    def add_exited(self, tgid: int, start: int, values) -> None:
+        self._totals[(tgid, start)] = list(values)
+
+    def add_thread(self, tgid: int, start: int, values) -> None:
+        self._live_start[tgid] = start
+        acc = self._totals.get((tgid, start))
+        self._totals[(tgid, start)] = list(values) if acc is None else [a + b for a, b in zip(acc, values)]
+
+    def items(self):
+        """((pid, start time), summed values) of every process."""
+        for (tgid, start), values in self._totals.items():
+            if self._live_start.get(tgid, start) == start:
+                yield (tgid, start), values
 
 
 def offset_defines(btf: Btf, fields: dict[str, tuple[str, str]]) -> dict[str, int]:

@@ -9,7 +9,8 @@ import struct
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_tracepoints, offset_defines
+from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
+                              offset_defines)
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -77,11 +78,8 @@ class SchedProbe(BpfProbe):
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {
-            "TASK_PID_OFF": ("task_struct", "pid"),
-            "TASK_TGID_OFF": ("task_struct", "tgid"),
+            **TASK_IDENTITY_FIELDS,
             "TASK_COMM_OFF": ("task_struct", "comm"),
-            "TASK_GROUP_LEADER_OFF": ("task_struct", "group_leader"),
-            "TASK_START_TIME_OFF": ("task_struct", "start_time"),
         })
         args = btf.tracepoint_args("sched_switch") or []
         if len(args) >= 4:
@@ -93,21 +91,17 @@ class SchedProbe(BpfProbe):
 
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
-        # A process is its PID and its start time: a PID reused by a new process starts afresh.
-        per_process: dict[tuple[int, int], list] = {}
+        totals = ProcessTotals()
         keys, values, _ = self.read("exited_sched")
         for (tgid,), (start, *s) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
             if pt.alive(tgid):
-                per_process[(tgid, start)] = s
-        live_starts: dict[int, int] = {}
+                totals.add_exited(tgid, start, s)
         keys, values, _ = self.read("thread_sched")
         for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
             tgid, _pad, _enqueued, start, comm, *s = v
             if not pt.alive(tgid):
                 continue
-            live_starts[tgid] = start
-            acc = per_process.get((tgid, start))
-            per_process[(tgid, start)] = s if acc is None else [a + b for a, b in zip(acc, s)]
+            totals.add_thread(tgid, start, s)
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))
             snap.add(THREAD_CPU, labels, oncpu / 1e9)
@@ -116,9 +110,7 @@ class SchedProbe(BpfProbe):
             snap.add(THREAD_SWITCHES, labels + ("voluntary",), vol)
             snap.add(THREAD_SWITCHES, labels + ("involuntary",), invol)
         m = self._monotonic
-        for (tgid, start), s in per_process.items():
-            if live_starts.get(tgid, start) != start:
-                continue  # exited threads of the process that had this PID before
+        for (tgid, start), s in totals.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), pt.name(tgid))
             key = (tgid, start)

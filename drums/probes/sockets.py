@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_fentry, needs_kprobes,
-                              needs_tracepoints, offset_defines)
+from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
+                              needs_fentry, needs_kprobes, needs_tracepoints, offset_defines)
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -164,10 +164,7 @@ class SocketsProbe(BpfProbe):
             "SK_STATE_OFF": ("sock", "__sk_common.skc_state"),
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
-            "TASK_PID_OFF": ("task_struct", "pid"),
-            "TASK_TGID_OFF": ("task_struct", "tgid"),
-            "TASK_GROUP_LEADER_OFF": ("task_struct", "group_leader"),
-            "TASK_START_TIME_OFF": ("task_struct", "start_time"),
+            **TASK_IDENTITY_FIELDS,
         })
         # The socket's inode sits right after struct socket in struct socket_alloc.
         d["SOCKET_INO_OFF"] = (btf.field("socket_alloc", "vfs_inode").offset
@@ -193,32 +190,24 @@ class SocketsProbe(BpfProbe):
             rows.append(((str(s.pid), pt.name(s.pid), s.protocol, local, s.remote, str(s.netns), str(s.inode)),
                          s.counts))
 
-        # A process is its PID and its start time: a PID reused by a new process starts afresh.
-        per_process: dict[tuple[int, int], list[list[int]]] = {}
+        totals = ProcessTotals()
         keys, values, _ = self.read("exited_traffic")
         for (tgid,), (start, *flat) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
             if pt.alive(tgid):
-                per_process[(tgid, start)] = [list(row) for row in _by_class(flat)]
-        live_starts: dict[int, int] = {}
+                totals.add_exited(tgid, start, flat)
         keys, values, _ = self.read("thread_traffic")
         for (tid,), (tgid, _pad, start, *flat) in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
             if not pt.alive(tgid):
                 continue
-            live_starts[tgid] = start
-            rows = _by_class(flat)
-            acc = per_process.setdefault((tgid, start), [[0] * len(_COUNTS) for _ in PROTOCOLS])
-            for klass, row in enumerate(rows):
-                if not any(row):
-                    continue
-                acc[klass] = [a + b for a, b in zip(acc[klass], row)]
-                labels = (str(tgid), str(tid), PROTOCOLS[klass])
-                snap.add(THREAD["sent_bytes"], labels, row[0])
-                snap.add(THREAD["received_bytes"], labels, row[2])
+            totals.add_thread(tgid, start, flat)
+            for klass, row in enumerate(_by_class(flat)):
+                if any(row):
+                    labels = (str(tgid), str(tid), PROTOCOLS[klass])
+                    snap.add(THREAD["sent_bytes"], labels, row[0])
+                    snap.add(THREAD["received_bytes"], labels, row[2])
         m = self._monotonic
-        for (tgid, start), rows in per_process.items():
-            if live_starts.get(tgid, start) != start:
-                continue  # exited threads of the process that had this PID before
-            for klass, row in enumerate(rows):
+        for (tgid, start), flat in totals.items():
+            for klass, row in enumerate(_by_class(flat)):
                 if any(row):
                     labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
                     for c, value in zip(_COUNTS, row):
