@@ -8,6 +8,7 @@ baseline.
 """
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass, field
 from operator import add, itemgetter
 
@@ -177,16 +178,20 @@ class Budget:
             if per_metric[name]:
                 activity[entity] += d / per_metric[name]
         st.kept &= entities  # entities that ended free their slots
-        candidates = sorted((e for e in entities if e not in st.kept), key=lambda e: -activity[e])
-        for e in candidates:
-            if len(st.kept) < st.limit:
-                st.kept.add(e)
-                continue
-            if not st.kept:
-                break
-            weakest = min(st.kept, key=lambda k: activity[k])
-            if activity[e] > 2 * activity[weakest] and activity[e] > 0:
-                st.kept.discard(weakest)
-                st.kept.add(e)
-            else:
+        kept = st.kept
+        # Most entities did nothing since the last collect: only active ones are sorted.
+        idle, active = [], []
+        for e in entities:
+            if e not in kept:
+                (active if activity[e] > 0 else idle).append(e)
+        active.sort(key=activity.__getitem__, reverse=True)
+        free = st.limit - len(kept)
+        kept.update(active[:free])
+        kept.update(idle[:max(0, free - len(active))])
+        weakest = [(activity[k], i, k) for i, k in enumerate(kept)]  # i: entities may not compare
+        heapq.heapify(weakest)
+        for i, e in enumerate(active[free:] if free > 0 else active):
+            if not weakest or activity[e] <= 2 * weakest[0][0]:
                 break  # candidates are sorted: no later one can do better
+            kept.discard(heapq.heapreplace(weakest, (activity[e], len(kept) + i, e))[2])
+            kept.add(e)

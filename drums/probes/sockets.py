@@ -85,22 +85,32 @@ def _identity(raw: bytes) -> tuple:
             endpoint(family, laddr, lport), endpoint(family, raddr, rport))
 
 
-def decode_sockets(keys: bytes, values: bytes, known: dict | None = None, seen: dict | None = None
-                   ) -> list[SocketCounts]:
-    """Map entries to sockets. Identities decoded at an earlier collect (`known`, by their bytes)
-    are reused: most of ten thousand sockets keep theirs, and only their counts need decoding.
-    `seen` receives this collect's identities."""
-    known = {} if known is None else known
-    seen = {} if seen is None else seen
-    out = []
-    size, head = _SOCKET_VALUE.size, _IDENTITY.size
-    for i, (sk,) in enumerate(_U64.iter_unpack(keys)):
-        base = i * size
-        raw = values[base:base + head]
-        ident = known.get(raw) or _identity(raw)
-        seen[raw] = ident
-        out.append(SocketCounts(sk, *ident, _COUNTS6.unpack_from(values, base + head)))
-    return out
+class SocketDecoder:
+    """Map entries to sockets. Of ten thousand sockets most sit idle between two collects: an
+    entry whose bytes did not change is not decoded again, and a socket's identity (its
+    addresses) is decoded once, not at each change of its counts. Each call forgets what the
+    entries it did not see."""
+
+    def __init__(self):
+        self._entries: dict[tuple[int, bytes], tuple[SocketCounts, tuple]] = {}  # -> (socket, identity)
+        self._identities: dict[bytes, tuple] = {}
+
+    def __call__(self, keys: bytes, values: bytes) -> list[tuple[SocketCounts, bytes]]:
+        """(socket, its map value) for each entry."""
+        entries, self._entries = self._entries, {}
+        identities, self._identities = self._identities, {}
+        out = []
+        size, head = _SOCKET_VALUE.size, _IDENTITY.size
+        for i, (sk,) in enumerate(_U64.iter_unpack(keys)):
+            raw = values[i * size:(i + 1) * size]
+            entry = entries.get((sk, raw))
+            if entry is None:
+                ident = identities.get(raw[:head]) or _identity(raw[:head])
+                entry = (SocketCounts(sk, *ident, _COUNTS6.unpack_from(raw, head)), ident)
+            self._entries[sk, raw] = entry
+            self._identities[raw[:head]] = entry[1]
+            out.append((entry[0], raw))
+        return out
 
 
 def unix_paths(path: str) -> dict[int, str]:
@@ -157,7 +167,7 @@ class SocketsProbe(BpfProbe):
         self._last_counts: dict[int, tuple[int, ...]] = {}
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
-        self._identities: dict[bytes, tuple] = {}
+        self._decode = SocketDecoder()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -174,16 +184,14 @@ class SocketsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         keys, values, _ = self.read("socket_traffic")
-        known, self._identities = self._identities, {}
-        sockets = decode_sockets(keys, values, known, self._identities)
-        stale = self._stale(sockets)
+        sockets = self._decode(keys, values)
+        stale = self._stale([s for s, _ in sockets])
         if stale:
-            size = _SOCKET_VALUE.size
             self.opened["socket_traffic"].delete_unchanged(
-                [(_U64.pack(s.sk), values[i * size:(i + 1) * size]) for i, s in enumerate(sockets) if s.sk in stale])
-        paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s in sockets) else {}
+                [(_U64.pack(s.sk), raw) for s, raw in sockets if s.sk in stale])
+        paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s, _ in sockets) else {}
         rows = snap.group_rows(SOCKET_GROUP)
-        for s in sockets:
+        for s, _ in sockets:
             if s.sk in stale:
                 continue
             local = paths.get(s.inode, "") if s.protocol == "unix" else s.local

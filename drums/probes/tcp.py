@@ -32,6 +32,8 @@ CONN_RTT = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE,
                   "The kernel's smoothed round-trip time of this connection (tcp_info), for "
                   "established connections of the agent's network namespace, sampled every 5 s",
                   ("local", "remote"), additive=False)
+# The per-connection counters, in the order of the map value's counts.
+CONN_GROUP = (CONN_RETRANSMITS, CONN_STATE_CHANGES, CONN_RESETS_SENT, CONN_RESETS_RECEIVED)
 RETRANSMITS = Metric("drums_tcp_retransmits_total", COUNTER, "TCP segments retransmitted on this host")
 RESETS_SENT = Metric("drums_tcp_resets_sent_total", COUNTER, "TCP resets sent by this host")
 RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
@@ -68,6 +70,7 @@ class TcpProbe(BpfProbe):
         self.rtt_interval = rtt_interval
         self._rtt: list = []
         self._rtt_at = float("-inf")
+        self._decoded: dict[bytes, tuple] = {}  # map value -> (labels, counts, state)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = {"RETRANSMIT_HAS_ERR": 1} if len(btf.tracepoint_args("tcp_retransmit_skb") or ()) >= 3 else {}
@@ -78,16 +81,20 @@ class TcpProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         keys, values, _ = self.read("tcp_conns")
         closed = []
+        rows = snap.group_rows(CONN_GROUP)
         size = _CONN_VALUE.size
-        for i, (key, v) in enumerate(zip(_U64.iter_unpack(keys), _CONN_VALUE.iter_unpack(values))):
-            netns, family, lport, rport, state, laddr, raddr, retrans, changes, rst_sent, rst_received = v
-            labels = (endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns))
-            snap.add(CONN_RETRANSMITS, labels, retrans)
-            snap.add(CONN_RESETS_SENT, labels, rst_sent)
-            snap.add(CONN_RESETS_RECEIVED, labels, rst_received)
-            snap.add(CONN_STATE_CHANGES, labels, changes)
-            if state == TCP_CLOSE:
-                closed.append((_U64.pack(*key), values[i * size:(i + 1) * size]))
+        decoded, self._decoded = self._decoded, {}
+        for i, key in enumerate(_U64.iter_unpack(keys)):
+            raw = values[i * size:(i + 1) * size]
+            row = decoded.get(raw)  # most connections did nothing since the last collect
+            if row is None:
+                netns, family, lport, rport, state, laddr, raddr, *counts = _CONN_VALUE.unpack(raw)
+                row = ((endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns)),
+                       tuple(counts), state)
+            self._decoded[raw] = row
+            rows.append(row[:2])
+            if row[2] == TCP_CLOSE:
+                closed.append((_U64.pack(*key), raw))
         # A closed connection is exported once, with the reset that closed it, then forgotten.
         self.opened["tcp_conns"].delete_unchanged(closed)
         _, values, _ = self.read("tcp_totals")

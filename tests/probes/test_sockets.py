@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from drums.probes.sockets import decode_sockets
+from drums.probes.sockets import SocketDecoder
 from tests.conftest import eventually, series, wait_until
 
 COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
@@ -414,7 +414,7 @@ def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
     # else runs on the host.)
     def drained():
         keys, values, _ = sockets_probe.read("socket_traffic")
-        assert [s for s in decode_sockets(keys, values) if s.pid in pids] == []
+        assert [s for s, _ in SocketDecoder()(keys, values) if s.pid in pids] == []
     eventually(drained)
 
 
