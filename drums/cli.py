@@ -1,4 +1,4 @@
-"""The `drums` command: agent, doctor, unload. Errors become one line on stderr and exit code 2."""
+"""The `drums` command: agent, graph, doctor, unload. Errors become one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
@@ -8,7 +8,7 @@ import sys
 import threading
 import time
 
-from drums.errors import DrumsError, UsageError
+from drums.errors import DrumsError, GraphError, UsageError
 
 log = logging.getLogger("drums")
 
@@ -35,8 +35,16 @@ def _port(text: str) -> int:
     return value
 
 
+def _graph_flags(parser: argparse.ArgumentParser) -> None:
+    from drums.graph.registry import ADAPTERS
+    parser.add_argument("--graph", choices=ADAPTERS, default=None,
+                        help="where the graph comes from (default: ros2 where ROS 2 is set up, else auto)")
+    parser.add_argument("--graph-file", default="", help="the YAML description for --graph static")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from drums.exporters.prometheus import DEFAULT_PORT
+    from drums.graph.export import FORMATS
     from drums.probes.registry import PROBES
 
     parser = _Parser(prog="drums", description="Middleware-aware monitoring for distributed robots.")
@@ -65,6 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
                            help=f"{kind} with series of their own; the rest are summed as other "
                                 f"(default {default})")
     agent.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+
+    graph = sub.add_parser("graph", help="print the computation graph: nodes, topics, connections")
+    _graph_flags(graph)
+    graph.add_argument("--format", choices=FORMATS, default="text", help="output format (default text)")
+    graph.add_argument("--output", default="-", help="file to write (default standard output)")
+    graph.add_argument("--watch", action="store_true", help="after the graph, print each change as it happens")
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded")
@@ -107,6 +121,44 @@ def run_agent(args) -> int:
     return 0
 
 
+def run_graph(args) -> int:
+    from drums.graph import registry
+    from drums.graph.adapter import Follower
+    from drums.graph.export import render
+    from drums.graph.model import Graph
+
+    logging.basicConfig(level="WARNING", format="drums: %(message)s")
+    adapter = registry.build(args.graph or registry.default(), args.graph_file)
+    graph = Graph()
+    follower = Follower(adapter, graph)
+    try:
+        follower.start(wait=True)
+        deadline = time.monotonic() + 2 * adapter.interval + 5
+        while not graph.updated_at and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not graph.updated_at:
+            raise GraphError(graph.error or "no graph within the time allowed")
+        time.sleep(adapter.settle)
+        text = render(graph.snapshot(), args.format, stale=graph.error)
+        if args.output == "-":
+            sys.stdout.write(text)
+        else:
+            with open(args.output, "w") as f:
+                f.write(text)
+        if args.watch:
+            _, cursor = graph.changes_since(0)
+            while True:
+                time.sleep(0.2)
+                changes, cursor = graph.changes_since(cursor)
+                for c in changes:
+                    print(f"{time.strftime('%H:%M:%S', time.localtime(c.at))} {c.action} {c.id}", flush=True)
+    except OSError as e:
+        raise UsageError(f"--output {args.output}: {e.strerror}") from None
+    finally:
+        follower.stop()
+    return 0
+
+
 def run_unload(_args) -> int:
     import os
     import shutil
@@ -125,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.command == "agent":
             return run_agent(args)
+        if args.command == "graph":
+            return run_graph(args)
         if args.command == "doctor":
             from drums.doctor import run
             return run()

@@ -15,3 +15,7 @@ class KernelError(DrumsError):
 
 class ProbeError(DrumsError):
     """A probe failed to load, attach or read its maps."""
+
+
+class GraphError(DrumsError):
+    """A middleware or graph description could not be read: garbage, no answer, a bad file."""

@@ -1,0 +1,166 @@
+"""The one interface of the middleware adapters, and the thread that keeps the graph current.
+
+An adapter's `poll()` returns the whole graph as the middleware describes it now, or raises
+GraphError. The Follower applies each good state to the Graph; after a failed, garbled or
+overdue poll the last good graph stays, marked stale, and one line is logged per new reason.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import threading
+import time
+
+from drums.errors import GraphError
+from drums.graph.model import Graph, GraphState
+
+log = logging.getLogger("drums")
+
+
+class Adapter:
+    name = ""
+    interval = 1.0  # seconds between polls
+    settle = 0.0  # seconds after the first poll until the graph is complete (discovery)
+
+    def start(self) -> None:
+        """Raise GraphError if the adapter cannot run at all (e.g. rclpy missing)."""
+
+    def poll(self) -> GraphState:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        pass
+
+
+class ChildAdapter(Adapter):
+    """An adapter whose middleware client runs in a child process (`python -m <module>`) that
+    prints one JSON object per line: {"state": ...} or {"error": "..."}. The child is restarted
+    when it exits; a child silent for `timeout` seconds makes polls fail."""
+
+    module = ""
+
+    def __init__(self, interval: float = 0.5, timeout: float = 5.0):
+        self.interval = interval
+        self.timeout = timeout
+        self._proc: subprocess.Popen | None = None
+        self._latest: GraphState | None = None
+        self._error = ""
+        self._heard_at = 0.0
+        self._lock = threading.Lock()
+
+    def _spawn(self) -> None:
+        self._proc = subprocess.Popen([sys.executable, "-m", self.module, "--interval", str(self.interval)],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                      text=True)
+        self._heard_at = time.monotonic()
+        threading.Thread(target=self._read, args=(self._proc,), daemon=True, name=f"{self.name}-reader").start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            try:
+                message = json.loads(line)
+                if "error" in message:
+                    state, error = None, str(message["error"])[:500]
+                else:
+                    state, error = GraphState.from_dict(message.get("state")), ""
+            except (ValueError, AttributeError, GraphError) as e:
+                state, error = None, f"unreadable line from the {self.name} reader: {e}"
+            with self._lock:
+                self._heard_at = time.monotonic()
+                self._error = error
+                if state is not None:
+                    self._latest = state
+
+    def start(self) -> None:
+        """Start the child and wait (up to `timeout`) for its first word: a graph, or why not."""
+        self._spawn()
+        deadline = time.monotonic() + self.timeout
+        while time.monotonic() < deadline and self._proc.poll() is None:
+            with self._lock:
+                if self._latest is not None or self._error:
+                    break
+            time.sleep(0.05)
+        with self._lock:
+            if self._latest is None and self._error:
+                raise GraphError(self._error)
+
+    def poll(self) -> GraphState:
+        if self._proc.poll() is not None:
+            code = self._proc.returncode
+            with self._lock:
+                error = self._error
+            self._spawn()
+            raise GraphError(error or f"the {self.name} reader exited with {code}; restarted")
+        with self._lock:
+            silent = time.monotonic() - self._heard_at
+            if silent > self.timeout:
+                raise GraphError(f"the {self.name} reader has said nothing for {silent:.0f} s")
+            if self._error:
+                raise GraphError(self._error)
+            if self._latest is None:
+                raise GraphError(f"the {self.name} reader has not described the graph yet")
+            return self._latest
+
+    def stop(self) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+
+
+class Follower:
+    """Polls an adapter every interval in a thread of its own and updates the graph."""
+
+    def __init__(self, adapter: Adapter, graph: Graph):
+        self.adapter = adapter
+        self.graph = graph
+        self._stop = threading.Event()
+        self._started = threading.Event()
+        self._start_error = ""
+        self._thread = threading.Thread(target=self._run, daemon=True, name=f"graph-{adapter.name}")
+
+    def start(self, wait: bool = False) -> None:
+        """Start the adapter and follow it in the background; with wait, return once it has
+        started, raising GraphError if it could not."""
+        self._thread.start()
+        if wait:
+            self._started.wait()
+            if self._start_error:
+                raise GraphError(self._start_error)
+
+    def poll_once(self) -> None:
+        try:
+            state = self.adapter.poll()
+        except Exception as e:  # garbage from the middleware must not end the thread
+            if str(e) != self.graph.error:
+                log.warning("graph (%s): %s; keeping the last good graph, marked stale", self.adapter.name, e)
+            self.graph.failed(str(e))
+            return
+        if self.graph.error:
+            log.info("graph (%s): reading again", self.adapter.name)
+        self.graph.update(state)
+
+    def _run(self) -> None:
+        try:
+            self.adapter.start()
+        except GraphError as e:
+            self._start_error = f"graph ({self.adapter.name}): {e}"
+            log.warning("%s; the agent goes on without a graph", self._start_error)
+            self.graph.failed(str(e))
+            return
+        finally:
+            self._started.set()
+        while not self._stop.is_set():
+            self.poll_once()
+            self._stop.wait(self.adapter.interval)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(10)
+        self.adapter.stop()

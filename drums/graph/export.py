@@ -1,0 +1,88 @@
+"""The graph as text for people and files: a readable listing, JSON, DOT and GraphML.
+
+Vertex and edge attributes are the entity's fields (and, where given, its metrics); formats
+that take only scalars (DOT, GraphML) get nested values as JSON strings.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+
+import networkx as nx
+
+FORMATS = ("text", "json", "dot", "graphml")
+
+
+def _attributes(data: dict, metrics: dict, flat: bool) -> dict:
+    out = {"kind": data["kind"]}
+    entity = data.get("entity")
+    fields = asdict(entity) if hasattr(entity, "__dataclass_fields__") else {}
+    for k, v in {**fields, **metrics}.items():
+        if v is None:
+            continue  # GraphML and DOT have no null
+        out[k] = json.dumps(v, sort_keys=True) if flat and isinstance(v, (dict, list, tuple)) else v
+    return out
+
+
+def plain(g: nx.MultiDiGraph, metrics: dict | None = None, flat: bool = False) -> nx.MultiDiGraph:
+    """A copy whose attributes are plain values; `metrics` maps a vertex id or an edge
+    (u, v, key) to extra attributes."""
+    metrics = metrics or {}
+    out = nx.MultiDiGraph()
+    for vid, data in g.nodes(data=True):
+        out.add_node(vid, **_attributes(data, metrics.get(vid, {}), flat))
+    for u, v, key, data in g.edges(keys=True, data=True):
+        attrs = _attributes(data, metrics.get((u, v, key), {}), flat) if data["kind"] == "connection" \
+            else {"kind": data["kind"]}
+        out.add_edge(u, v, key=key, **attrs)
+    return out
+
+
+def render(g: nx.MultiDiGraph, fmt: str, metrics: dict | None = None, stale: str = "") -> str:
+    if fmt == "json":
+        data = nx.node_link_data(plain(g, metrics), edges="edges")
+        data["stale"] = stale
+        return json.dumps(data, indent=1, sort_keys=True) + "\n"
+    if fmt == "graphml":
+        return "\n".join(nx.generate_graphml(plain(g, metrics, flat=True))) + "\n"
+    if fmt == "dot":
+        from networkx.drawing.nx_pydot import to_pydot
+        flat = plain(g, metrics, flat=True)
+        for _, data in flat.nodes(data=True):  # pydot takes `name` for itself; DOT shows `label`
+            if "name" in data:
+                data["label"] = data.pop("name")
+        # Quoted ids: pydot would read the colon in "node:/talker" as a port.
+        return to_pydot(nx.relabel_nodes(flat, json.dumps)).to_string()
+    return _text(g, metrics or {}, stale)
+
+
+def _text(g: nx.MultiDiGraph, metrics: dict, stale: str) -> str:
+    """Hosts, their processes and nodes, then each topic with its publishers and subscribers."""
+    def of(kind):
+        return sorted((vid, d["entity"]) for vid, d in g.nodes(data=True) if d["kind"] == kind)
+
+    lines = [f"(stale: {stale})"] if stale else []
+    nodes = of("node")
+    for vid, host in of("host"):
+        lines.append(f"host {host.name}")
+        for _, p in [(v, e) for v, e in of("process") if e.host == host.name]:
+            lines.append(f"  process {p.pid} {p.name}")
+            for _, n in [(v, e) for v, e in nodes if e.pid == p.pid and e.host == host.name]:
+                lines.append(f"    node {n.name} (mapped by {n.mapped_by})")
+    unplaced = [n for _, n in nodes if n.pid is None]
+    if unplaced:
+        lines.append("nodes without a local process")
+        lines.extend(f"  node {n.name} ({n.mapped_by})" for n in unplaced)
+    topics = {t.name: t for _, t in of("topic")}
+    by_key: dict[str, list] = {}
+    for u, v, key, d in sorted(g.edges(keys=True, data=True)):
+        if d["kind"] == "connection":
+            by_key.setdefault(key, []).append((d["entity"], metrics.get((u, v, key), {})))
+    for key in sorted(topics.keys() | by_key.keys()):
+        t = topics.get(key)
+        lines.append(f"topic {key} [{', '.join(t.types)}]" if t else f"connections {key}")
+        for c, values in by_key.get(key, []):
+            extra = "".join(f" {k}={val}" for k, val in sorted(values.items()))
+            qos = "" if c.qos_check in ("", "ok") else f" QoS: {c.qos_check}"
+            lines.append(f"  {c.publisher} -> {c.subscriber}{extra}{qos}")
+    return "\n".join(lines) + "\n"

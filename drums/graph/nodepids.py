@@ -1,0 +1,131 @@
+"""Which process runs each ROS 2 node: ROS 2 has no node-to-PID API (ros2/ros2#600), so the PID
+is inferred and every guess is checked against /proc.
+
+In order:
+1. "gid": Fast DDS writes the low 16 bits of the process id into bytes 4-5 of the GUID prefix that
+   every endpoint GID of the node's participant starts with (vendor id 01.0f = eProsima). A guess
+   counts only if a process with those low bits has librcl loaded; with several, none is taken.
+2. "cmdline": a process started with `__node:=<name>` (and `__ns:=<namespace>` if not /).
+3. "librcl": when exactly one process with librcl loaded is claimed by no node, the nodes still
+   unmapped are in it.
+A Fast DDS node whose GUID prefix names another host (bytes 2-3) is "remote": that host's agent
+maps it. One of this host whose process no longer runs is "gone": DDS forgets a participant that
+was killed only when its lease runs out (20 s by default), /proc knows at once.
+Other RMWs (Cyclone DDS, Connext, Zenoh) carry no PID in their GUIDs: their nodes go by 2 and 3.
+"""
+from __future__ import annotations
+
+import os
+
+FASTDDS_VENDOR = b"\x01\x0f"
+RCL_LIBRARY = "/librcl.so"
+
+
+def pid_bits_from_gid(gid: bytes) -> int | None:
+    """The low 16 bits of the process id in a Fast DDS GUID prefix, None for other vendors."""
+    if len(gid) >= 6 and gid[:2] == FASTDDS_VENDOR:
+        return int.from_bytes(gid[4:6], "little")
+    return None
+
+
+class ProcScan:
+    """What /proc says about processes, read once per process (start time keyed, so a reused PID
+    is read again)."""
+
+    def __init__(self, proc: str = "/proc"):
+        self.proc = proc
+        self._rcl: dict[tuple[int, str], bool] = {}
+        self._cmdline: dict[tuple[int, str], list[str]] = {}
+        self._pids: list[int] = []
+
+    def refresh(self) -> None:
+        self._pids = [int(d) for d in os.listdir(self.proc) if d.isdigit()]
+        alive = set(self._pids)
+        self._rcl = {k: v for k, v in self._rcl.items() if k[0] in alive}
+        self._cmdline = {k: v for k, v in self._cmdline.items() if k[0] in alive}
+
+    def pids(self) -> list[int]:
+        return self._pids
+
+    def _start(self, pid: int) -> str:
+        try:
+            with open(f"{self.proc}/{pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[19]
+        except (OSError, IndexError):
+            return ""
+
+    def has_rcl(self, pid: int) -> bool:
+        key = (pid, self._start(pid))
+        if key not in self._rcl:
+            try:
+                with open(f"{self.proc}/{pid}/maps") as f:
+                    self._rcl[key] = any(RCL_LIBRARY in line for line in f)
+            except OSError:
+                self._rcl[key] = False
+        return self._rcl[key]
+
+    def cmdline(self, pid: int) -> list[str]:
+        key = (pid, self._start(pid))
+        if key not in self._cmdline:
+            try:
+                with open(f"{self.proc}/{pid}/cmdline", "rb") as f:
+                    self._cmdline[key] = f.read().decode(errors="replace").split("\0")
+            except OSError:
+                self._cmdline[key] = []
+        return self._cmdline[key]
+
+    def name(self, pid: int) -> str:
+        try:
+            with open(f"{self.proc}/{pid}/comm") as f:
+                return f.read().rstrip("\n")
+        except OSError:
+            return ""
+
+
+def _node_arg(args: list[str]) -> str | None:
+    """The fully qualified node name a command line remaps to, if it does."""
+    name = next((a.split(":=", 1)[1] for a in args if a.startswith("__node:=")), None)
+    if name is None:
+        return None
+    ns = next((a.split(":=", 1)[1] for a in args if a.startswith("__ns:=")), "/")
+    return f"{ns.rstrip('/')}/{name}"
+
+
+def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes = b""
+              ) -> dict[str, tuple[int | None, str]]:
+    """Fully qualified node name -> (pid, how), given each node's participant GUID prefix (None if
+    it has no endpoint to read it from) and the prefix of our own participant: Fast DDS puts a
+    host id in bytes 2-3, so a node whose host id differs from ours is "remote"."""
+    scan.refresh()
+    out: dict[str, tuple[int | None, str]] = {}
+    by_bits: dict[int, list[int]] = {}
+    for pid in scan.pids():
+        by_bits.setdefault(pid & 0xFFFF, []).append(pid)
+    know_host = pid_bits_from_gid(own_prefix) is not None
+    for node, prefix in nodes.items():
+        bits = pid_bits_from_gid(prefix) if prefix else None
+        if bits is None:
+            continue
+        if know_host and prefix[2:4] != own_prefix[2:4]:
+            out[node] = (None, "remote")
+            continue
+        found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid)]
+        if len(found) == 1:
+            out[node] = (found[0], "gid")
+        elif not found and know_host:
+            out[node] = (None, "gone")
+    unmapped = [n for n in nodes if n not in out]
+    if unmapped:
+        for pid in scan.pids():
+            name = _node_arg(scan.cmdline(pid))
+            if name in unmapped and scan.has_rcl(pid):
+                out[name] = (pid, "cmdline")
+        unmapped = [n for n in nodes if n not in out]
+    if unmapped:
+        claimed = {pid for pid, _ in out.values()}
+        free = [pid for pid in scan.pids() if pid not in claimed and pid != os.getpid() and scan.has_rcl(pid)]
+        if len(free) == 1:
+            out.update({n: (free[0], "librcl") for n in unmapped})
+    for n in nodes:
+        out.setdefault(n, (None, "unmapped"))
+    return out

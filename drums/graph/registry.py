@@ -1,0 +1,32 @@
+"""Every graph adapter by name, and which one `auto` means on this host."""
+from __future__ import annotations
+
+import importlib.util
+import os
+
+from drums.errors import UsageError
+from drums.graph.adapter import Adapter
+
+ADAPTERS = ("ros2", "static", "auto")
+
+
+def default() -> str:
+    """ros2 where a ROS 2 environment is set up (ROS_DISTRO, or rclpy importable), else auto."""
+    if os.environ.get("ROS_VERSION") == "2" or importlib.util.find_spec("rclpy") is not None:
+        return "ros2"
+    return "auto"
+
+
+def build(name: str, graph_file: str = "") -> Adapter:
+    if name == "ros2":
+        from drums.graph.ros2 import Ros2Adapter
+        return Ros2Adapter()
+    if name == "static":
+        if not graph_file:
+            raise UsageError("--graph static needs --graph-file FILE (a YAML description)")
+        from drums.graph.static import StaticAdapter
+        return StaticAdapter(graph_file)
+    if name == "auto":
+        from drums.graph.auto import AutoAdapter
+        return AutoAdapter()
+    raise UsageError(f"--graph {name}: one of {', '.join(ADAPTERS)}")

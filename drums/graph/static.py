@@ -1,0 +1,126 @@
+"""A graph described in a YAML file, for systems without ROS. Processes are found by a regular
+expression over their command line at each poll, so restarts keep their names:
+
+    host: arm-controller          # optional; default: this host's name
+    nodes:
+      - name: /planner
+        process: "python3 .*planner\\.py"
+      - name: /driver
+        process: "^/usr/bin/motor-driver"
+    topics:
+      - name: /cmd_vel
+        type: geometry_msgs/msg/Twist     # optional
+        publishers: [/planner]
+        subscribers: [/driver]
+
+The file is read again when it changes; a file that does not parse keeps the last good graph.
+"""
+from __future__ import annotations
+
+import os
+import re
+import socket
+
+from drums.errors import GraphError
+from drums.graph.adapter import Adapter
+from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
+from drums.graph.nodepids import ProcScan
+
+
+def _list(doc: dict, key: str, where: str) -> list:
+    value = doc.get(key, [])
+    if not isinstance(value, list):
+        raise GraphError(f"{where}{key}: a list, not {type(value).__name__}")
+    return value
+
+
+def _name(item, where: str) -> str:
+    name = item.get("name") if isinstance(item, dict) else None
+    if not isinstance(name, str) or not name.startswith("/"):
+        raise GraphError(f"{where}: needs a name starting with / (got {name!r})")
+    return name
+
+
+def parse(text: str, path: str = "graph") -> tuple[str, dict[str, re.Pattern | None], list[dict]]:
+    """(host, node -> process pattern, topics) from the YAML text; every mistake is a GraphError
+    that names the file and the entry."""
+    import yaml
+
+    try:
+        doc = yaml.safe_load(text) or {}
+    except yaml.YAMLError as e:
+        raise GraphError(f"{path}: not YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise GraphError(f"{path}: a mapping with nodes and topics, not {type(doc).__name__}")
+    unknown = set(doc) - {"host", "nodes", "topics"}
+    if unknown:
+        raise GraphError(f"{path}: unknown key {sorted(unknown)[0]!r} (host, nodes, topics)")
+    host = doc.get("host") or socket.gethostname()
+    nodes: dict[str, re.Pattern | None] = {}
+    for i, item in enumerate(_list(doc, "nodes", f"{path}: ")):
+        where = f"{path}: nodes[{i}]"
+        name = _name(item, where)
+        pattern = item.get("process")
+        try:
+            nodes[name] = re.compile(pattern) if pattern else None
+        except (re.error, TypeError) as e:
+            raise GraphError(f"{where}: process is not a regular expression ({e})") from None
+    topics = []
+    for i, item in enumerate(_list(doc, "topics", f"{path}: ")):
+        where = f"{path}: topics[{i}]"
+        topic = {"name": _name(item, where), "type": str(item.get("type", "")),
+                 "publishers": _list(item, "publishers", f"{where}."),
+                 "subscribers": _list(item, "subscribers", f"{where}.")}
+        for node in topic["publishers"] + topic["subscribers"]:
+            if node not in nodes:
+                raise GraphError(f"{where}: node {node!r} is not among the nodes")
+        topics.append(topic)
+    return str(host), nodes, topics
+
+
+class StaticAdapter(Adapter):
+    name = "static"
+
+    def __init__(self, path: str, interval: float = 1.0, proc: str = "/proc"):
+        self.path = path
+        self.interval = interval
+        self.scan = ProcScan(proc)
+        self._parsed = None
+        self._mtime = None
+
+    def start(self) -> None:
+        self._read()
+
+    def _read(self) -> None:
+        try:
+            mtime = os.stat(self.path).st_mtime_ns
+            if mtime != self._mtime:
+                with open(self.path) as f:
+                    text = f.read()
+                self._parsed, self._mtime = parse(text, self.path), mtime
+        except OSError as e:
+            raise GraphError(f"{self.path}: {e.strerror}") from None
+
+    def poll(self) -> GraphState:
+        self._read()
+        host, nodes, topics = self._parsed
+        self.scan.refresh()
+        state = GraphState(hosts=[Host(host)])
+        pids = set()
+        for name, pattern in nodes.items():
+            found = [pid for pid in self.scan.pids()
+                     if pattern and pattern.search(" ".join(self.scan.cmdline(pid)).strip())]
+            pid = found[0] if len(found) == 1 else None
+            how = "static" if pid else ("ambiguous" if found else "unmapped")
+            state.nodes.append(Node(name, host if pid else "", pid, how))
+            if pid:
+                pids.add(pid)
+        state.processes = [Process(host, pid, self.scan.name(pid)) for pid in sorted(pids)]
+        for t in topics:
+            state.topics.append(Topic(t["name"], (t["type"],) if t["type"] else ()))
+            for kind in ("publishers", "subscribers"):
+                state.endpoints.extend(Endpoint(f"{node}@{t['name']}/{kind[:-1]}", kind[:-1], node, t["name"])
+                                       for node in t[kind])
+            state.connections.extend(Connection(t["name"], pub, sub, "static")
+                                     for pub in t["publishers"] for sub in t["subscribers"])
+        return state

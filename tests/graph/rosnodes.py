@@ -1,0 +1,65 @@
+"""ROS 2 test nodes, each run as its own process: `python rosnodes.py ROLE [NAME ...]`.
+
+Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), producer (a 1 MB
+image-like message on /image at 10 Hz), processor (/image -> /processed), sink (subscribes
+/processed), idle (a node with no endpoints of its own). Several NAMEs put several nodes in one
+process; arguments after --ros-args go to ROS (remapping). Prints "ready <pid>" once its nodes exist, and on each line of input "count <n>" with the
+messages it published or received so far.
+"""
+import os
+import sys
+import threading
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import String, UInt8MultiArray
+
+IMAGE_BYTES = 1 << 20
+counted = [0]
+
+
+def make(role: str, name: str) -> Node:
+    node = Node(name)
+    if role == "talker":
+        pub = node.create_publisher(String, "chatter", 10)
+        node.create_timer(0.1, lambda: (pub.publish(String(data="hello")), counted.__setitem__(0, counted[0] + 1)))
+    elif role == "listener":
+        node.create_subscription(String, "chatter", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
+    elif role == "producer":
+        pub = node.create_publisher(UInt8MultiArray, "image", 10)
+        msg = UInt8MultiArray(data=bytes(IMAGE_BYTES))
+        node.create_timer(0.1, lambda: (pub.publish(msg), counted.__setitem__(0, counted[0] + 1)))
+    elif role == "processor":
+        pub = node.create_publisher(UInt8MultiArray, "processed", 10)
+        node.create_subscription(UInt8MultiArray, "image",
+                                 lambda m: (pub.publish(m), counted.__setitem__(0, counted[0] + 1)), 10)
+    elif role == "sink":
+        node.create_subscription(UInt8MultiArray, "processed", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
+    elif role != "idle":
+        raise SystemExit(f"unknown role {role}")
+    return node
+
+
+def main() -> None:
+    ours = sys.argv[:sys.argv.index("--ros-args")] if "--ros-args" in sys.argv else sys.argv
+    role, names = ours[1], ours[2:] or [ours[1]]
+    rclpy.init(args=sys.argv)
+    executor = SingleThreadedExecutor()
+    for name in names:
+        executor.add_node(make(role, name))
+    print("ready", os.getpid(), flush=True)
+
+    def report():
+        for _ in sys.stdin:
+            print("count", counted[0], flush=True)
+        os._exit(0)  # input closed: the test is done with us
+    threading.Thread(target=report, daemon=True).start()
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass  # SIGINT: rclpy shut down and said goodbye to the other participants
+
+
+if __name__ == "__main__":
+    main()

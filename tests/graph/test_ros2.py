@@ -1,0 +1,83 @@
+"""The ROS 2 adapter against real rclpy nodes in processes of their own (Fast DDS, from PyPI)."""
+from __future__ import annotations
+
+import time
+
+from drums.graph.model import Graph
+from tests.conftest import eventually, wait_until
+
+DEFAULT_TOPICS = {"/rosout", "/parameter_events"}  # every rclpy node publishes on these
+
+
+def nodes(graph: Graph) -> dict[str, tuple]:
+    return {n.name: (n.pid, n.mapped_by) for n in graph.entities("node")}
+
+
+def edges(graph: Graph, topic: str) -> set[tuple[str, str]]:
+    return {(c.publisher, c.subscriber) for c in graph.connections() if c.topic == topic}
+
+
+def test_talker_listener(ros2_graph, ros_nodes):
+    talker, listener = ros_nodes("talker"), ros_nodes("listener")
+
+    def complete():
+        assert nodes(ros2_graph) == {"/talker": (talker.pid, "gid"), "/listener": (listener.pid, "gid")}
+        assert {t.name for t in ros2_graph.entities("topic")} == {"/chatter"} | DEFAULT_TOPICS
+        assert edges(ros2_graph, "/chatter") == {("/talker", "/listener")}
+    eventually(complete, timeout=5)
+    (chatter,) = [t for t in ros2_graph.entities("topic") if t.name == "/chatter"]
+    assert chatter.types == ("std_msgs/msg/String",)
+    pub = [e for e in ros2_graph.entities("endpoint") if e.topic == "/chatter" and e.kind == "publisher"]
+    assert [(e.node, e.qos["reliability"], e.qos["durability"]) for e in pub] == [("/talker", "reliable", "volatile")]
+    assert {c.qos_check for c in ros2_graph.connections() if c.topic == "/chatter"} == {"ok"}
+    assert {p.pid for p in ros2_graph.entities("process")} == {talker.pid, listener.pid}
+    assert not ros2_graph.stale()
+
+
+def test_pipeline_of_three_processes(ros2_graph, ros_nodes):
+    producer, processor, sink = ros_nodes("producer"), ros_nodes("processor"), ros_nodes("sink")
+
+    def complete():
+        assert nodes(ros2_graph) == {"/producer": (producer.pid, "gid"), "/processor": (processor.pid, "gid"),
+                                     "/sink": (sink.pid, "gid")}
+        assert edges(ros2_graph, "/image") == {("/producer", "/processor")}
+        assert edges(ros2_graph, "/processed") == {("/processor", "/sink")}
+        assert {t.name for t in ros2_graph.entities("topic")} == {"/image", "/processed"} | DEFAULT_TOPICS
+    eventually(complete, timeout=5)
+    assert sink.count() > 0  # the data really flows through the pipeline
+
+
+def test_two_nodes_in_one_process_map_to_its_pid(ros2_graph, ros_nodes):
+    both = ros_nodes("talker", "front", "back")
+    wait_until(lambda: nodes(ros2_graph) == {"/front": (both.pid, "gid"), "/back": (both.pid, "gid")},
+               "both nodes mapped to their process", timeout=5)
+
+
+def test_node_without_gid_is_mapped_by_its_command_line(ros2_graph, ros_nodes):
+    # Cyclone-like case: the GUID says nothing of the PID, here because the node is renamed by
+    # a remapping argument and checked as the /proc fallback would check it.
+    from drums.graph.nodepids import ProcScan, map_nodes
+    p = ros_nodes("idle", "--ros-args", "-r", "__node:=quiet")
+    assert map_nodes({"/quiet": None}, ProcScan()) == {"/quiet": (p.pid, "cmdline")}
+
+
+def test_new_node_appears_and_killed_node_leaves_within_two_seconds(ros2_graph, ros_nodes):
+    listener = ros_nodes("listener")
+    wait_until(lambda: set(nodes(ros2_graph)) == {"/listener"}, "the listener", timeout=5)
+
+    newcomer = ros_nodes("talker", "newcomer")  # returns once its node exists
+    created_at = time.monotonic()
+    wait_until(lambda: nodes(ros2_graph).get("/newcomer") == (newcomer.pid, "gid"), "the newcomer", timeout=5)
+    appeared_after = time.monotonic() - created_at
+    # How long DDS itself took: until the listener got the newcomer's first message.
+    wait_until(lambda: listener.count() > 0, "the listener's first message", timeout=5)
+    heard_after = time.monotonic() - created_at
+    wait_until(lambda: edges(ros2_graph, "/chatter") == {("/newcomer", "/listener")}, "the new edge", timeout=2)
+
+    killed_at = time.monotonic()
+    newcomer.kill()  # SIGKILL: DDS itself would keep it for its 20 s lease
+    wait_until(lambda: set(nodes(ros2_graph)) == {"/listener"}, "the killed node to leave", timeout=5)
+    left_after = time.monotonic() - killed_at
+    assert edges(ros2_graph, "/chatter") == set()
+    assert {p.pid for p in ros2_graph.entities("process")} == {listener.pid}
+    assert appeared_after <= 2.0 and left_after <= 2.0, (appeared_after, heard_after, left_after)

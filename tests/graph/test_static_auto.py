@@ -1,0 +1,119 @@
+"""The static (YAML) and auto (processes and their TCP connections) adapters, with real
+processes; and what the graph does with a reader that answers garbage or nothing."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from drums.cli import main
+from drums.errors import GraphError
+from drums.graph.adapter import ChildAdapter, Follower
+from drums.graph.auto import AutoAdapter
+from drums.graph.model import Graph
+from drums.graph.static import StaticAdapter, parse
+from tests.conftest import wait_until
+
+SLEEPER = "import time, sys; time.sleep(60)"
+
+
+@pytest.fixture
+def procs():
+    started = []
+
+    def start(*args):
+        p = subprocess.Popen([sys.executable, "-c", *args], stdout=subprocess.PIPE, text=True)
+        started.append(p)
+        return p
+    yield start
+    for p in started:
+        p.kill()
+        p.wait()
+
+
+def test_static_file_names_nodes_processes_and_edges(tmp_path, procs):
+    planner, driver = procs(SLEEPER, "planner-7f3a"), procs(SLEEPER, "driver-7f3a")
+    path = tmp_path / "robot.yaml"
+    path.write_text(textwrap.dedent("""
+        host: arm
+        nodes:
+          - {name: /planner, process: "planner-7f3a"}
+          - {name: /driver, process: "driver-7f3a"}
+          - {name: /camera, process: "no-such-process-7f3a"}
+        topics:
+          - {name: /cmd_vel, type: geometry_msgs/msg/Twist, publishers: [/planner], subscribers: [/driver]}
+    """))
+    graph = Graph()
+    graph.update(StaticAdapter(str(path)).poll())
+    assert {n.name: (n.pid, n.mapped_by) for n in graph.entities("node")} == {
+        "/planner": (planner.pid, "static"), "/driver": (driver.pid, "static"), "/camera": (None, "unmapped")}
+    assert [(c.topic, c.publisher, c.subscriber) for c in graph.connections()] == [("/cmd_vel", "/planner", "/driver")]
+    assert {p.pid for p in graph.entities("process")} == {planner.pid, driver.pid}
+
+
+@pytest.mark.parametrize("text, error", [
+    ("nodes: [", "not YAML"),
+    ("- a\n- b", "a mapping with nodes and topics, not list"),
+    ("nodes: {a: 1}", "nodes: a list, not dict"),
+    ("nodes: [{name: planner}]", "nodes[0]: needs a name starting with /"),
+    ("nodes: [{name: /p, process: '('}]", "nodes[0]: process is not a regular expression"),
+    ("topics: [{name: /t, publishers: [/ghost]}]", "topics[0]: node '/ghost' is not among the nodes"),
+    ("colour: blue", "unknown key 'colour'"),
+])
+def test_bad_static_files_are_one_line_errors(text, error):
+    with pytest.raises(GraphError, match=None) as e:
+        parse(text, "robot.yaml")
+    assert error in str(e.value) and str(e.value).startswith("robot.yaml: ") and "\n" not in str(e.value)
+
+
+def test_drums_graph_with_a_bad_file_says_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("nodes: [")
+    assert main(["graph", "--graph", "static", "--graph-file", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"drums: graph (static): {bad}: not YAML") and err.count("\n") == 1
+
+
+def test_auto_graph_has_an_edge_from_client_to_server(procs):
+    server = procs(textwrap.dedent("""
+        import socket, time
+        s = socket.socket(); s.bind(("127.0.0.1", 0)); s.listen(); print(s.getsockname()[1], flush=True)
+        c, _ = s.accept(); time.sleep(60)
+    """))
+    port = int(server.stdout.readline())
+    client = procs(textwrap.dedent(f"""
+        import socket, time
+        c = socket.create_connection(("127.0.0.1", {port})); print("ok", flush=True); time.sleep(60)
+    """))
+    client.stdout.readline()
+    graph = Graph()
+    graph.update(AutoAdapter().poll())
+    names = {n.pid: n.name for n in graph.entities("node")}
+    assert (f"tcp:{port}", names[client.pid], names[server.pid]) in {
+        (c.topic, c.publisher, c.subscriber) for c in graph.connections()}
+    assert names[server.pid] == f"/python3/{server.pid}" or names[server.pid].endswith(f"/{server.pid}")
+
+
+class FakeReader(ChildAdapter):
+    """A reader child that describes one node, then answers garbage, then nothing."""
+    name = "fake"
+    module = "tests.graph.fake_reader"
+
+
+def test_garbage_then_silence_keeps_the_last_good_graph_marked_stale(caplog):
+    graph = Graph()
+    adapter = FakeReader(interval=0.1, timeout=1.0)
+    follower = Follower(adapter, graph)
+    follower.start(wait=True)
+    try:
+        wait_until(lambda: [n.name for n in graph.entities("node")] == ["/only"], "the good graph")
+        wait_until(lambda: "unreadable line" in graph.error, "the garbage to be noticed")
+        assert graph.stale() and [n.name for n in graph.entities("node")] == ["/only"]
+        wait_until(lambda: "said nothing" in graph.error, "the silence to be noticed", timeout=5)
+        assert [n.name for n in graph.entities("node")] == ["/only"]
+    finally:
+        follower.stop()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 2 and all("keeping the last good graph" in w for w in warnings), warnings
