@@ -138,7 +138,14 @@ def run_graph(args) -> int:
             time.sleep(0.05)
         if not graph.updated_at:
             raise GraphError(graph.error or "no graph within the time allowed")
-        time.sleep(adapter.settle)
+        # Discovery goes on after the first answer: print once nothing changed for `settle` s.
+        _, cursor = graph.changes_since(0)
+        quiet_since, give_up = time.monotonic(), time.monotonic() + 4 * adapter.settle
+        while time.monotonic() - quiet_since < adapter.settle and time.monotonic() < give_up:
+            time.sleep(0.05)
+            changes, cursor = graph.changes_since(cursor)
+            if changes:
+                quiet_since = time.monotonic()
         text = render(graph.snapshot(), args.format, stale=graph.error)
         if args.output == "-":
             sys.stdout.write(text)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import threading
@@ -22,7 +23,7 @@ log = logging.getLogger("drums")
 class Adapter:
     name = ""
     interval = 1.0  # seconds between polls
-    settle = 0.0  # seconds after the first poll until the graph is complete (discovery)
+    settle = 0.0  # seconds without a change after which a one-shot reader takes the graph as complete
 
     def start(self) -> None:
         """Raise GraphError if the adapter cannot run at all (e.g. rclpy missing)."""
@@ -40,6 +41,7 @@ class ChildAdapter(Adapter):
     when it exits; a child silent for `timeout` seconds makes polls fail."""
 
     module = ""
+    env: dict[str, str] = {}  # for the child, where the environment does not set them already
 
     def __init__(self, interval: float = 0.5, timeout: float = 5.0):
         self.interval = interval
@@ -53,7 +55,7 @@ class ChildAdapter(Adapter):
     def _spawn(self) -> None:
         self._proc = subprocess.Popen([sys.executable, "-m", self.module, "--interval", str(self.interval)],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                      text=True)
+                                      text=True, env={**self.env, **os.environ})
         self._heard_at = time.monotonic()
         threading.Thread(target=self._read, args=(self._proc,), daemon=True, name=f"{self.name}-reader").start()
 

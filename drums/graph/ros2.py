@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import sys
 
@@ -91,7 +92,8 @@ def discover(node, scan: ProcScan, host: str) -> GraphState:
 class Ros2Adapter(ChildAdapter):
     name = "ros2"
     module = "drums.graph.ros2"
-    settle = 1.5  # DDS discovery of the other participants takes about a second
+    env = {"FASTDDS_DEFAULT_PROFILES_FILE": os.path.join(os.path.dirname(__file__), "fastdds_reader.xml")}
+    settle = 3.0  # every DDS participant announces itself every 3 s (Fast DDS's default)
 
 
 def child(interval: float) -> int:

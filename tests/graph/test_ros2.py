@@ -1,6 +1,9 @@
 """The ROS 2 adapter against real rclpy nodes in processes of their own (Fast DDS, from PyPI)."""
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import time
 
 from drums.graph.model import Graph
@@ -67,11 +70,18 @@ def test_new_node_appears_and_killed_node_leaves_within_two_seconds(ros2_graph, 
 
     newcomer = ros_nodes("talker", "newcomer")  # returns once its node exists
     created_at = time.monotonic()
-    wait_until(lambda: nodes(ros2_graph).get("/newcomer") == (newcomer.pid, "gid"), "the newcomer", timeout=5)
-    appeared_after = time.monotonic() - created_at
-    # How long DDS itself took: until the listener got the newcomer's first message.
-    wait_until(lambda: listener.count() > 0, "the listener's first message", timeout=5)
-    heard_after = time.monotonic() - created_at
+    # Two clocks run at once: when the graph shows the newcomer, and when DDS itself has
+    # discovered it (the listener gets its first message). Fast DDS sometimes takes about 3 s
+    # here (its announcement period) for the listener too; the graph must not lag DDS.
+    appeared_after = heard_after = None
+    while time.monotonic() - created_at < 10 and None in (appeared_after, heard_after):
+        if appeared_after is None and nodes(ros2_graph).get("/newcomer") == (newcomer.pid, "gid"):
+            appeared_after = time.monotonic() - created_at
+        if heard_after is None and listener.count() > 0:
+            heard_after = time.monotonic() - created_at
+        time.sleep(0.01)
+    assert None not in (appeared_after, heard_after), (appeared_after, heard_after)
+    assert appeared_after <= max(2.0, heard_after + 0.5), (appeared_after, heard_after)
     wait_until(lambda: edges(ros2_graph, "/chatter") == {("/newcomer", "/listener")}, "the new edge", timeout=2)
 
     killed_at = time.monotonic()
@@ -80,4 +90,19 @@ def test_new_node_appears_and_killed_node_leaves_within_two_seconds(ros2_graph, 
     left_after = time.monotonic() - killed_at
     assert edges(ros2_graph, "/chatter") == set()
     assert {p.pid for p in ros2_graph.entities("process")} == {listener.pid}
-    assert appeared_after <= 2.0 and left_after <= 2.0, (appeared_after, heard_after, left_after)
+    assert left_after <= 2.0, left_after
+
+
+def test_drums_graph_exports_json(ros_nodes, tmp_path):
+    talker, listener = ros_nodes("talker"), ros_nodes("listener")
+    out = tmp_path / "graph.json"
+    # As the README shows it; the command waits for DDS discovery before it writes.
+    done = subprocess.run([sys.executable, "-m", "drums", "graph", "--graph", "ros2", "--format", "json",
+                           "--output", str(out)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    data = json.loads(out.read_text())
+    by_id = {v["id"]: v for v in data["nodes"]}
+    assert (by_id["node:/talker"]["pid"], by_id["node:/listener"]["pid"]) == (talker.pid, listener.pid)
+    assert {(e["source"], e["target"]) for e in data["edges"] if e["kind"] == "connection"} == {
+        ("node:/talker", "node:/listener")}
+    assert data["stale"] == ""
