@@ -11,7 +11,7 @@ ADAPTERS = ("ros2", "static", "auto")
 
 
 def default() -> str:
-    """ros2 where a ROS 2 environment is set up (ROS_DISTRO, or rclpy importable), else auto."""
+    """ros2 where a ROS 2 environment is set up (ROS_VERSION=2, or rclpy importable), else auto."""
     if os.environ.get("ROS_VERSION") == "2" or importlib.util.find_spec("rclpy") is not None:
         return "ros2"
     return "auto"
