@@ -24,7 +24,6 @@ def _endpoint(address: str, port: int) -> str:
 
 def _socket_owners(table: ProcessTable) -> dict[int, int]:
     """Socket inode -> PID, from every process's open files."""
-    table.refresh()
     return {inode: pid for pid in table.pids() for inode in table.socket_inodes(pid)}
 
 
@@ -33,7 +32,6 @@ class AutoAdapter(Adapter):
     interval = 5.0  # reading every process's open files costs a readlink per file
 
     def __init__(self, proc: str = "/proc"):
-        self.table = ProcessTable(proc)
         self.scan = ProcScan(proc)
 
     def poll(self) -> GraphState:
@@ -41,7 +39,8 @@ class AutoAdapter(Adapter):
             conns = sockdiag.dump_tcp((1 << ESTABLISHED) | (1 << LISTEN))
         except KernelError as e:
             raise GraphError(str(e)) from None
-        owners = _socket_owners(self.table)
+        self.scan.refresh()
+        owners = _socket_owners(self.scan.table)
         host = socket.gethostname()
         listeners = {}  # port -> pid (any address)
         for c in conns:

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import os
 
+from drums.proctable import ProcessTable
+
 FASTDDS_VENDOR = b"\x01\x0f"
 RCL_LIBRARY = "/librcl.so"
 
@@ -34,18 +36,20 @@ class ProcScan:
 
     def __init__(self, proc: str = "/proc"):
         self.proc = proc
+        self.table = ProcessTable(proc)  # the listing and the names
         self._rcl: dict[tuple[int, str], bool] = {}
         self._cmdline: dict[tuple[int, str], list[str]] = {}
-        self._pids: list[int] = []
 
     def refresh(self) -> None:
-        self._pids = [int(d) for d in os.listdir(self.proc) if d.isdigit()]
-        alive = set(self._pids)
-        self._rcl = {k: v for k, v in self._rcl.items() if k[0] in alive}
-        self._cmdline = {k: v for k, v in self._cmdline.items() if k[0] in alive}
+        self.table.refresh()
+        self._rcl = {k: v for k, v in self._rcl.items() if self.table.alive(k[0])}
+        self._cmdline = {k: v for k, v in self._cmdline.items() if self.table.alive(k[0])}
 
     def pids(self) -> list[int]:
-        return self._pids
+        return sorted(self.table.pids())
+
+    def name(self, pid: int) -> str:
+        return self.table.name(pid)
 
     def _start(self, pid: int) -> str:
         try:
@@ -73,13 +77,6 @@ class ProcScan:
             except OSError:
                 self._cmdline[key] = []
         return self._cmdline[key]
-
-    def name(self, pid: int) -> str:
-        try:
-            with open(f"{self.proc}/{pid}/comm") as f:
-                return f.read().rstrip("\n")
-        except OSError:
-            return ""
 
 
 def _node_arg(args: list[str]) -> str | None:
