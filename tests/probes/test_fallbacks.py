@@ -55,8 +55,11 @@ def stop(pid):
     while time.monotonic() < deadline:
         states = set()
         for tid in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                states.add(f.read().rsplit(")", 1)[1].split()[0])
+            try:
+                with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                    states.add(f.read().rsplit(")", 1)[1].split()[0])
+            except FileNotFoundError:
+                pass  # a thread that was just joined can still be listed for a moment
         if states == {"T"}:
             return
         time.sleep(0.005)
