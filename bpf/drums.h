@@ -7,6 +7,8 @@
 #define ATTACH_RAW_TRACEPOINT 1
 #define ATTACH_FENTRY 2
 #define ATTACH_KPROBE 3
+#define ATTACH_TRACEPOINT 4  // perf-event tracepoints, pinned as BPF links
+#define ATTACH_UPROBE 5
 
 #ifndef AF_UNIX
 #define AF_UNIX 1

@@ -49,3 +49,34 @@ class ProcessTable:
             if target.startswith("socket:["):
                 inodes.add(int(target[8:-1]))
         return inodes
+
+
+class MappedLibraries:
+    """Which processes map which of some shared libraries (by file name prefix, e.g. "librcl.so"),
+    read from /proc/<pid>/maps once per process: the probes that follow a middleware find its
+    processes and the library files to put uprobes on."""
+
+    def __init__(self, table: ProcessTable, prefixes: tuple[str, ...]):
+        self.table = table
+        self.prefixes = prefixes
+        self._seen: dict[int, dict[str, str]] = {}  # pid -> {prefix: path as that process sees it}
+
+    def refresh(self) -> dict[int, dict[str, str]]:
+        """Every live process that maps at least one of the libraries. Call after table.refresh()."""
+        alive = self.table.pids()
+        self._seen = {pid: self._seen[pid] if pid in self._seen else self._read(pid) for pid in alive}
+        return {pid: libs for pid, libs in self._seen.items() if libs}
+
+    def _read(self, pid: int) -> dict[str, str]:
+        try:
+            with open(f"{self.table.proc}/{pid}/maps") as f:
+                text = f.read()
+        except OSError:
+            return {}
+        found = {}
+        for prefix in self.prefixes:
+            at = text.find("/" + prefix)  # most processes map none: one search each, no parsing
+            if at >= 0:
+                start = text.rfind(" ", 0, at) + 1
+                found[prefix] = text[start:text.find("\n", at)]
+        return found

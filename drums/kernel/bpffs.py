@@ -46,6 +46,7 @@ def libbpf() -> ctypes.CDLL:
     lib.bpf_obj_pin.argtypes = [ctypes.c_int, ctypes.c_char_p]
     lib.bpf_map_lookup_elem.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
     lib.bpf_map_delete_elem.argtypes = [ctypes.c_int, ctypes.c_void_p]
+    lib.bpf_map_update_elem.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64]
     lib.bpf_map_get_next_key.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
     lib.bpf_map_lookup_batch.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
                                          ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32), ctypes.c_void_p]
@@ -58,6 +59,11 @@ def _check(ret: int, what: str) -> int:
         err = ctypes.get_errno() or -ret
         raise ProbeError(f"{what}: {os.strerror(err)}")
     return ret
+
+
+def obj_get(path: str) -> int:
+    """An fd of the pinned program, link or map."""
+    return _check(libbpf().bpf_obj_get(path.encode()), f"open {path}")
 
 
 def pin(fd: int, path: str) -> None:
@@ -78,7 +84,7 @@ class PinnedMap:
     """A BPF map opened from its pin; iterated in batches of raw (key, value) bytes."""
 
     def __init__(self, path: str):
-        self._init(_check(libbpf().bpf_obj_get(path.encode()), f"open {path}"), path)
+        self._init(obj_get(path), path)
 
     @classmethod
     def from_fd(cls, fd: int, name: str) -> "PinnedMap":
@@ -155,6 +161,13 @@ class PinnedMap:
                 values.append(value.raw)
             prev = ctypes.create_string_buffer(key.raw, self.key_size)
         return b"".join(keys), b"".join(values), len(keys)
+
+    def update(self, key: bytes, value: bytes) -> None:
+        _check(libbpf().bpf_map_update_elem(self.fd, key, value, 0), f"update {self.path}")
+
+    def delete(self, key: bytes) -> None:
+        """Delete the entry if it is there."""
+        libbpf().bpf_map_delete_elem(self.fd, key)
 
     def delete_unchanged(self, entries: list[tuple[bytes, bytes]]) -> None:
         """Delete entries that still hold the value read; one that changed since (its key now

@@ -72,6 +72,15 @@ class Features:
         # CONFIG_KPROBES registers this PMU; without it no kprobe can attach.
         return os.path.isdir("/sys/bus/event_source/devices/kprobe")
 
+    @cached_property
+    def perf_links(self) -> bool:
+        """BPF links on perf events (Linux >= 5.15): tracepoints and uprobes that can be pinned."""
+        return self.btf is not None and self.btf.has_field("bpf_perf_link", "perf_file")
+
+    @cached_property
+    def uprobes(self) -> bool:
+        return os.path.isdir("/sys/bus/event_source/devices/uprobe")
+
     def tracepoint(self, event: str) -> bool:
         """Whether a raw tracepoint exists: from tracefs when mounted (cheap), else from BTF."""
         if self.tracefs:

@@ -18,7 +18,7 @@ from drums.errors import DrumsError, ProbeError
 from drums.kernel import bpffs
 
 BPF_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bpf")
-PINNABLE = {"raw_tracepoint", "fentry"}
+PINNABLE = {"raw_tracepoint", "fentry", "tracepoint", "uprobe"}
 
 
 @dataclass
@@ -46,12 +46,19 @@ def _compile(req: LoadRequest):
 
 
 def attach(req: LoadRequest):
-    """Compile and attach in this process; returns the bcc object and the attachment fds."""
+    """Compile and attach in this process; returns the bcc object and the fds to pin by name:
+    links, and programs loaded for later attachment ("program", e.g. uprobes)."""
+    from drums.kernel import perflink
+
     b = _compile(req)
-    fds = []
+    fds, programs = [], {}
     try:
         for kind, target, fn in req.attachments:
-            if kind == "raw_tracepoint":
+            if kind == "tracepoint":
+                fds.append(perflink.tracepoint(b.load_func(fn.encode(), b.TRACEPOINT).fd, target))
+            elif kind == "program":
+                programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.KPROBE).fd  # uprobes are kprobe programs
+            elif kind == "raw_tracepoint":
                 b.attach_raw_tracepoint(tp=target.encode(), fn_name=fn.encode())
                 fds.append(b.raw_tracepoint_fds[target.encode()])
             elif kind == "kprobe":
@@ -69,19 +76,19 @@ def attach(req: LoadRequest):
         raise ProbeError(f"attach {kind} {target}: {e}") from None
     if any(kind == "fentry" for kind, _, _ in req.attachments):
         fds.extend(list(b.kfunc_entry_fds.values()) + list(b.kfunc_exit_fds.values()))
-    return b, fds
+    return b, {f"link{i}": fd for i, fd in enumerate(fds)} | programs
 
 
 def load_and_pin(req: LoadRequest) -> None:
-    """Attach, then pin every map and link under req.pin_dir, replacing what was there."""
-    b, link_fds = attach(req)
+    """Attach, then pin every map, link and program under req.pin_dir, replacing what was there."""
+    b, pins = attach(req)
     tmp = req.pin_dir + "-partial"  # bpffs refuses names with dots
     shutil.rmtree(tmp, ignore_errors=True)
     os.makedirs(tmp)
     for name in req.maps:
         bpffs.pin(b[name.encode()].map_fd, os.path.join(tmp, name))
-    for i, fd in enumerate(link_fds):
-        bpffs.pin(fd, os.path.join(tmp, f"link{i}"))
+    for name, fd in pins.items():
+        bpffs.pin(fd, os.path.join(tmp, name))
     shutil.rmtree(req.pin_dir, ignore_errors=True)
     os.rename(tmp, req.pin_dir)
 

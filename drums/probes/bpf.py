@@ -22,7 +22,7 @@ from drums.kernel.features import Features
 from drums.probes.base import Probe
 
 # Values of DRUMS_ATTACH in bpf/drums.h.
-ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3}
+ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3, "tracepoint": 4, "uprobe": 5}
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,7 @@ class BpfProbe(Probe):
         self.features = features
         self.pin_root = pin_root
         self.opened: dict[str, bpffs.PinnedMap] = {}
+        self.pin_dir = ""
         self._in_process = None  # the bcc object, for paths the kernel cannot pin
 
     def offsets(self, btf: Btf) -> dict[str, int]:
@@ -115,7 +116,7 @@ class BpfProbe(Probe):
         path, reasons = choose_path(self.paths, self.features)
         if path is None:
             raise KernelError("no attach path: " + "; ".join(reasons))
-        pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
+        self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
         if path.name in loader.PINNABLE:
             if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):
                 self._remove_pins()

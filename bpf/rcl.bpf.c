@@ -1,0 +1,69 @@
+// Messages published and taken per ROS 2 publisher and subscription, counted by uprobes on
+// librcl's rcl_publish* and rcl_take* functions. On one host Fast DDS moves samples over shared
+// memory, where no socket sees them; every ROS 2 client library still goes through rcl.
+//
+// The agent attaches these programs to each librcl.so it finds in processes' memory maps, and
+// names each handle (an rcl_publisher_t or rcl_subscription_t address) by reading its topic name
+// from the process's memory.
+#include <uapi/linux/ptrace.h>
+#include "drums.h"
+
+#define PUBLISHED 0
+#define TAKEN 1
+
+struct handle_key_t {
+    u32 tgid;
+    u32 op;       // PUBLISHED or TAKEN
+    u64 handle;   // the rcl_publisher_t * or rcl_subscription_t * passed as first argument
+};
+
+BPF_HASH(handles, struct handle_key_t, u64, 16384);
+BPF_HASH(takes, u64, u64, 4096);  // thread -> subscription, while rcl_take runs
+BPF_ARRAY(dropped, u64, 2);
+
+static __always_inline void count_drop(int which)
+{
+    u64 *d = dropped.lookup(&which);
+    if (d)
+        __sync_fetch_and_add(d, 1);
+}
+
+static __always_inline void count(u32 op, u64 handle)
+{
+    struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = op, .handle = handle};
+    u64 zero = 0;
+    u64 *n = handles.lookup_or_try_init(&key, &zero);
+    if (n)
+        __sync_fetch_and_add(n, 1);
+    else
+        count_drop(1);
+}
+
+int on_publish(struct pt_regs *ctx)
+{
+    count(PUBLISHED, PT_REGS_PARM1(ctx));
+    return 0;
+}
+
+// rcl_take returns RCL_RET_OK (0) only when it took a message: that needs the return probe too.
+int on_take(struct pt_regs *ctx)
+{
+    u64 tid = bpf_get_current_pid_tgid();
+    u64 handle = PT_REGS_PARM1(ctx);
+    if (takes.update(&tid, &handle) != 0)
+        count_drop(0);
+    return 0;
+}
+
+int on_take_return(struct pt_regs *ctx)
+{
+    u64 tid = bpf_get_current_pid_tgid();
+    u64 *handle = takes.lookup(&tid);
+    if (!handle)
+        return 0;
+    u64 h = *handle;
+    takes.delete(&tid);
+    if (PT_REGS_RC(ctx) == 0)
+        count(TAKEN, h);
+    return 0;
+}

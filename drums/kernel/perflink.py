@@ -1,0 +1,92 @@
+"""Attach a loaded BPF program to a tracepoint or a uprobe as a BPF link, which bpffs can pin.
+
+bcc attaches tracepoints and uprobes through perf events with an ioctl, which ends with the
+process that made it. A link made with BPF_LINK_CREATE on the perf event (Linux >= 5.15) holds
+the event itself: pinned, it outlives the loader, and the agent attaches new uprobes (a librcl.so
+that appears later) to pinned programs without bcc or its compiler.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+
+from drums.errors import ProbeError
+from drums.kernel import bpffs
+from drums.kernel.features import TRACEFS
+
+_PERF_TYPE_TRACEPOINT = 2
+_BPF_PERF_EVENT = 41  # enum bpf_attach_type
+_SYS_PERF_EVENT_OPEN = {"x86_64": 298, "aarch64": 241, "armv7l": 364, "riscv64": 241}
+_PERF_FLAG_FD_CLOEXEC = 8
+_UPROBE_PMU = "/sys/bus/event_source/devices/uprobe"
+
+
+class _PerfEventAttr(ctypes.Structure):
+    # The head of struct perf_event_attr (PERF_ATTR_SIZE_VER1, include/uapi/linux/perf_event.h).
+    _fields_ = [
+        ("type", ctypes.c_uint32),
+        ("size", ctypes.c_uint32),
+        ("config", ctypes.c_uint64),
+        ("sample_period", ctypes.c_uint64),
+        ("sample_type", ctypes.c_uint64),
+        ("read_format", ctypes.c_uint64),
+        ("flags", ctypes.c_uint64),
+        ("wakeup_events", ctypes.c_uint32),
+        ("bp_type", ctypes.c_uint32),
+        ("config1", ctypes.c_uint64),  # uprobe: the path
+        ("config2", ctypes.c_uint64),  # uprobe: the file offset
+    ]
+
+
+def _perf_event_open(attr: _PerfEventAttr, what: str) -> int:
+    nr = _SYS_PERF_EVENT_OPEN.get(os.uname().machine)
+    if nr is None:
+        raise ProbeError(f"{what}: perf_event_open is not known on {os.uname().machine}")
+    libc = ctypes.CDLL(None, use_errno=True)
+    # pid -1, cpu 0: a BPF program on a tracepoint or uprobe event runs on every CPU.
+    fd = libc.syscall(nr, ctypes.byref(attr), -1, 0, -1, _PERF_FLAG_FD_CLOEXEC)
+    if fd < 0:
+        raise ProbeError(f"{what}: {os.strerror(ctypes.get_errno())}")
+    return fd
+
+
+def _link(prog_fd: int, perf_fd: int, what: str) -> int:
+    lib = bpffs.libbpf()
+    lib.bpf_link_create.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_void_p]
+    try:
+        fd = lib.bpf_link_create(prog_fd, perf_fd, _BPF_PERF_EVENT, None)
+        if fd < 0:
+            raise ProbeError(f"{what}: BPF link: {os.strerror(ctypes.get_errno() or -fd)} (needs Linux >= 5.15)")
+        return fd
+    finally:
+        os.close(perf_fd)  # the link holds the event now
+
+
+def tracepoint(prog_fd: int, event: str) -> int:
+    """A link of the program to `category:name`; returns its fd."""
+    category, _, name = event.partition(":")
+    try:
+        with open(f"{TRACEFS}/events/{category}/{name}/id") as f:
+            event_id = int(f.read())
+    except (OSError, ValueError):
+        raise ProbeError(f"no tracepoint {event} in {TRACEFS}") from None
+    attr = _PerfEventAttr(type=_PERF_TYPE_TRACEPOINT, size=ctypes.sizeof(_PerfEventAttr), config=event_id,
+                          sample_period=1, wakeup_events=1)
+    return _link(prog_fd, _perf_event_open(attr, f"tracepoint {event}"), f"tracepoint {event}")
+
+
+def uprobe(prog_fd: int, path: str, offset: int, ret: bool = False) -> int:
+    """A link of the program to the instruction at file `offset` of `path` (a return probe on the
+    function there if `ret`); returns its fd."""
+    what = f"uprobe {path}+{offset:#x}"
+    try:
+        with open(f"{_UPROBE_PMU}/type") as f:
+            pmu = int(f.read())
+        with open(f"{_UPROBE_PMU}/format/retprobe") as f:
+            ret_bit = int(f.read().split(":")[1])  # "config:0"
+    except (OSError, ValueError, IndexError):
+        raise ProbeError(f"{what}: the kernel has no uprobe PMU ({_UPROBE_PMU})") from None
+    name = ctypes.create_string_buffer(path.encode())
+    attr = _PerfEventAttr(type=pmu, size=ctypes.sizeof(_PerfEventAttr), config=(1 << ret_bit) if ret else 0,
+                          sample_period=1, wakeup_events=1, config1=ctypes.addressof(name), config2=offset)
+    return _link(prog_fd, _perf_event_open(attr, what), what)

@@ -1,0 +1,203 @@
+"""Messages published and taken per ROS 2 process and topic, from uprobes on librcl
+(bpf/rcl.bpf.c): counts that shared memory hides from every socket.
+
+The programs are loaded once; each librcl.so file that a process maps is found in
+/proc/<pid>/maps and gets its own pinned uprobe links, attached from this process without bcc.
+A handle (rcl_publisher_t or rcl_subscription_t) is named by reading the process's memory once:
+the handle points to rcl's private impl struct, whose layout changes between ROS distributions,
+so the rmw handle inside it is found by its shape (rmw_publisher_t and rmw_subscription_t, public
+and stable, begin with the RMW's name, a data pointer and the topic name).
+"""
+from __future__ import annotations
+
+import glob
+import os
+import struct
+
+from drums.errors import ProbeError
+from drums.kernel import bpffs, perflink
+from drums.kernel.btf import Btf
+from drums.metrics import COUNTER, Metric, Snapshot
+from drums.probes.bpf import AttachPath, BpfProbe
+from drums.proctable import MappedLibraries, ProcessTable
+
+LIBRARY = "librcl.so"
+# (function, program, return probe): every way a message enters or leaves rcl.
+UPROBES = (
+    ("rcl_publish", "on_publish", False),
+    ("rcl_publish_serialized_message", "on_publish", False),
+    ("rcl_publish_loaned_message", "on_publish", False),
+    ("rcl_take", "on_take", False),
+    ("rcl_take", "on_take_return", True),
+    ("rcl_take_serialized_message", "on_take", False),
+    ("rcl_take_serialized_message", "on_take_return", True),
+    ("rcl_take_loaned_message", "on_take", False),
+    ("rcl_take_loaned_message", "on_take_return", True),
+)
+PROGRAMS = ("on_publish", "on_take", "on_take_return")
+UNKNOWN_TOPIC = "unknown"  # a handle whose topic could not be read (yet: it is tried again)
+
+LABELS = ("pid", "process", "topic")
+PUBLISHED = Metric("drums_ros_messages_published_total", COUNTER,
+                   "Messages this process published on the topic (rcl_publish), whatever the transport", LABELS)
+TAKEN = Metric("drums_ros_messages_taken_total", COUNTER,
+               "Messages this process took from the topic (rcl_take), whatever the transport", LABELS)
+
+_KEY = struct.Struct("<IIQ")
+_U64 = struct.Struct("<Q")
+_IMPL_WORDS = 64  # how far into rcl's impl struct to look for the rmw handle
+
+
+def symbol_offsets(path: str, names) -> dict[str, int]:
+    """File offsets of the named dynamic symbols of an ELF shared library, for uprobes."""
+    from elftools.common.exceptions import ELFError
+    from elftools.elf.elffile import ELFFile
+
+    try:
+        with open(path, "rb") as f:
+            elf = ELFFile(f)
+            dynsym = elf.get_section_by_name(".dynsym")
+            loads = [s for s in elf.iter_segments() if s["p_type"] == "PT_LOAD"]
+            out = {}
+            for name in names:
+                for sym in dynsym.get_symbol_by_name(name) or () if dynsym else ():
+                    value = sym["st_value"]
+                    for seg in loads:
+                        if seg["p_vaddr"] <= value < seg["p_vaddr"] + seg["p_memsz"]:
+                            out[name] = value - seg["p_vaddr"] + seg["p_offset"]
+            return out
+    except (OSError, ELFError) as e:
+        raise ProbeError(f"{path}: cannot read its symbols ({e})") from None
+
+
+def _read(mem, address: int, size: int) -> bytes | None:
+    try:
+        data = os.pread(mem, size, address)
+    except (OSError, OverflowError):
+        return None
+    return data if len(data) == size else None
+
+
+def _string(mem, address: int, prefix: bytes) -> str | None:
+    data = _read(mem, address, 256) if address else None
+    if data is None or not data.startswith(prefix) or b"\0" not in data:
+        return None
+    return data.split(b"\0", 1)[0].decode(errors="replace")
+
+
+def topic_of(pid: int, handle: int) -> str | None:
+    """The topic of an rcl publisher or subscription handle in a process, from its memory."""
+    try:
+        mem = os.open(f"/proc/{pid}/mem", os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        head = _read(mem, handle, 8)
+        impl = _U64.unpack(head)[0] if head else 0
+        words = _read(mem, impl, 8 * _IMPL_WORDS) if impl else None
+        for (candidate,) in struct.iter_unpack("<Q", words or b""):
+            rmw = _read(mem, candidate, 24) if candidate > 0xFFFF else None
+            if rmw is None:
+                continue
+            identifier, _, name = struct.unpack("<QQQ", rmw)
+            if _string(mem, identifier, b"rmw_") is not None:
+                topic = _string(mem, name, b"/")
+                if topic is not None:
+                    return topic
+        return None
+    finally:
+        os.close(mem)
+
+
+def _needs_uprobe_links(features) -> str | None:
+    if not features.uprobes:
+        return "the kernel has no uprobes (CONFIG_UPROBE_EVENTS)"
+    if not features.perf_links:
+        return "the kernel cannot link BPF programs to perf events (Linux >= 5.15)"
+    return None
+
+
+class RclProbe(BpfProbe):
+    name = "rcl"
+    source = "rcl.bpf.c"
+    maps = ("handles", "dropped")
+    metrics = (PUBLISHED, TAKEN)
+    paths = (
+        AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), _needs_uprobe_links,
+                   "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
+    )
+
+    def __init__(self, features, proctable: ProcessTable, **kw):
+        super().__init__(features, **kw)
+        self.proctable = proctable
+        self.libraries = MappedLibraries(proctable, (LIBRARY,))
+        self._programs: dict[str, int] = {}
+        self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
+        self._topics: dict[tuple[int, int], str] = {}  # (pid, handle) -> topic
+
+    def offsets(self, btf: Btf) -> dict[str, int]:
+        return {}  # only user memory, through the registers of the calling convention
+
+    def start(self) -> None:
+        super().start()
+        try:
+            self._programs = {p: bpffs.obj_get(os.path.join(self.pin_dir, f"prog_{p}")) for p in PROGRAMS}
+        except ProbeError:
+            self.stop()
+            raise
+
+    def stop(self) -> None:
+        for fd in self._programs.values():
+            os.close(fd)
+        self._programs = {}
+        self._files = {}
+        super().stop()
+
+    def _attach(self, pid: int, path: str) -> None:
+        """Put the uprobes on the librcl file a process maps, once per file (its device and inode:
+        the path may name another file in the process's mount namespace)."""
+        host_path = f"/proc/{pid}/root{path}"
+        try:
+            st = os.stat(host_path)
+        except OSError:
+            return  # the process is gone
+        key = (st.st_dev, st.st_ino)
+        if key in self._files:
+            return
+        prefix = os.path.join(self.pin_dir, f"lib-{st.st_dev}-{st.st_ino}-")
+        if glob.glob(prefix + "*"):  # pinned by an agent before this one
+            self._files[key] = ""
+            return
+        try:
+            offsets = symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
+            for i, (fn, program, ret) in enumerate(UPROBES):
+                if fn in offsets:
+                    link = perflink.uprobe(self._programs[program], host_path, offsets[fn], ret)
+                    bpffs.pin(link, f"{prefix}{i}")
+                    os.close(link)
+            self._files[key] = "" if "rcl_publish" in offsets else f"{path}: no rcl_publish symbol"
+        except ProbeError as e:
+            self._files[key] = str(e)
+        self.status.reason = "; ".join(sorted({why for why in self._files.values() if why}))
+
+    def collect(self, snap: Snapshot) -> None:
+        processes = self.libraries.refresh()
+        for pid, libs in processes.items():
+            self._attach(pid, libs[LIBRARY])
+        keys, values, _ = self.read("handles")
+        totals: dict[tuple[int, int, str], int] = {}
+        for i, (pid, op, handle) in enumerate(_KEY.iter_unpack(keys)):
+            if pid not in processes:  # the process ended
+                self.opened["handles"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
+                continue
+            topic = self._topics.get((pid, handle))
+            if topic is None:
+                topic = topic_of(pid, handle)
+                if topic is not None:
+                    self._topics[(pid, handle)] = topic
+            key = (pid, op, topic or UNKNOWN_TOPIC)
+            totals[key] = totals.get(key, 0) + _U64.unpack_from(values, i * 8)[0]
+        self._topics = {k: v for k, v in self._topics.items() if k[0] in processes}
+        for (pid, op, topic), count in totals.items():
+            snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic), count)
+        self.read_dropped()

@@ -1,0 +1,100 @@
+"""Samples and bytes per DDS writer, sent and received, from the RTPS messages of processes that
+load a DDS library (bpf/rtps.bpf.c). The graph join (drums.graph.join) names each writer by its
+topic and node.
+
+A writer is its GUID: 12 bytes of participant prefix and 4 of entity id, written here as 32 hex
+digits, as the ROS 2 adapter writes endpoint GIDs. Bytes are serialized payload (the sample as
+CDR, with its 4-byte encapsulation header and padding), counted once per datagram that carries
+it; samples are sequence numbers seen for the first time, so repairs add bytes but no samples.
+"""
+from __future__ import annotations
+
+import struct
+
+from drums.kernel.btf import Btf
+from drums.metrics import COUNTER, Metric, Snapshot
+from drums.probes.bpf import AttachPath, BpfProbe
+from drums.proctable import MappedLibraries, ProcessTable
+
+# Libraries whose processes speak RTPS: Fast DDS (2.x and 3.x), Cyclone DDS, Connext, and rcl for
+# any ROS 2 process whatever its RMW.
+DDS_LIBRARIES = ("libfastrtps.so", "libfastdds.so", "libddsc.so", "libnddscore.so", "librcl.so")
+SYSCALLS = ("sendto", "sendmsg", "recvfrom", "recvmsg")
+
+LABELS = ("pid", "process", "writer")
+SAMPLES_SENT = Metric("drums_dds_writer_samples_sent_total", COUNTER,
+                      "Samples of this DDS writer this process sent over UDP (each sample once)", LABELS)
+SENT_BYTES = Metric("drums_dds_writer_sent_bytes_total", COUNTER,
+                    "Serialized payload bytes of this DDS writer this process sent over UDP, every copy",
+                    LABELS)
+SAMPLES_RECEIVED = Metric("drums_dds_writer_samples_received_total", COUNTER,
+                          "Samples of this DDS writer this process received over UDP (each sample once)", LABELS)
+RECEIVED_BYTES = Metric("drums_dds_writer_received_bytes_total", COUNTER,
+                        "Serialized payload bytes of this DDS writer this process received over UDP", LABELS)
+_BY_DIRECTION = ((SAMPLES_SENT, SENT_BYTES), (SAMPLES_RECEIVED, RECEIVED_BYTES))
+
+# Map layouts, as in bpf/rtps.bpf.c.
+_KEY = struct.Struct("<II16s")
+_COUNTS = struct.Struct("<QQq")
+_U32 = struct.Struct("<I")
+
+
+def decode(keys: bytes, values: bytes) -> list[tuple[int, int, str, int, int]]:
+    """(pid, direction, writer GUID hex, samples, bytes) of each map entry."""
+    rows = []
+    for i, (pid, direction, guid) in enumerate(_KEY.iter_unpack(keys)):
+        samples, nbytes, _ = _COUNTS.unpack_from(values, i * _COUNTS.size)
+        rows.append((pid, direction, guid.hex(), samples, nbytes))
+    return rows
+
+
+def _needs_perf_links(features) -> str | None:
+    if not features.perf_links:
+        return "the kernel cannot link BPF programs to perf events (Linux >= 5.15)"
+    missing = [f"syscalls:sys_exit_{call}" for call in SYSCALLS if not features.tracepoint(f"sys_exit_{call}")]
+    return f"no tracepoint {', '.join(missing)}" if missing else None
+
+
+class RtpsProbe(BpfProbe):
+    name = "rtps"
+    source = "rtps.bpf.c"
+    maps = ("watched", "writers", "dropped")
+    metrics = (SAMPLES_SENT, SENT_BYTES, SAMPLES_RECEIVED, RECEIVED_BYTES)
+    paths = (
+        AttachPath("tracepoint",  # bpf_task_pt_regs: Linux >= 5.15 too
+                   tuple(("tracepoint", f"syscalls:sys_exit_{call}", f"on_{call}") for call in SYSCALLS),
+                   _needs_perf_links,
+                   "Linux >= 5.15 (syscall tracepoints as BPF links)"),
+    )
+
+    def __init__(self, features, proctable: ProcessTable, **kw):
+        super().__init__(features, **kw)
+        self.proctable = proctable
+        self.libraries = MappedLibraries(proctable, DDS_LIBRARIES)
+        self._watched: set[int] = set()
+
+    def offsets(self, btf: Btf) -> dict[str, int]:
+        return {}  # only user memory and tracepoint records, whose layouts are ABI
+
+    def watch(self) -> None:
+        """Parse the datagrams of the processes that load a DDS library now, and no others."""
+        now = set(self.libraries.refresh())
+        m = self.opened["watched"]
+        for pid in now - self._watched:
+            m.update(_U32.pack(pid), b"\x01")
+        for pid in self._watched - now:
+            m.delete(_U32.pack(pid))
+        self._watched = now
+
+    def collect(self, snap: Snapshot) -> None:
+        self.watch()
+        keys, values, _ = self.read("writers")
+        for i, (pid, direction, writer, samples, nbytes) in enumerate(decode(keys, values)):
+            if pid not in self._watched:  # the process ended
+                self.opened["writers"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
+                continue
+            labels = (str(pid), self.proctable.name(pid), writer)
+            samples_metric, bytes_metric = _BY_DIRECTION[direction]
+            snap.add(samples_metric, labels, samples)
+            snap.add(bytes_metric, labels, nbytes)
+        self.read_dropped()
