@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 from drums.budget import Budget
 from drums.errors import DrumsError, UsageError
+from drums.graph.join import join
+from drums.graph.model import ENTITIES, Graph
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.probes.base import Probe
 from drums.proctable import ProcessTable
@@ -44,7 +46,10 @@ AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER, "CPU time used by t
 AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE, "Resident memory of the agent process")
 AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
                    "Memory only the agent process uses (private pages: what stopping it would free)")
-SELF_METRICS = (PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
+GRAPH_STALE = Metric("drums_graph_stale", GAUGE,
+                     "1 while the graph adapter fails (the last good graph is kept), else 0", ("adapter",))
+GRAPH_ENTITIES = Metric("drums_graph_entities", GAUGE, "Entities in the graph, by kind", ("kind",))
+SELF_METRICS = (GRAPH_STALE, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
                 FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
 
@@ -114,8 +119,10 @@ def _of_chosen(metric: Metric, rows: list, chosen: set[str]) -> list:
 
 class Agent:
     def __init__(self, probes: list[Probe], proctable: ProcessTable, selection: Selection | None = None,
-                 budget: Budget | None = None):
+                 budget: Budget | None = None, graph: Graph | None = None, graph_adapter: str = ""):
         self.probes = probes
+        self.graph = graph  # kept current by a Follower; its names label the joined metrics
+        self.graph_adapter = graph_adapter
         self.proctable = proctable
         self.selection = selection or Selection()
         self.budget = budget or Budget({})
@@ -186,9 +193,15 @@ class Agent:
             if probe.status.reason != self._reasons.get(probe.name, probe.status.reason):
                 log.warning("probe %s: %s", probe.name, probe.status.reason or "recovered")
             self._reasons[probe.name] = probe.status.reason
+        joined = Snapshot()
+        if self.graph is not None:
+            join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
+                 joined)
         if not self.selection.everything:
             raw = self._select(raw)
         snap = self.budget.apply(raw)
+        for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
+            snap.rows(metric).extend(rows)
         self._self_metrics(snap)
         snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
         return snap
@@ -200,13 +213,14 @@ class Agent:
         return {pid for pid in pt.pids() if self.selection.matches(pid, pt.name(pid))}
 
     def _process_pids(self) -> list[int]:
-        """Processes to read from /proc, which costs per process: those the budget kept at the
-        last collect, then the newest others up to the budget."""
+        """Processes to read from /proc, which costs per process: the graph's nodes, those the
+        budget kept at the last collect, then the newest others up to the budget."""
         chosen = self._chosen()
         limit = self.budget.limit("process")
-        kept = [int(pid) for pid in self.budget.kept("process") if pid.isdigit() and int(pid) in chosen]
+        nodes = [n.pid for n in self.graph.entities("node") if n.pid in chosen] if self.graph else []
+        kept = nodes + [int(pid) for pid in self.budget.kept("process") if pid.isdigit() and int(pid) in chosen]
         rest = sorted(chosen - set(kept), reverse=True)
-        return (kept + rest)[:limit]
+        return list(dict.fromkeys(kept + rest))[:limit]
 
     def _select(self, snap: Snapshot) -> Snapshot:
         chosen = {str(pid) for pid in self._chosen()}
@@ -229,6 +243,10 @@ class Agent:
                 snap.add(PROBE_MAP_FILL, (probe.name, name), fill)
             if st.map_fill:
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
+        if self.graph is not None:
+            snap.add(GRAPH_STALE, (self.graph_adapter,), int(bool(self.graph.error)))
+            for kind in ENTITIES:
+                snap.add(GRAPH_ENTITIES, (kind,), len(self.graph.entities(kind)))
         for kind, count in self.budget.folded().items():
             snap.add(FOLDED, (kind,), count)
         for kind, count in self.budget.folded_total().items():

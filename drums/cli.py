@@ -55,12 +55,14 @@ def build_parser() -> argparse.ArgumentParser:
                        help="address to serve /metrics on (default 127.0.0.1; 0.0.0.0 for Prometheus "
                             "on another host)")
     agent.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"port for /metrics (default {DEFAULT_PORT})")
+    _graph_flags(agent)
     agent.add_argument("--probe", action="append", choices=PROBES, default=None,
-                       help="run only these probes (repeatable; default all)")
+                       help="run only these probes (repeatable; default all, rtps and rcl only with the "
+                            "ros2 graph)")
     agent.add_argument("--no-probe", action="append", choices=PROBES, default=[],
                        help="do not run this probe (repeatable)")
     agent.add_argument("--strict", action="store_true",
-                       help="refuse to start unless every probe attaches with eBPF")
+                       help="refuse to start unless every probe attaches with eBPF and the graph adapter starts")
     agent.add_argument("--keep-loaded", action="store_true",
                        help="leave the BPF programs pinned on exit, so a restart needs no compile")
     agent.add_argument("--pid", type=_positive, action="append", default=[], help="monitor this process")
@@ -89,34 +91,44 @@ def run_agent(args) -> int:
     from drums.agent import Agent, Selection
     from drums.budget import Budget
     from drums.exporters.prometheus import MetricsServer
+    from drums.graph import registry
+    from drums.graph.adapter import Follower
+    from drums.graph.model import Graph
     from drums.kernel.features import Features
-    from drums.probes.registry import PROBES, build
+    from drums.probes.registry import PROBES, ROS2_PROBES, build
     from drums.proctable import ProcessTable
 
     logging.basicConfig(level=args.log_level.upper(), format="drums: %(message)s")
     selection = Selection.parse(args.pid, args.process_name, args.cgroup)
-    names = [p for p in (args.probe or PROBES) if p not in args.no_probe]
+    adapter_name = args.graph or registry.default()
+    adapter = registry.build(adapter_name, args.graph_file)
+    default = [p for p in PROBES if adapter_name == "ros2" or p not in ROS2_PROBES]
+    names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
     features = Features()
     probes = build(features, proctable, names)
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
-    agent = Agent(probes, proctable, selection, budget)
+    graph = Graph()
+    follower = Follower(adapter, graph)
+    agent = Agent(probes, proctable, selection, budget, graph, adapter_name)
     done = threading.Event()  # set by SIGINT or SIGTERM, even while the probes are still loading
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
     server = MetricsServer(agent.collect, args.address, args.port)
     try:
         start = time.perf_counter()
+        follower.start(wait=args.strict)  # without --strict a graph that fails is logged and marked stale
         agent.start(strict=args.strict)
         features.release_btf()
         server.start()
         attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)
-        log.info("serving http://%s:%d/metrics after %.2f s; probes: %s", args.address, server.port,
-                 time.perf_counter() - start, attached or "none")
+        log.info("serving http://%s:%d/metrics after %.2f s; probes: %s; graph: %s", args.address, server.port,
+                 time.perf_counter() - start, attached or "none", adapter_name)
         done.wait()
     finally:
         server.stop()
+        follower.stop()
         agent.stop(unload=not args.keep_loaded)
     return 0
 

@@ -7,11 +7,13 @@ import os
 from drums.errors import UsageError
 from drums.graph.adapter import Adapter
 
-ADAPTERS = ("ros2", "static", "auto")
+ADAPTERS = ("ros2", "ros1", "static", "auto")
 
 
 def default() -> str:
-    """ros2 where a ROS 2 environment is set up (ROS_VERSION=2, or rclpy importable), else auto."""
+    """ros1 or ros2 as ROS_VERSION says; else ros2 where rclpy is importable; else auto."""
+    if os.environ.get("ROS_VERSION") == "1":
+        return "ros1"
     if os.environ.get("ROS_VERSION") == "2" or importlib.util.find_spec("rclpy") is not None:
         return "ros2"
     return "auto"
@@ -21,6 +23,9 @@ def build(name: str, graph_file: str = "") -> Adapter:
     if name == "ros2":
         from drums.graph.ros2 import Ros2Adapter
         return Ros2Adapter()
+    if name == "ros1":
+        from drums.graph.ros1 import Ros1Adapter
+        return Ros1Adapter()
     if name == "static":
         if not graph_file:
             raise UsageError("--graph static needs --graph-file FILE (a YAML description)")

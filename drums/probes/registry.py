@@ -5,13 +5,16 @@ from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.proctable import ProcessTable
 
-PROBES = ("sockets", "sched", "tcp", "host", "process")
+PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl")
+ROS2_PROBES = ("rtps", "rcl")  # run by default only with the ros2 graph: they count per DDS writer and topic
 
 
 def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Probe]:
     from drums.probes.host import HostProbe
     from drums.probes.process import ProcessProbe
     from drums.probes.procsched import ProcSchedProbe
+    from drums.probes.rcl import RclProbe
+    from drums.probes.rtps import RtpsProbe
     from drums.probes.sched import SchedProbe
     from drums.probes.sockdiag_sockets import SockDiagSocketsProbe
     from drums.probes.sockets import SocketsProbe
@@ -23,6 +26,8 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
         "tcp": lambda: TcpProbe(features),
         "host": HostProbe,
         "process": ProcessProbe,
+        "rtps": lambda: RtpsProbe(features, proctable),
+        "rcl": lambda: RclProbe(features, proctable),
     }
     # What runs where eBPF cannot (not root, no bcc, old kernel): the kernel's own counters.
     fallbacks = {
@@ -42,12 +47,16 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
 def all_metrics():
     """Every metric any probe or the agent declares, for the README table."""
     from drums.agent import SELF_METRICS
+    from drums.graph import join
     from drums.probes.host import HostProbe
     from drums.probes.process import ProcessProbe
+    from drums.probes.rcl import RclProbe
+    from drums.probes.rtps import RtpsProbe
     from drums.probes.sched import SchedProbe
     from drums.probes.sockets import SocketsProbe
     from drums.probes.tcp import TcpProbe
 
-    for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe):
+    for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe, RtpsProbe, RclProbe):
         yield cls.name, cls.metrics
+    yield "graph", join.METRICS
     yield "agent", SELF_METRICS

@@ -1,0 +1,139 @@
+"""The join: kernel data, keyed by PID, socket and DDS writer, renamed into the graph's terms.
+
+Per node: CPU, memory, context switches and run-queue latency of its process. Several nodes in
+one process share these numbers (ROS 2 runs nodes of a process on shared executor threads, so no
+thread belongs to one node); `drums_node_info` says which nodes share a process.
+Per topic: messages published and taken (rcl uprobes, whatever the transport) and samples and
+bytes sent (RTPS over UDP). Per edge: samples and bytes the subscribing process received from the
+publisher's writer; for connections with their own socket (ROS 1 TCPROS), the socket's bytes and
+its TCP retransmits and RTT.
+
+Labels are names (node, topic, publisher, subscriber), which stay bounded as the graph does; the
+PID and the mapping live only in drums_node_info.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+
+from drums.graph.model import Connection, Endpoint, Node
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, INFO, Metric, Snapshot
+from drums.probes import process, rcl, rtps, sched, sockets, tcp
+
+NODE = ("node",)
+TOPIC = ("topic", "node")
+EDGE = ("topic", "publisher", "subscriber")
+
+NODE_INFO = Metric("drums_node_info", INFO, "A middleware node: its process, how it was mapped to it "
+                   "(gid, cmdline, librcl, getPid, ...), and the other nodes in that process",
+                   ("node", "pid", "process", "mapped_by", "shares_process_with"))
+NODE_CPU = Metric("drums_node_cpu_seconds_total", COUNTER, "CPU time of the node's process", NODE)
+NODE_MEMORY = Metric("drums_node_resident_memory_bytes", GAUGE, "Resident memory of the node's process", NODE)
+NODE_SWITCHES = Metric("drums_node_context_switches_total", COUNTER,
+                       "Context switches of the node's process, voluntary or involuntary", NODE + ("kind",))
+NODE_RUNQ = Metric("drums_node_runqueue_latency_seconds", HISTOGRAM,
+                   "Run-queue waits of the node's process's threads", NODE, sched.RUNQ_BUCKETS)
+TOPIC_PUBLISHED = Metric("drums_topic_messages_published_total", COUNTER,
+                         "Messages the node published on the topic (rcl_publish)", TOPIC)
+TOPIC_TAKEN = Metric("drums_topic_messages_taken_total", COUNTER,
+                     "Messages the node took from the topic (rcl_take)", TOPIC)
+TOPIC_SAMPLES_SENT = Metric("drums_topic_samples_sent_total", COUNTER,
+                            "Samples of the node's writer on the topic sent over UDP", TOPIC)
+TOPIC_SENT_BYTES = Metric("drums_topic_sent_bytes_total", COUNTER,
+                          "Serialized bytes of the node's writer on the topic sent over UDP, every copy", TOPIC)
+EDGE_SAMPLES = Metric("drums_edge_samples_received_total", COUNTER,
+                      "Samples the subscriber's process received over UDP from the publisher's writer", EDGE)
+EDGE_RECEIVED_BYTES = Metric("drums_edge_received_bytes_total", COUNTER,
+                             "Bytes the subscriber received from the publisher on the topic: serialized "
+                             "samples over UDP (ROS 2), or the connection's socket (ROS 1)", EDGE)
+EDGE_SENT_BYTES = Metric("drums_edge_sent_bytes_total", COUNTER,
+                         "Bytes the publisher sent on the connection's own socket (ROS 1)", EDGE)
+EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
+                          "TCP segments retransmitted on the connection's socket", EDGE)
+EDGE_RTT = Metric("drums_edge_tcp_rtt_seconds", GAUGE, "Smoothed RTT of the connection's TCP socket", EDGE,
+                  additive=False)
+METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
+           TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_SENT_BYTES,
+           EDGE_RETRANSMITS, EDGE_RTT)
+
+GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
+
+
+def _by_pid(raw: Snapshot, metric: Metric) -> dict[str, list[tuple[tuple[str, ...], object]]]:
+    """The metric's rows by their pid label (the first label of every per-process metric)."""
+    out = defaultdict(list)
+    for labels, value in raw.series.get(metric, ()):
+        out[labels[0]].append((labels, value))
+    return out
+
+
+def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connection], raw: Snapshot,
+         out: Snapshot) -> None:
+    """Add the graph's metrics to `out`, computed from the probes' rows in `raw`."""
+    by_pid: dict[str, list[str]] = defaultdict(list)
+    for n in nodes:
+        if n.pid is not None:
+            by_pid[str(n.pid)].append(n.name)
+    pid_of = {n.name: str(n.pid) for n in nodes if n.pid is not None}
+
+    def per_node(metric: Metric, source: Metric, extra_labels: int = 0):
+        for pid, rows in _by_pid(raw, source).items():
+            for name in by_pid.get(pid, ()):
+                for labels, value in rows:
+                    out.add(metric, (name,) + tuple(labels[len(labels) - extra_labels:]), value)
+
+    names = {pid: rows[0][0][1] for pid, rows in _by_pid(raw, process.RESIDENT_MEMORY).items()}
+    for n in nodes:
+        pid = pid_of.get(n.name, "")
+        others = ",".join(sorted(set(by_pid.get(pid, ())) - {n.name}))
+        out.add(NODE_INFO, (n.name, pid, names.get(pid, ""), n.mapped_by, others), 1)
+    per_node(NODE_CPU, sched.PROCESS_CPU)
+    per_node(NODE_MEMORY, process.RESIDENT_MEMORY)
+    per_node(NODE_SWITCHES, sched.PROCESS_SWITCHES, 1)
+    per_node(NODE_RUNQ, sched.PROCESS_RUNQ)
+
+    # A (process, topic) count belongs to the nodes of that process with an endpoint on the topic.
+    members: dict[tuple[str, str, str], list[str]] = defaultdict(list)  # (pid, kind, topic) -> nodes
+    writers: dict[str, Endpoint] = {}
+    for e in endpoints:
+        pid = pid_of.get(e.node)
+        if pid is not None:
+            members[(pid, e.kind, e.topic)].append(e.node)
+        if e.kind == "publisher":
+            writers[e.id[:GID_HEX]] = e
+
+    def owner(pid: str, kind: str, topic: str) -> str:
+        return ",".join(sorted(members.get((pid, kind, topic), ()))) or "unknown"
+
+    for metric, source, kind in ((TOPIC_PUBLISHED, rcl.PUBLISHED, "publisher"),
+                                 (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
+        for (pid, _, topic), value in raw.series.get(source, ()):
+            out.add(metric, (topic, owner(pid, kind, topic)), value)
+    for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES)):
+        for (_, _, writer), value in raw.series.get(source, ()):
+            e = writers.get(writer)
+            if e is not None:
+                out.add(metric, (e.topic, e.node), value)
+    for metric, source in ((EDGE_SAMPLES, rtps.SAMPLES_RECEIVED), (EDGE_RECEIVED_BYTES, rtps.RECEIVED_BYTES)):
+        for (pid, _, writer), value in raw.series.get(source, ()):
+            e = writers.get(writer)
+            if e is not None:
+                out.add(metric, (e.topic, e.node, owner(pid, "subscriber", e.topic)), value)
+    _socket_edges(connections, raw, out)
+
+
+def _socket_edges(connections: list[Connection], raw: Snapshot, out: Snapshot) -> None:
+    """Edges with a socket of their own: `local` is the publisher's end, `remote` the subscriber's."""
+    edges = {(c.local, c.remote): (c.topic, c.publisher, c.subscriber) for c in connections if c.local and c.remote}
+    if not edges:
+        return
+    for metric, source, reverse in ((EDGE_SENT_BYTES, sockets.SOCKET["sent_bytes"], False),
+                                    (EDGE_RECEIVED_BYTES, sockets.SOCKET["received_bytes"], True)):
+        for (_, _, _, local, remote, _, _), value in raw.series.get(source, ()):
+            edge = edges.get((remote, local) if reverse else (local, remote))
+            if edge is not None:
+                out.add(metric, edge, value)
+    for metric, source in ((EDGE_RETRANSMITS, tcp.CONN_RETRANSMITS), (EDGE_RTT, tcp.CONN_RTT)):
+        for labels, value in raw.series.get(source, ()):
+            edge = edges.get((labels[0], labels[1]))
+            if edge is not None:
+                out.add(metric, edge, value)
