@@ -37,8 +37,9 @@ struct writer_key_t {
 };
 
 struct writer_counts_t {
-    u64 samples;   // sequence numbers seen for the first time: repairs and resends are not samples
-    u64 bytes;     // serialized payload bytes, every copy (each destination, each repair)
+    u64 samples;       // sequence numbers seen for the first time: repairs and resends are not samples
+    u64 sample_bytes;  // the serialized size of each of those samples
+    u64 wire_bytes;    // serialized payload in every datagram: each destination, each repair
     s64 last_sn;
 };
 
@@ -85,7 +86,7 @@ static __always_inline u32 field32(u8 *p, u8 flags)
                                : (u32)p[0] << 24 | p[1] << 16 | p[2] << 8 | p[3];
 }
 
-static __always_inline void count_sample(struct writer_key_t *key, s64 sn, u64 bytes, int sample)
+static __always_inline void count_sample(struct writer_key_t *key, s64 sn, u64 size, u64 bytes)
 {
     struct writer_counts_t fresh = {.last_sn = -1};
     struct writer_counts_t *c = writers.lookup_or_try_init(key, &fresh);
@@ -93,10 +94,11 @@ static __always_inline void count_sample(struct writer_key_t *key, s64 sn, u64 b
         count_drop(1);
         return;
     }
-    __sync_fetch_and_add(&c->bytes, bytes);
-    if (sample && sn > c->last_sn) {
+    __sync_fetch_and_add(&c->wire_bytes, bytes);
+    if (size && sn > c->last_sn) {
         c->last_sn = sn;
         __sync_fetch_and_add(&c->samples, 1);
+        __sync_fetch_and_add(&c->sample_bytes, size);
     }
 }
 
@@ -122,15 +124,23 @@ static __always_inline void parse(struct segment_t *seg, u32 nseg, u64 total, u3
             if (read_at(seg, nseg, body + 8, key.prefix, 12) != 0)
                 return;
         } else if (sub[0] == SUB_DATA || sub[0] == SUB_DATA_FRAG) {
-            // extraFlags, octetsToInlineQos, readerId, writerId, writerSN (high, low)
-            u8 d[20];
+            // extraFlags, octetsToInlineQos, readerId, writerId, writerSN (high, low); DATA_FRAG
+            // goes on: fragmentStartingNum, fragmentsInSubmessage, fragmentSize, sampleSize
+            u8 d[32];
             if (read_at(seg, nseg, body, d, 20) == 0 && (d[11] == 0x02 || d[11] == 0x03)) {
                 // entity kinds 0x02/0x03: user-defined writers; built-in discovery is skipped
                 __builtin_memcpy(key.entity, d + 8, 4);
                 s64 sn = (s64)field32(d + 12, flags) << 32 | field32(d + 16, flags);
                 u64 header = 4 + field16(d + 2, flags);  // up to the payload (or inline QoS)
-                int sample = sub[0] == SUB_DATA_FRAG || (flags & (FLAG_DATA | FLAG_KEY));
-                count_sample(&key, sn, sample && size > header ? size - header : 0, sample);
+                u64 bytes = size > header ? size - header : 0;
+                u64 sample = 0;
+                if (sub[0] == SUB_DATA_FRAG) {
+                    if (read_at(seg, nseg, body + 28, d + 28, 4) == 0)
+                        sample = field32(d + 28, flags);
+                } else if (flags & (FLAG_DATA | FLAG_KEY)) {
+                    sample = bytes;
+                }
+                count_sample(&key, sn, sample, bytes);
             }
         }
         if (!len)

@@ -50,6 +50,18 @@ def tcp_probe(features, proctable):
     yield from _started(TcpProbe(features, pin_root=TEST_PIN_ROOT))
 
 
+@pytest.fixture(scope="session")
+def rtps_probe(features, proctable):
+    from drums.probes.rtps import RtpsProbe
+    yield from _started(RtpsProbe(features, proctable, pin_root=TEST_PIN_ROOT))
+
+
+@pytest.fixture(scope="session")
+def rcl_probe(features, proctable):
+    from drums.probes.rcl import RclProbe
+    yield from _started(RclProbe(features, proctable, pin_root=TEST_PIN_ROOT))
+
+
 @pytest.fixture
 def collect(proctable):
     """collect(probe) -> Snapshot, as the agent would take it."""

@@ -39,12 +39,18 @@ TOPIC_TAKEN = Metric("drums_topic_messages_taken_total", COUNTER,
 TOPIC_SAMPLES_SENT = Metric("drums_topic_samples_sent_total", COUNTER,
                             "Samples of the node's writer on the topic sent over UDP", TOPIC)
 TOPIC_SENT_BYTES = Metric("drums_topic_sent_bytes_total", COUNTER,
-                          "Serialized bytes of the node's writer on the topic sent over UDP, every copy", TOPIC)
+                          "Serialized size of those samples, each sample once", TOPIC)
+TOPIC_SENT_WIRE_BYTES = Metric("drums_topic_sent_wire_bytes_total", COUNTER,
+                               "Serialized payload the node's writer sent over UDP: a copy for each "
+                               "reader, and repairs of lost fragments", TOPIC)
 EDGE_SAMPLES = Metric("drums_edge_samples_received_total", COUNTER,
                       "Samples the subscriber's process received over UDP from the publisher's writer", EDGE)
 EDGE_RECEIVED_BYTES = Metric("drums_edge_received_bytes_total", COUNTER,
                              "Bytes the subscriber received from the publisher on the topic: serialized "
-                             "samples over UDP (ROS 2), or the connection's socket (ROS 1)", EDGE)
+                             "size of the samples over UDP (ROS 2), or the connection's socket (ROS 1)", EDGE)
+EDGE_RECEIVED_WIRE_BYTES = Metric("drums_edge_received_wire_bytes_total", COUNTER,
+                                  "Serialized payload the subscriber's process received over UDP from the "
+                                  "publisher's writer, repairs included", EDGE)
 EDGE_SENT_BYTES = Metric("drums_edge_sent_bytes_total", COUNTER,
                          "Bytes the publisher sent on the connection's own socket (ROS 1)", EDGE)
 EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
@@ -52,7 +58,8 @@ EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
 EDGE_RTT = Metric("drums_edge_tcp_rtt_seconds", GAUGE, "Smoothed RTT of the connection's TCP socket", EDGE,
                   additive=False)
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
-           TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_SENT_BYTES,
+           TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
+           EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES,
            EDGE_RETRANSMITS, EDGE_RTT)
 
 GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
@@ -108,12 +115,14 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
                                  (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
         for (pid, _, topic), value in raw.series.get(source, ()):
             out.add(metric, (topic, owner(pid, kind, topic)), value)
-    for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES)):
+    for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES),
+                           (TOPIC_SENT_WIRE_BYTES, rtps.SENT_WIRE_BYTES)):
         for (_, _, writer), value in raw.series.get(source, ()):
             e = writers.get(writer)
             if e is not None:
                 out.add(metric, (e.topic, e.node), value)
-    for metric, source in ((EDGE_SAMPLES, rtps.SAMPLES_RECEIVED), (EDGE_RECEIVED_BYTES, rtps.RECEIVED_BYTES)):
+    for metric, source in ((EDGE_SAMPLES, rtps.SAMPLES_RECEIVED), (EDGE_RECEIVED_BYTES, rtps.RECEIVED_BYTES),
+                           (EDGE_RECEIVED_WIRE_BYTES, rtps.RECEIVED_WIRE_BYTES)):
         for (pid, _, writer), value in raw.series.get(source, ()):
             e = writers.get(writer)
             if e is not None:

@@ -3,9 +3,10 @@ load a DDS library (bpf/rtps.bpf.c). The graph join (drums.graph.join) names eac
 topic and node.
 
 A writer is its GUID: 12 bytes of participant prefix and 4 of entity id, written here as 32 hex
-digits, as the ROS 2 adapter writes endpoint GIDs. Bytes are serialized payload (the sample as
-CDR, with its 4-byte encapsulation header and padding), counted once per datagram that carries
-it; samples are sequence numbers seen for the first time, so repairs add bytes but no samples.
+digits, as the ROS 2 adapter writes endpoint GIDs. A sample is a sequence number seen for the
+first time, and its bytes are its serialized size (CDR with the 4-byte encapsulation header, as
+the DATA or DATA_FRAG header says); wire bytes count the payload in every datagram, so copies to
+several readers and repairs of lost fragments show as wire bytes above sample bytes.
 """
 from __future__ import annotations
 
@@ -25,27 +26,30 @@ LABELS = ("pid", "process", "writer")
 SAMPLES_SENT = Metric("drums_dds_writer_samples_sent_total", COUNTER,
                       "Samples of this DDS writer this process sent over UDP (each sample once)", LABELS)
 SENT_BYTES = Metric("drums_dds_writer_sent_bytes_total", COUNTER,
-                    "Serialized payload bytes of this DDS writer this process sent over UDP, every copy",
-                    LABELS)
+                    "Serialized size of those samples (each sample once)", LABELS)
+SENT_WIRE_BYTES = Metric("drums_dds_writer_sent_wire_bytes_total", COUNTER,
+                         "Serialized payload of this writer in every datagram this process sent: a copy "
+                         "for each reader, and repairs", LABELS)
 SAMPLES_RECEIVED = Metric("drums_dds_writer_samples_received_total", COUNTER,
                           "Samples of this DDS writer this process received over UDP (each sample once)", LABELS)
 RECEIVED_BYTES = Metric("drums_dds_writer_received_bytes_total", COUNTER,
-                        "Serialized payload bytes of this DDS writer this process received over UDP", LABELS)
-_BY_DIRECTION = ((SAMPLES_SENT, SENT_BYTES), (SAMPLES_RECEIVED, RECEIVED_BYTES))
+                        "Serialized size of those samples (each sample once)", LABELS)
+RECEIVED_WIRE_BYTES = Metric("drums_dds_writer_received_wire_bytes_total", COUNTER,
+                             "Serialized payload of this writer in every datagram this process received, "
+                             "repairs included", LABELS)
+_BY_DIRECTION = ((SAMPLES_SENT, SENT_BYTES, SENT_WIRE_BYTES),
+                 (SAMPLES_RECEIVED, RECEIVED_BYTES, RECEIVED_WIRE_BYTES))
 
 # Map layouts, as in bpf/rtps.bpf.c.
 _KEY = struct.Struct("<II16s")
-_COUNTS = struct.Struct("<QQq")
+_COUNTS = struct.Struct("<QQQq")
 _U32 = struct.Struct("<I")
 
 
-def decode(keys: bytes, values: bytes) -> list[tuple[int, int, str, int, int]]:
-    """(pid, direction, writer GUID hex, samples, bytes) of each map entry."""
-    rows = []
-    for i, (pid, direction, guid) in enumerate(_KEY.iter_unpack(keys)):
-        samples, nbytes, _ = _COUNTS.unpack_from(values, i * _COUNTS.size)
-        rows.append((pid, direction, guid.hex(), samples, nbytes))
-    return rows
+def decode(keys: bytes, values: bytes) -> list[tuple[int, int, str, tuple[int, int, int]]]:
+    """(pid, direction, writer GUID hex, (samples, sample bytes, wire bytes)) of each map entry."""
+    return [(pid, direction, guid.hex(), _COUNTS.unpack_from(values, i * _COUNTS.size)[:3])
+            for i, (pid, direction, guid) in enumerate(_KEY.iter_unpack(keys))]
 
 
 def _needs_perf_links(features) -> str | None:
@@ -59,7 +63,7 @@ class RtpsProbe(BpfProbe):
     name = "rtps"
     source = "rtps.bpf.c"
     maps = ("watched", "writers", "dropped")
-    metrics = (SAMPLES_SENT, SENT_BYTES, SAMPLES_RECEIVED, RECEIVED_BYTES)
+    metrics = _BY_DIRECTION[0] + _BY_DIRECTION[1]
     paths = (
         AttachPath("tracepoint",  # bpf_task_pt_regs: Linux >= 5.15 too
                    tuple(("tracepoint", f"syscalls:sys_exit_{call}", f"on_{call}") for call in SYSCALLS),
@@ -89,12 +93,11 @@ class RtpsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         self.watch()
         keys, values, _ = self.read("writers")
-        for i, (pid, direction, writer, samples, nbytes) in enumerate(decode(keys, values)):
+        for i, (pid, direction, writer, counts) in enumerate(decode(keys, values)):
             if pid not in self._watched:  # the process ended
                 self.opened["writers"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
                 continue
             labels = (str(pid), self.proctable.name(pid), writer)
-            samples_metric, bytes_metric = _BY_DIRECTION[direction]
-            snap.add(samples_metric, labels, samples)
-            snap.add(bytes_metric, labels, nbytes)
+            for metric, value in zip(_BY_DIRECTION[direction], counts):
+                snap.add(metric, labels, value)
         self.read_dropped()

@@ -39,6 +39,11 @@ class RosProcess:
         self.proc.stdin.flush()
         return int(self.proc.stdout.readline().split()[1])
 
+    def go(self) -> None:
+        """Start the burst of a publisher run with DRUMS_TEST_BURST."""
+        self.proc.stdin.write("go\n")
+        self.proc.stdin.flush()
+
     def stop(self) -> None:
         """End as a user would (Ctrl-C): the node says goodbye to the other participants."""
         if self.proc.poll() is None:

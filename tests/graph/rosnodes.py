@@ -3,8 +3,9 @@
 Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), producer (a 1 MB
 image-like message on /image at 10 Hz), processor (/image -> /processed), sink (subscribes
 /processed), idle (a node with no endpoints of its own). Several NAMEs put several nodes in one
-process; arguments after --ros-args go to ROS (remapping). Prints "ready <pid>" once its nodes exist, and on each line of input "count <n>" with the
-messages it published or received so far.
+process; arguments after --ros-args go to ROS (remapping). Prints "ready <pid>" once its nodes
+exist, and on each line of input "count <n>" with the messages it published or received so far
+(a line "go" starts a burst instead: see DRUMS_TEST_BURST).
 """
 import os
 import sys
@@ -17,19 +18,31 @@ from std_msgs.msg import String, UInt8MultiArray
 
 IMAGE_BYTES = 1 << 20
 counted = [0]
+# With DRUMS_TEST_BURST=N a publisher waits for a line "go", publishes exactly N messages, and stops.
+burst = int(os.environ.get("DRUMS_TEST_BURST", "0"))
+allowed = [0 if burst else -1]  # messages still to publish; -1: no limit
+
+
+def publishes(pub, msg):
+    """A timer callback: publish unless the burst is spent, and count what was published."""
+    def tick():
+        if allowed[0] == 0:
+            return
+        allowed[0] -= 1
+        pub.publish(msg)
+        counted[0] += 1
+    return tick
 
 
 def make(role: str, name: str) -> Node:
     node = Node(name)
     if role == "talker":
-        pub = node.create_publisher(String, "chatter", 10)
-        node.create_timer(0.1, lambda: (pub.publish(String(data="hello")), counted.__setitem__(0, counted[0] + 1)))
+        node.create_timer(0.1, publishes(node.create_publisher(String, "chatter", 10), String(data="hello")))
     elif role == "listener":
         node.create_subscription(String, "chatter", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
     elif role == "producer":
-        pub = node.create_publisher(UInt8MultiArray, "image", 10)
         msg = UInt8MultiArray(data=bytes(IMAGE_BYTES))
-        node.create_timer(0.1, lambda: (pub.publish(msg), counted.__setitem__(0, counted[0] + 1)))
+        node.create_timer(0.1, publishes(node.create_publisher(UInt8MultiArray, "image", 10), msg))
     elif role == "processor":
         pub = node.create_publisher(UInt8MultiArray, "processed", 10)
         node.create_subscription(UInt8MultiArray, "image",
@@ -51,7 +64,10 @@ def main() -> None:
     print("ready", os.getpid(), flush=True)
 
     def report():
-        for _ in sys.stdin:
+        for line in sys.stdin:
+            if line.strip() == "go":
+                allowed[0] = burst
+                continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us
     threading.Thread(target=report, daemon=True).start()

@@ -2,10 +2,12 @@
 processes; and what the graph does with a reader that answers garbage or nothing."""
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import textwrap
 
+import psutil
 import pytest
 
 from drums.cli import main
@@ -117,3 +119,33 @@ def test_garbage_then_silence_keeps_the_last_good_graph_marked_stale(caplog):
         follower.stop()
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 2 and all("keeping the last good graph" in w for w in warnings), warnings
+
+
+def test_agent_keeps_exporting_kernel_data_under_a_stale_graph(tmp_path, procs, proctable, sched_probe):
+    from drums.agent import GRAPH_STALE, Agent
+    from drums.graph import join
+
+    planner = procs("while True: pass", "planner-9c1d")  # burns CPU: its node's counter must move
+    path = tmp_path / "robot.yaml"
+    path.write_text('nodes: [{name: /planner, process: "planner-9c1d"}]\n')
+    graph = Graph()
+    follower = Follower(StaticAdapter(str(path)), graph)
+    follower.start(wait=True)
+    agent = Agent([sched_probe], proctable, graph=graph, graph_adapter="static")
+    try:
+        wait_until(lambda: [n.pid for n in graph.entities("node")] == [planner.pid], "the planner mapped")
+        first = agent.collect()
+        assert first.values(GRAPH_STALE) == {("static",): 0}
+        path.write_text("nodes: [")  # the file goes bad: the last good graph stays, marked stale
+        wait_until(lambda: "not YAML" in graph.error, "the bad file to be noticed")
+        planner.send_signal(signal.SIGSTOP)  # off the CPU: its time is all counted, and holds still
+        wait_until(lambda: psutil.Process(planner.pid).status() == psutil.STATUS_STOPPED, "the planner stopped")
+        second = agent.collect()
+        assert second.values(GRAPH_STALE) == {("static",): 1}
+        # The kernel data goes on under the old names: the node's CPU is its process's, as /proc
+        # tells it (in clock ticks, hence the margin).
+        cpu = second.values(join.NODE_CPU)[("/planner",)]
+        assert cpu > first.values(join.NODE_CPU)[("/planner",)]
+        assert abs(cpu - sum(psutil.Process(planner.pid).cpu_times()[:2])) <= 0.03
+    finally:
+        follower.stop()
