@@ -22,6 +22,7 @@ BENCHMARKS = (
     ("event_cost", ["--rounds", "3", "--ops", "20000", "--pingpongs", "10000"]),
     ("workload_overhead", ["--rounds", "1", "--seconds", "2"]),
     ("agent_cost", ["--seconds", "5"]),
+    ("topic_latency", ["--rounds", "1", "--seconds", "2"]),
 )
 TIMEOUT = 600  # seconds; each benchmark is meant to finish within about 3 minutes
 

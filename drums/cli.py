@@ -118,8 +118,8 @@ def run_agent(args) -> int:
     server = MetricsServer(agent.collect, args.address, args.port)
     try:
         start = time.perf_counter()
-        follower.start(wait=args.strict)  # without --strict a graph that fails is logged and marked stale
         agent.start(strict=args.strict)
+        follower.start(wait=args.strict)  # without --strict a graph that fails is logged and marked stale
         features.release_btf()
         server.start()
         attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)

@@ -65,8 +65,10 @@ def test_promtool_finds_nothing_in_live_metrics(agent):
 def test_every_probe_attached_with_its_attach_type(agent):
     attached = samples(scrape(agent), "drums_probe_attached")
     got = {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in attached.items()}
+    # rclpy is importable here, so the graph is ros2 and the per-topic probes run too.
     assert got == {"sockets": ("raw_tracepoint", 1), "sched": ("raw_tracepoint", 1), "tcp": ("raw_tracepoint", 1),
-                   "host": ("psutil", 1), "process": ("psutil", 1)}
+                   "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("tracepoint", 1),
+                   "rcl": ("uprobe", 1)}
 
 
 def test_exited_process_series_gone_within_two_scrapes(agent):
@@ -153,8 +155,10 @@ def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
                 time.sleep(0.1)
         attached = {dict(k)["probe"]: (dict(k)["attach_type"], v)
                     for k, v in samples(text, "drums_probe_attached").items()}
+        # The per-topic probes have no fallback: nothing outside the kernel sees RTPS or rcl calls.
         assert attached == {"sockets": ("sock_diag", 1), "sched": ("proc", 1), "tcp": ("sock_diag", 1),
-                            "host": ("psutil", 1), "process": ("psutil", 1)}
+                            "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("none", 0),
+                            "rcl": ("none", 0)}
         assert samples(text, "drums_process_cpu_seconds_total")
     finally:
         proc.terminate()

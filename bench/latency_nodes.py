@@ -1,0 +1,60 @@
+"""The ROS 2 nodes of bench/topic_latency.py, each run as its own process.
+
+    python latency_nodes.py pub RATE SECONDS   # waits for a subscriber, publishes, prints "sent N"
+    python latency_nodes.py sub                # on end of input prints {"count", "p50_us", "p99_us"}
+
+Each message carries its publisher's CLOCK_MONOTONIC time (one clock for every process on the
+host): the subscriber's latency is publish call to callback, through rclpy, DDS and the kernel.
+"""
+import json
+import sys
+import threading
+import time
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def publish(rate: float, seconds: float) -> None:
+    node = Node("latency_pub")
+    pub = node.create_publisher(String, "latency", QOS)
+    while pub.get_subscription_count() == 0:
+        time.sleep(0.05)
+    time.sleep(1.0)  # let the match settle on both sides
+    period, sent = 1.0 / rate, 0
+    start = time.monotonic()
+    while (now := time.monotonic()) - start < seconds:
+        due = start + sent * period
+        if now < due:
+            time.sleep(due - now)
+        pub.publish(String(data=str(time.monotonic_ns())))
+        sent += 1
+    print("sent", sent, flush=True)
+
+
+def subscribe() -> None:
+    node = Node("latency_sub")
+    latencies = []
+    node.create_subscription(String, "latency", lambda m: latencies.append(time.monotonic_ns() - int(m.data)),
+                             QOS)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    print("ready", flush=True)
+    sys.stdin.read()
+    got = sorted(latencies)
+    print(json.dumps({"count": len(got), "p50_us": got[len(got) // 2] / 1e3 if got else None,
+                      "p99_us": got[int(len(got) * 0.99)] / 1e3 if got else None}), flush=True)
+
+
+if __name__ == "__main__":
+    rclpy.init()
+    if sys.argv[1] == "pub":
+        publish(float(sys.argv[2]), float(sys.argv[3]))
+    else:
+        subscribe()
