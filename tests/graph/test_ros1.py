@@ -158,6 +158,25 @@ def test_the_graph_has_each_node_pid_topic_and_socket(wire):
     assert took < 0.5, f"one poll of 4 nodes took {took:.3f} s"
 
 
+def test_each_edge_carries_the_bytes_of_its_socket(wire, proctable, sockets_probe, tcp_probe):
+    from drums.agent import Agent
+    from drums.graph import join
+
+    master = wire.master()
+    nodes = {"/camera": wire.node("/camera", master, "--publish", IMAGE, "--size", "5000"),
+             "/detector": wire.node("/detector", master, "--subscribe", IMAGE, "--publish", OBJECTS),
+             "/planner": wire.node("/planner", master, "--subscribe", OBJECTS)}
+    wait_for_flows(nodes, 2)
+    graph, _ = poll_once(master.uri)
+    snap = Agent([sockets_probe, tcp_probe], proctable, graph=graph, graph_adapter="ros1").collect()
+    sent, received = snap.values(join.EDGE_SENT_BYTES), snap.values(join.EDGE_RECEIVED_BYTES)
+    rtt = snap.values(join.EDGE_RTT)
+    # What each publisher wrote on the connection's socket (header and messages), as it counted.
+    truth = {(e["topic"], pub, e["subscriber"]): e["bytes"] for pub, e in flows(nodes)}
+    assert sent == truth and received == truth
+    assert set(rtt) == set(truth) and all(0 < v < 0.1 for v in rtt.values())
+
+
 class CountingAdapter(Ros1Adapter):
     polls = 0
 
