@@ -232,7 +232,9 @@ class Agent:
 
     def start(self) -> "Agent":
         self.port = self.port or free_port()
-        cmd = [PYTHON, "-m", "drums", "agent", "--port", str(self.port), "--log-level", "info"]
+        # The host agent as measured in the README: the auto graph, so no ROS 2 reader and no
+        # per-topic probes (bench/topic_latency.py measures those).
+        cmd = [PYTHON, "-m", "drums", "agent", "--port", str(self.port), "--log-level", "info", "--graph", "auto"]
         if self.keep_loaded:
             cmd.append("--keep-loaded")
         self._log = tempfile.TemporaryFile(mode="w+")
