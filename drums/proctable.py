@@ -68,15 +68,20 @@ class MappedLibraries:
         return {pid: libs for pid, libs in self._seen.items() if libs}
 
     def _read(self, pid: int) -> dict[str, str]:
-        try:
-            with open(f"{self.table.proc}/{pid}/maps") as f:
-                text = f.read()
-        except OSError:
-            return {}
-        found = {}
-        for prefix in self.prefixes:
-            at = text.find("/" + prefix)  # most processes map none: one search each, no parsing
-            if at >= 0:
-                start = text.rfind(" ", 0, at) + 1
-                found[prefix] = text[start:text.find("\n", at)]
-        return found
+        return mapped_libraries(self.table.proc, pid, self.prefixes)
+
+
+def mapped_libraries(proc: str, pid: int, prefixes: tuple[str, ...]) -> dict[str, str]:
+    """{prefix: path} of the libraries the process maps whose file names start with a prefix."""
+    try:
+        with open(f"{proc}/{pid}/maps") as f:
+            text = f.read()
+    except OSError:
+        return {}
+    found = {}
+    for prefix in prefixes:
+        at = text.find("/" + prefix)  # most processes map none: one search each, no parsing
+        if at >= 0:
+            start = text.rfind(" ", 0, at) + 1
+            found[prefix] = text[start:text.find("\n", at)]
+    return found

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import os
 
-from drums.proctable import ProcessTable
+from drums.proctable import ProcessTable, mapped_libraries
 
 FASTDDS_VENDOR = b"\x01\x0f"
-RCL_LIBRARY = "/librcl.so"
+RCL_LIBRARY = "librcl.so"
 
 
 def pid_bits_from_gid(gid: bytes) -> int | None:
@@ -61,11 +61,7 @@ class ProcScan:
     def has_rcl(self, pid: int) -> bool:
         key = (pid, self._start(pid))
         if key not in self._rcl:
-            try:
-                with open(f"{self.proc}/{pid}/maps") as f:
-                    self._rcl[key] = any(RCL_LIBRARY in line for line in f)
-            except OSError:
-                self._rcl[key] = False
+            self._rcl[key] = bool(mapped_libraries(self.proc, pid, (RCL_LIBRARY,)))
         return self._rcl[key]
 
     def cmdline(self, pid: int) -> list[str]:

@@ -32,8 +32,8 @@ from defusedxml.xmlrpc import DefusedExpatParser
 from drums.errors import GraphError, KernelError
 from drums.graph.adapter import Adapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
-from drums.kernel import sockdiag
 from drums.netfmt import endpoint
+from drums.probes.tcp import established
 from drums.proctable import ProcessTable
 
 CALLER_ID = "/drums_graph"  # who we say we are; we register nothing with the master
@@ -41,7 +41,6 @@ DEFAULT_MASTER = "http://localhost:11311/"
 MAX_ANSWER = 64 << 20  # bytes: getSystemState of a large robot is a few MB, more is garbage or an attack
 WORKERS = 16  # XML-RPC calls in flight at once
 GRACE = 0.1  # seconds past the deadline for a call that timed out to say so
-ESTABLISHED = 1
 # roscpp's TransportTCP::getTransportInfo, which rospy's TCPROSTransport.get_transport_info copies:
 # "TCPROS connection on port 41437 to [127.0.0.1:52842 on socket 12]". The port is the socket's own;
 # the peer is the far end as accept() saw it on the publishing side, and the host and port that
@@ -206,12 +205,12 @@ def _socket_table() -> dict[tuple[int, int], tuple[str, str] | None]:
     """(local port, remote port) -> (local, remote) of this host's established TCP sockets; None
     where two sockets share the ports."""
     try:
-        found = sockdiag.dump_tcp(1 << ESTABLISHED)
+        found = list(established())
     except KernelError:
         return {}  # addresses then come from what the nodes say alone
     table: dict = {}
-    for c in found:
-        pair = (_endpoint(c.local_address, c.local_port), _endpoint(c.remote_address, c.remote_port))
+    for c, local, remote in found:
+        pair = (local, remote)
         key = (c.local_port, c.remote_port)
         table[key] = pair if table.get(key, pair) == pair else None
     return table

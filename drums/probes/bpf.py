@@ -48,6 +48,21 @@ def needs_kprobes(f: Features) -> str | None:
     return None if f.kprobes else "kprobes are not available (CONFIG_KPROBES unset)"
 
 
+def needs_perf_links(f: Features) -> str | None:
+    return None if f.perf_links else "the kernel cannot link BPF programs to perf events (Linux >= 5.15)"
+
+
+def needs_uprobes(f: Features) -> str | None:
+    return None if f.uprobes else "the kernel has no uprobes (CONFIG_UPROBE_EVENTS)"
+
+
+def needs_all(*checks: Callable[[Features], str | None]) -> Callable[[Features], str | None]:
+    """The first reason any of the checks gives, or None."""
+    def check(f: Features) -> str | None:
+        return next((why for why in (c(f) for c in checks) if why), None)
+    return check
+
+
 def choose_path(paths: tuple[AttachPath, ...], features: Features) -> tuple[AttachPath | None, list[str]]:
     """The first usable path, and why each path before it was passed over."""
     reasons = []

@@ -18,7 +18,7 @@ from drums.errors import ProbeError
 from drums.kernel import bpffs, perflink
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe
+from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
 from drums.proctable import MappedLibraries, ProcessTable
 
 LIBRARY = "librcl.so"
@@ -109,28 +109,20 @@ def topic_of(pid: int, handle: int) -> str | None:
         os.close(mem)
 
 
-def _needs_uprobe_links(features) -> str | None:
-    if not features.uprobes:
-        return "the kernel has no uprobes (CONFIG_UPROBE_EVENTS)"
-    if not features.perf_links:
-        return "the kernel cannot link BPF programs to perf events (Linux >= 5.15)"
-    return None
-
-
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
     maps = ("handles", "dropped")
     metrics = (PUBLISHED, TAKEN)
     paths = (
-        AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), _needs_uprobe_links,
+        AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
                    "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
     )
 
-    def __init__(self, features, proctable: ProcessTable, **kw):
+    def __init__(self, features, proctable: ProcessTable, libraries: MappedLibraries | None = None, **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
-        self.libraries = MappedLibraries(proctable, (LIBRARY,))
+        self.libraries = libraries or MappedLibraries(proctable, (LIBRARY,))  # may follow more libraries
         self._programs: dict[str, int] = {}
         self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
         self._topics: dict[tuple[int, int], str] = {}  # (pid, handle) -> topic
@@ -181,7 +173,7 @@ class RclProbe(BpfProbe):
         self.status.reason = "; ".join(sorted({why for why in self._files.values() if why}))
 
     def collect(self, snap: Snapshot) -> None:
-        processes = self.libraries.refresh()
+        processes = {pid: libs for pid, libs in self.libraries.refresh().items() if LIBRARY in libs}
         for pid, libs in processes.items():
             self._attach(pid, libs[LIBRARY])
         keys, values, _ = self.read("handles")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from drums.kernel.features import Features
 from drums.probes.base import Probe
-from drums.proctable import ProcessTable
+from drums.proctable import MappedLibraries, ProcessTable
 
 PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl")
 ROS2_PROBES = ("rtps", "rcl")  # run by default only with the ros2 graph: they count per DDS writer and topic
@@ -14,20 +14,21 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
     from drums.probes.process import ProcessProbe
     from drums.probes.procsched import ProcSchedProbe
     from drums.probes.rcl import RclProbe
-    from drums.probes.rtps import RtpsProbe
+    from drums.probes.rtps import DDS_LIBRARIES, RtpsProbe
     from drums.probes.sched import SchedProbe
     from drums.probes.sockdiag_sockets import SockDiagSocketsProbe
     from drums.probes.sockets import SocketsProbe
     from drums.probes.tcp import SockDiagTcpProbe, TcpProbe
 
+    dds = MappedLibraries(proctable, DDS_LIBRARIES)  # each process's maps read once for both probes
     makers = {
         "sockets": lambda: SocketsProbe(features, proctable),
         "sched": lambda: SchedProbe(features, proctable),
         "tcp": lambda: TcpProbe(features),
         "host": HostProbe,
         "process": ProcessProbe,
-        "rtps": lambda: RtpsProbe(features, proctable),
-        "rcl": lambda: RclProbe(features, proctable),
+        "rtps": lambda: RtpsProbe(features, proctable, dds),
+        "rcl": lambda: RclProbe(features, proctable, dds),
     }
     # What runs where eBPF cannot (not root, no bcc, old kernel): the kernel's own counters.
     fallbacks = {

@@ -14,7 +14,7 @@ import struct
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe
+from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_tracepoints
 from drums.proctable import MappedLibraries, ProcessTable
 
 # Libraries whose processes speak RTPS: Fast DDS (2.x and 3.x), Cyclone DDS, Connext, and rcl for
@@ -52,13 +52,6 @@ def decode(keys: bytes, values: bytes) -> list[tuple[int, int, str, tuple[int, i
             for i, (pid, direction, guid) in enumerate(_KEY.iter_unpack(keys))]
 
 
-def _needs_perf_links(features) -> str | None:
-    if not features.perf_links:
-        return "the kernel cannot link BPF programs to perf events (Linux >= 5.15)"
-    missing = [f"syscalls:sys_exit_{call}" for call in SYSCALLS if not features.tracepoint(f"sys_exit_{call}")]
-    return f"no tracepoint {', '.join(missing)}" if missing else None
-
-
 class RtpsProbe(BpfProbe):
     name = "rtps"
     source = "rtps.bpf.c"
@@ -67,14 +60,14 @@ class RtpsProbe(BpfProbe):
     paths = (
         AttachPath("tracepoint",  # bpf_task_pt_regs: Linux >= 5.15 too
                    tuple(("tracepoint", f"syscalls:sys_exit_{call}", f"on_{call}") for call in SYSCALLS),
-                   _needs_perf_links,
+                   needs_all(needs_perf_links, needs_tracepoints(*(f"sys_exit_{call}" for call in SYSCALLS))),
                    "Linux >= 5.15 (syscall tracepoints as BPF links)"),
     )
 
-    def __init__(self, features, proctable: ProcessTable, **kw):
+    def __init__(self, features, proctable: ProcessTable, libraries: MappedLibraries | None = None, **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
-        self.libraries = MappedLibraries(proctable, DDS_LIBRARIES)
+        self.libraries = libraries or MappedLibraries(proctable, DDS_LIBRARIES)  # shared with rcl by the agent
         self._watched: set[int] = set()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
