@@ -81,6 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     graph.add_argument("--format", choices=FORMATS, default="text", help="output format (default text)")
     graph.add_argument("--output", default="-", help="file to write (default standard output)")
     graph.add_argument("--watch", action="store_true", help="after the graph, print each change as it happens")
+    graph.add_argument("--agent", metavar="URL", default="",
+                       help="ask the agent at URL (e.g. http://localhost:9969) for its graph, with the "
+                            "metrics of its nodes, topics and edges, instead of discovering it here")
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded")
@@ -93,6 +96,7 @@ def run_agent(args) -> int:
     from drums.exporters.prometheus import MetricsServer
     from drums.graph import registry
     from drums.graph.adapter import Follower
+    from drums.graph.export import document
     from drums.graph.model import Graph
     from drums.kernel.features import Features
     from drums.probes.registry import PROBES, ROS2_PROBES, build
@@ -115,7 +119,8 @@ def run_agent(args) -> int:
     done = threading.Event()  # set by SIGINT or SIGTERM, even while the probes are still loading
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
-    server = MetricsServer(agent.collect, args.address, args.port)
+    server = MetricsServer(agent.collect, args.address, args.port,
+                           graph=lambda fmt: document(graph, agent.collect(), fmt))
     try:
         start = time.perf_counter()
         agent.start(strict=args.strict)
@@ -134,6 +139,12 @@ def run_agent(args) -> int:
 
 
 def run_graph(args) -> int:
+    if args.agent:
+        if args.watch or args.graph or args.graph_file:
+            raise UsageError("--agent takes the agent's graph as it is: not with --watch, --graph or --graph-file")
+        _write(args.output, _agent_graph(args.agent, args.format))
+        return 0
+
     from drums.graph import registry
     from drums.graph.adapter import Follower
     from drums.graph.export import render
@@ -158,12 +169,7 @@ def run_graph(args) -> int:
             changes, cursor = graph.changes_since(cursor)
             if changes:
                 quiet_since = time.monotonic()
-        text = render(graph.snapshot(), args.format, stale=graph.error)
-        if args.output == "-":
-            sys.stdout.write(text)
-        else:
-            with open(args.output, "w") as f:
-                f.write(text)
+        _write(args.output, render(graph.snapshot(), args.format, stale=graph.error))
         if args.watch:
             _, cursor = graph.changes_since(0)
             while True:
@@ -171,11 +177,35 @@ def run_graph(args) -> int:
                 changes, cursor = graph.changes_since(cursor)
                 for c in changes:
                     print(f"{time.strftime('%H:%M:%S', time.localtime(c.at))} {c.action} {c.id}", flush=True)
-    except OSError as e:
-        raise UsageError(f"--output {args.output}: {e.strerror}") from None
     finally:
         follower.stop()
     return 0
+
+
+def _write(output: str, text: str) -> None:
+    try:
+        if output == "-":
+            sys.stdout.write(text)
+        else:
+            with open(output, "w") as f:
+                f.write(text)
+    except OSError as e:
+        raise UsageError(f"--output {output}: {e.strerror}") from None
+
+
+def _agent_graph(url: str, fmt: str) -> str:
+    """The graph an agent serves, with its metrics on it."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(url.rstrip("/") + f"/graph?format={fmt}", timeout=30) as reply:
+            return reply.read().decode()
+    except urllib.error.HTTPError as e:
+        raise UsageError(f"--agent {url}: {e.code} {e.read().decode(errors='replace').strip()}") from None
+    except (urllib.error.URLError, OSError, ValueError) as e:
+        reason = getattr(e, "reason", e)
+        raise UsageError(f"--agent {url}: {getattr(reason, 'strerror', None) or reason}") from None
 
 
 def run_unload(_args) -> int:

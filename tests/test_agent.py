@@ -1,59 +1,21 @@
 """The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
-import os
 import shutil
 import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 
 import pytest
-from prometheus_client.parser import text_string_to_metric_families
 
-PIN_ROOT = "/sys/fs/bpf/drums"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.agentproc import free_port, running_agent, samples, scrape
 
 
 @pytest.fixture(scope="module")
 def agent():
-    port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    url = f"http://127.0.0.1:{port}/metrics"
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            urllib.request.urlopen(url, timeout=5).read()
-            break
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
-                pytest.fail(f"agent did not serve: {proc.stdout.read()}")
-            time.sleep(0.1)
-    yield url
-    proc.terminate()
-    assert proc.wait(timeout=10) == 0
-    log = proc.stdout.read()
-    assert "Traceback" not in log, log
-    assert not os.path.exists(PIN_ROOT) or not os.listdir(PIN_ROOT), "pins left behind after shutdown"
-
-
-def scrape(url: str) -> str:
-    return urllib.request.urlopen(url, timeout=10).read().decode()
-
-
-def samples(text: str, name: str) -> dict[tuple, float]:
-    out = {}
-    for family in text_string_to_metric_families(text):
-        for s in family.samples:
-            if s.name == name:
-                out[tuple(sorted(s.labels.items()))] = s.value
-    return out
+    with running_agent() as url:
+        yield url
 
 
 def test_promtool_finds_nothing_in_live_metrics(agent):
@@ -140,7 +102,7 @@ def test_strict_refuses_when_a_probe_cannot_attach(tmp_path):
 
 def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
     """As an unprivileged user no BPF program can load: the agent runs on /proc and sock_diag."""
-    port = _free_port()
+    port = free_port()
     proc = subprocess.Popen(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable,
                              "-m", "drums", "agent", "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path)

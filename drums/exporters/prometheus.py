@@ -10,8 +10,9 @@ import logging
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Callable
+from urllib.parse import parse_qs, urlsplit
 
-from drums.errors import DrumsError
+from drums.errors import DrumsError, UsageError
 from drums.metrics import HISTOGRAM, INFO, Metric, Snapshot
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -74,10 +75,13 @@ def _family(metric: Metric, rows) -> str:
 
 
 class MetricsServer:
-    """Serves /metrics from a fresh snapshot per request; anything else is 404."""
+    """Serves /metrics from a fresh snapshot per request, and /graph?format=F (text, json, dot,
+    graphml) when given `graph`, which renders a format to (body, content type) and raises
+    UsageError for a format it does not know; anything else is 404."""
 
-    def __init__(self, collect: Callable[[], Snapshot], address: str, port: int):
-        handler = _handler(collect)
+    def __init__(self, collect: Callable[[], Snapshot], address: str, port: int,
+                 graph: Callable[[str], tuple[bytes, str]] | None = None):
+        handler = _handler(collect, graph)
         try:
             self.httpd = ThreadingHTTPServer((address, port), handler)
         except OSError as e:
@@ -95,24 +99,36 @@ class MetricsServer:
         self.httpd.server_close()
 
 
-def _handler(collect: Callable[[], Snapshot]):
+_TEXT = "text/plain; charset=utf-8"
+
+
+def _handler(collect: Callable[[], Snapshot], graph: Callable[[str], tuple[bytes, str]] | None):
+    pages = "/metrics" + (" and /graph" if graph else "")
+
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self):
-            path = self.path.split("?", 1)[0]
-            if path == "/":
-                self._reply(200, b'<html><body><a href="/metrics">/metrics</a></body></html>\n',
-                            "text/html; charset=utf-8")
-                return
-            if path != "/metrics":
-                self._reply(404, b"not found: Drums serves /metrics\n", "text/plain; charset=utf-8")
-                return
+            url = urlsplit(self.path)
+            if url.path == "/":
+                links = "".join(f'<a href="{p}">{p}</a> ' for p in pages.split(" and "))
+                self._reply(200, f"<html><body>{links}</body></html>\n".encode(), "text/html; charset=utf-8")
+            elif url.path == "/metrics":
+                self._page(lambda: (render(collect()), CONTENT_TYPE))
+            elif url.path == "/graph" and graph:
+                self._page(lambda: graph(parse_qs(url.query).get("format", ["json"])[-1]))
+            else:
+                self._reply(404, f"not found: Drums serves {pages}\n".encode(), _TEXT)
+
+        def _page(self, make: Callable[[], tuple[bytes, str]]) -> None:
             try:
-                body = render(collect())
+                body, content_type = make()
+            except UsageError as e:
+                self._reply(400, f"{e}\n".encode(), _TEXT)
+                return
             except Exception as e:  # a scrape must never take the agent down
                 log.exception("collect failed")
-                self._reply(500, f"collect failed: {e}\n".encode(), "text/plain; charset=utf-8")
+                self._reply(500, f"collect failed: {e}\n".encode(), _TEXT)
                 return
-            self._reply(200, body, CONTENT_TYPE)
+            self._reply(200, body, content_type)
 
         def _reply(self, code: int, body: bytes, content_type: str) -> None:
             self.send_response(code)

@@ -1,16 +1,54 @@
 """The graph as text for people and files: a readable listing, JSON, DOT and GraphML.
 
-Vertex and edge attributes are the entity's fields (and, where given, its metrics); formats
-that take only scalars (DOT, GraphML) get nested values as JSON strings.
+Vertex and edge attributes are the entity's fields and, where given, the joined metrics of an
+agent's snapshot; formats that take only scalars (DOT, GraphML) get nested values as JSON strings.
 """
 from __future__ import annotations
 
 import json
+from collections import defaultdict
 from dataclasses import asdict
 
 import networkx as nx
 
+from drums.errors import UsageError
+from drums.graph import join
+from drums.graph.model import Graph
+from drums.metrics import INFO, Histogram, Snapshot
+
 FORMATS = ("text", "json", "dot", "graphml")
+CONTENT_TYPES = {"text": "text/plain; charset=utf-8", "json": "application/json",
+                 "dot": "text/vnd.graphviz", "graphml": "application/graphml+xml"}
+
+
+def document(graph: Graph, snap: Snapshot, fmt: str) -> tuple[bytes, str]:
+    """The live graph with an agent's snapshot on it, as (body, content type): the agent's /graph."""
+    if fmt not in FORMATS:
+        raise UsageError(f"format {fmt!r}: one of {', '.join(FORMATS)}")
+    return render(graph.snapshot(), fmt, graph_metrics(snap), stale=graph.error).encode(), CONTENT_TYPES[fmt]
+
+
+def graph_metrics(snap: Snapshot) -> dict:
+    """The joined metrics of `snap` as attributes: node metrics on the node's vertex, edge metrics
+    on the connection, topic metrics on the topic's vertex by node ({node: value}: the labels the
+    kernel data has, nothing split or guessed). Names lose their `drums_<scope>_` prefix."""
+    attrs: dict = defaultdict(dict)
+    for metric in join.METRICS:
+        if metric.kind == INFO:
+            continue  # the node's own fields already say it
+        name = metric.name.split("_", 2)[2]
+        for labels, value in snap.series.get(metric, ()):
+            if isinstance(value, Histogram):
+                value = {"count": value.count, "sum": value.sum}
+            if metric.labels[:3] == join.EDGE:
+                attrs[f"node:{labels[1]}", f"node:{labels[2]}", labels[0]][name] = value
+            elif metric.labels[:2] == join.TOPIC:
+                attrs[f"topic:{labels[0]}"].setdefault(name, {})[labels[1]] = value
+            elif len(labels) > 1:  # by kind of context switch
+                attrs[f"node:{labels[0]}"].setdefault(name, {})[labels[1]] = value
+            else:
+                attrs[f"node:{labels[0]}"][name] = value
+    return dict(attrs)
 
 
 def _attributes(data: dict, metrics: dict, flat: bool) -> dict:
@@ -67,8 +105,8 @@ def _text(g: nx.MultiDiGraph, metrics: dict, stale: str) -> str:
         lines.append(f"host {host.name}")
         for _, p in [(v, e) for v, e in of("process") if e.host == host.name]:
             lines.append(f"  process {p.pid} {p.name}")
-            for _, n in [(v, e) for v, e in nodes if e.pid == p.pid and e.host == host.name]:
-                lines.append(f"    node {n.name} (mapped by {n.mapped_by})")
+            for vid, n in [(v, e) for v, e in nodes if e.pid == p.pid and e.host == host.name]:
+                lines.append(f"    node {n.name} (mapped by {n.mapped_by}){_values(metrics.get(vid, {}))}")
     unplaced = [n for _, n in nodes if n.pid is None]
     if unplaced:
         lines.append("nodes without a local process")
@@ -81,8 +119,17 @@ def _text(g: nx.MultiDiGraph, metrics: dict, stale: str) -> str:
     for key in sorted(topics.keys() | by_key.keys()):
         t = topics.get(key)
         lines.append(f"topic {key} [{', '.join(t.types)}]" if t else f"connections {key}")
+        by_node: dict[str, dict] = defaultdict(dict)  # {metric: {node: value}} turned around
+        for name, values in metrics.get(f"topic:{key}", {}).items():
+            for node, value in values.items():
+                by_node[node][name] = value
+        lines.extend(f"  {node}:{_values(by_node[node])}" for node in sorted(by_node))
         for c, values in by_key.get(key, []):
-            extra = "".join(f" {k}={val}" for k, val in sorted(values.items()))
             qos = "" if c.qos_check in ("", "ok") else f" QoS: {c.qos_check}"
-            lines.append(f"  {c.publisher} -> {c.subscriber}{extra}{qos}")
+            lines.append(f"  {c.publisher} -> {c.subscriber}{_values(values)}{qos}")
     return "\n".join(lines) + "\n"
+
+
+def _values(values: dict) -> str:
+    return "".join(f" {k}={json.dumps(v, sort_keys=True) if isinstance(v, dict) else v}"
+                   for k, v in sorted(values.items()))

@@ -111,22 +111,27 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     def owner(pid: str, kind: str, topic: str) -> str:
         return ",".join(sorted(members.get((pid, kind, topic), ()))) or "unknown"
 
+    # Rows that name the same entity are summed: processes whose nodes are unknown, a node with
+    # two writers on one topic.
+    sums: dict[Metric, dict[tuple[str, ...], int]] = defaultdict(lambda: defaultdict(int))
     for metric, source, kind in ((TOPIC_PUBLISHED, rcl.PUBLISHED, "publisher"),
                                  (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
         for (pid, _, topic), value in raw.series.get(source, ()):
-            out.add(metric, (topic, owner(pid, kind, topic)), value)
+            sums[metric][topic, owner(pid, kind, topic)] += value
     for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES),
                            (TOPIC_SENT_WIRE_BYTES, rtps.SENT_WIRE_BYTES)):
         for (_, _, writer), value in raw.series.get(source, ()):
             e = writers.get(writer)
             if e is not None:
-                out.add(metric, (e.topic, e.node), value)
+                sums[metric][e.topic, e.node] += value
     for metric, source in ((EDGE_SAMPLES, rtps.SAMPLES_RECEIVED), (EDGE_RECEIVED_BYTES, rtps.RECEIVED_BYTES),
                            (EDGE_RECEIVED_WIRE_BYTES, rtps.RECEIVED_WIRE_BYTES)):
         for (pid, _, writer), value in raw.series.get(source, ()):
             e = writers.get(writer)
             if e is not None:
-                out.add(metric, (e.topic, e.node, owner(pid, "subscriber", e.topic)), value)
+                sums[metric][e.topic, e.node, owner(pid, "subscriber", e.topic)] += value
+    for metric, rows in sums.items():
+        out.rows(metric).extend(rows.items())
     _socket_edges(connections, raw, out)
 
 

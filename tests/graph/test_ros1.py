@@ -161,6 +161,7 @@ def test_the_graph_has_each_node_pid_topic_and_socket(wire):
 def test_each_edge_carries_the_bytes_of_its_socket(wire, proctable, sockets_probe, tcp_probe):
     from drums.agent import Agent
     from drums.graph import join
+    from drums.graph.export import graph_metrics, render
 
     master = wire.master()
     nodes = {"/camera": wire.node("/camera", master, "--publish", IMAGE, "--size", "5000"),
@@ -175,6 +176,12 @@ def test_each_edge_carries_the_bytes_of_its_socket(wire, proctable, sockets_prob
     truth = {(e["topic"], pub, e["subscriber"]): e["bytes"] for pub, e in flows(nodes)}
     assert sent == truth and received == truth
     assert set(rtt) == set(truth) and all(0 < v < 0.1 for v in rtt.values())
+    # `drums graph` exports carry the same numbers on the edges.
+    exported = json.loads(render(graph.snapshot(), "json", graph_metrics(snap)))
+    on_edges = {(e["topic"], e["publisher"], e["subscriber"]): (e["sent_bytes_total"], e["received_bytes_total"],
+                                                                e["tcp_rtt_seconds"])
+                for e in exported["edges"] if e["kind"] == "connection"}
+    assert on_edges == {edge: (b, b, rtt[edge]) for edge, b in truth.items()}
 
 
 class CountingAdapter(Ros1Adapter):

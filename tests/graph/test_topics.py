@@ -3,12 +3,15 @@ rtps and rcl probes in the kernel, the ROS 2 graph, and the agent's join. Each p
 burst of exactly BURST messages; every count is checked against what the nodes themselves count."""
 from __future__ import annotations
 
+import json
+
 import pytest
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String, UInt8MultiArray
 
 from drums.agent import Agent
 from drums.graph import join
+from drums.graph.export import graph_metrics, render
 from tests.conftest import wait_until
 from tests.graph.rosnodes import IMAGE_BYTES
 
@@ -73,6 +76,18 @@ def test_udp_pipeline_counts_and_bytes_per_topic_and_edge(pipeline, ros2_graph, 
     assert wire["/chatter", "/talker"] == sent["/chatter", "/talker"]  # small samples, never lost here
     cpu = snap.values(join.NODE_CPU)
     assert set(cpu) == {(f"/{role}",) for role in procs} and all(v > 0 for v in cpu.values())
+
+    # `drums graph` exports put the same numbers on the graph's vertices and edges.
+    exported = json.loads(render(ros2_graph.snapshot(), "json", graph_metrics(snap)))
+    vertices = {v["id"]: v for v in exported["nodes"]}
+    edges = {(e["topic"], e["publisher"], e["subscriber"]): e for e in exported["edges"] if e["kind"] == "connection"}
+    for pub, topic, sub in PIPELINE:
+        pub, sub = f"/{pub}", f"/{sub}"
+        assert vertices[f"topic:{topic}"]["messages_published_total"][pub] == BURST
+        assert vertices[f"topic:{topic}"]["sent_bytes_total"] == {pub: BURST * sizes[topic]}
+        edge = edges[topic, pub, sub]
+        assert (edge["samples_received_total"], edge["received_bytes_total"]) == (BURST, BURST * sizes[topic])
+    assert {v: vertices[f"node:{v[0]}"]["cpu_seconds_total"] for v in cpu} == cpu
 
 
 def test_shared_memory_pipeline_counts_messages_per_topic(pipeline, ros2_graph, proctable, rtps_probe, rcl_probe):

@@ -1,0 +1,58 @@
+"""`drums agent` in a process of its own, as users run it, and reading what it serves."""
+import contextlib
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+PIN_ROOT = "/sys/fs/bpf/drums"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def running_agent(*argv):
+    """`drums agent` on a free port, serving; yields its /metrics URL. Stops it and checks it
+    left no traceback and no pins behind."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port), *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}/metrics"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            urllib.request.urlopen(url, timeout=5).read()
+            break
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"agent did not serve: {proc.stdout.read()}")
+            time.sleep(0.1)
+    yield url
+    proc.terminate()
+    assert proc.wait(timeout=10) == 0
+    log = proc.stdout.read()
+    assert "Traceback" not in log, log
+    assert not os.path.exists(PIN_ROOT) or not os.listdir(PIN_ROOT), "pins left behind after shutdown"
+
+
+def scrape(url: str) -> str:
+    return urllib.request.urlopen(url, timeout=10).read().decode()
+
+
+def samples(text: str, name: str) -> dict[tuple, float]:
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if s.name == name:
+                out[tuple(sorted(s.labels.items()))] = s.value
+    return out
