@@ -18,7 +18,9 @@ struct handle_key_t {
 };
 
 BPF_HASH(handles, struct handle_key_t, u64, 16384);
-BPF_HASH(takes, u64, u64, 4096);  // thread -> subscription, while rcl_take runs
+// The subscription a thread passed to rcl_take, kept until it returns. Task-local storage, not a
+// hash keyed by thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
+BPF_TASK_STORAGE(takes, u64);
 BPF_ARRAY(dropped, u64, 2);
 
 static __always_inline void count_drop(int which)
@@ -48,21 +50,21 @@ int on_publish(struct pt_regs *ctx)
 // rcl_take returns RCL_RET_OK (0) only when it took a message: that needs the return probe too.
 int on_take(struct pt_regs *ctx)
 {
-    u64 tid = bpf_get_current_pid_tgid();
-    u64 handle = PT_REGS_PARM1(ctx);
-    if (takes.update(&tid, &handle) != 0)
+    u64 *handle = takes.task_storage_get(bpf_get_current_task_btf(), 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
+    if (handle)
+        *handle = PT_REGS_PARM1(ctx);
+    else
         count_drop(0);
     return 0;
 }
 
 int on_take_return(struct pt_regs *ctx)
 {
-    u64 tid = bpf_get_current_pid_tgid();
-    u64 *handle = takes.lookup(&tid);
-    if (!handle)
+    u64 *handle = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    if (!handle || !*handle)
         return 0;
     u64 h = *handle;
-    takes.delete(&tid);
+    *handle = 0;
     if (PT_REGS_RC(ctx) == 0)
         count(TAKEN, h);
     return 0;
