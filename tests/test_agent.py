@@ -1,6 +1,7 @@
 """The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -58,6 +59,17 @@ def test_unknown_path_is_404_and_agent_keeps_serving(agent):
     with pytest.raises(urllib.error.HTTPError) as e:
         urllib.request.urlopen(base + "/nope", timeout=5)
     assert e.value.code == 404
+    assert "drums_agent_cpu_seconds_total" in scrape(agent)
+
+
+def test_clients_that_hang_up_before_the_answer_cost_no_traceback(agent):
+    """A scrape takes tens of milliseconds; a client gone by then must not put a traceback in the
+    log (the fixture checks the log when the agent stops)."""
+    host, port = agent.split("/")[2].split(":")
+    for _ in range(5):
+        with socket.create_connection((host, int(port))) as s:
+            s.sendall(b"GET /metrics HTTP/1.0\r\n\r\n")
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # reset on close
     assert "drums_agent_cpu_seconds_total" in scrape(agent)
 
 

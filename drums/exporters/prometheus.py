@@ -7,6 +7,7 @@ the two); tests parse our output with prometheus_client's own parser to keep it 
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Callable
@@ -74,6 +75,16 @@ def _family(metric: Metric, rows) -> str:
     return "".join(lines)
 
 
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):
+        """One line, not socketserver's traceback; a client that hung up first is no news."""
+        error = sys.exc_info()[1]
+        if not isinstance(error, (BrokenPipeError, ConnectionResetError)):
+            log.warning("request from %s failed: %s", client_address[0], error)
+
+
 class MetricsServer:
     """Serves /metrics from a fresh snapshot per request, and /graph?format=F (text, json, dot,
     graphml) when given `graph`, which renders a format to (body, content type) and raises
@@ -83,10 +94,9 @@ class MetricsServer:
                  graph: Callable[[str], tuple[bytes, str]] | None = None):
         handler = _handler(collect, graph)
         try:
-            self.httpd = ThreadingHTTPServer((address, port), handler)
+            self.httpd = _Server((address, port), handler)
         except OSError as e:
             raise DrumsError(f"cannot listen on {address}:{port}: {e.strerror}") from None
-        self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]
         self._thread = threading.Thread(target=self.httpd.serve_forever, name="metrics-http", daemon=True)
 
