@@ -13,6 +13,7 @@ import resource
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 from drums.budget import Budget
 from drums.errors import DrumsError, UsageError
@@ -131,6 +132,8 @@ class Agent:
         self._reasons: dict[str, str] = {}
         self._durations: dict[str, float] = {}
         self._success: dict[str, int] = {}
+        self.wanted_pids: Callable[[], set[int]] = set  # processes a client asked for (jobs): always read
+        self.raw = Snapshot()  # the last collect's rows before selection and budget, for jobs
 
     def start(self, strict: bool = False) -> None:
         for i, probe in enumerate(self.probes):
@@ -170,6 +173,12 @@ class Agent:
         with self._lock:
             return self._collect()
 
+    def collect_raw(self) -> Snapshot:
+        """A fresh snapshot's rows before selection and budget: every entity with its own rows."""
+        with self._lock:
+            self._collect()
+            return self.raw
+
     def _collect(self) -> Snapshot:
         began = time.perf_counter()
         self.proctable.refresh()
@@ -193,6 +202,7 @@ class Agent:
             if probe.status.reason != self._reasons.get(probe.name, probe.status.reason):
                 log.warning("probe %s: %s", probe.name, probe.status.reason or "recovered")
             self._reasons[probe.name] = probe.status.reason
+        self.raw = raw
         joined = Snapshot()
         if self.graph is not None:
             join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
@@ -218,6 +228,7 @@ class Agent:
         chosen = self._chosen()
         limit = self.budget.limit("process")
         nodes = [n.pid for n in self.graph.entities("node") if n.pid in chosen] if self.graph else []
+        nodes = sorted(self.wanted_pids() & self.proctable.pids()) + nodes
         kept = nodes + [int(pid) for pid in self.budget.kept("process") if pid.isdigit() and int(pid) in chosen]
         rest = sorted(chosen - set(kept), reverse=True)
         return list(dict.fromkeys(kept + rest))[:limit]

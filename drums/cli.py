@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import socket
 import sys
 import threading
 import time
@@ -54,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--address", default="127.0.0.1",
                        help="address to serve /metrics on (default 127.0.0.1; 0.0.0.0 for Prometheus "
                             "on another host)")
+    agent.add_argument("--token-file", default="",
+                       help="file holding the token that POST and DELETE on the job API must carry "
+                            "(Authorization: Bearer ...); needed off loopback ($DRUMS_TOKEN also works)")
     agent.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"port for /metrics (default {DEFAULT_PORT})")
     _graph_flags(agent)
     agent.add_argument("--probe", action="append", choices=PROBES, default=None,
@@ -93,7 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
 def run_agent(args) -> int:
     from drums.agent import Agent, Selection
     from drums.budget import Budget
-    from drums.exporters.prometheus import MetricsServer
+    from drums.exporters import prometheus
+    from drums.exporters.http import HttpServer
+    from drums.exporters.jobs import Jobs
     from drums.graph import registry
     from drums.graph.adapter import Follower
     from drums.graph.export import document
@@ -119,23 +125,59 @@ def run_agent(args) -> int:
     done = threading.Event()  # set by SIGINT or SIGTERM, even while the probes are still loading
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
-    server = MetricsServer(agent.collect, args.address, args.port,
-                           graph=lambda fmt: document(graph, agent.collect(), fmt))
+    token = _token(args.address, args.token_file)
+    host = socket.gethostname()
+    jobs = Jobs(agent.collect_raw, host)
+    agent.wanted_pids = jobs.pids
+
+    def info() -> dict:
+        return {"host": host, "api": "v1", "graph": adapter_name, "token_required": bool(token),
+                "probes": {p.name: {"attached": p.status.attached, "attach_type": p.status.attach_type,
+                                    "reason": p.status.reason} for p in agent.probes}}
+    pages = {"/metrics": lambda _query: (prometheus.render(agent.collect()), prometheus.CONTENT_TYPE),
+             "/graph": lambda query: document(graph, agent.collect(), query.get("format", "json"))}
+    server = HttpServer(args.address, args.port, pages, jobs, info, token)
     try:
         start = time.perf_counter()
         agent.start(strict=args.strict)
         follower.start(wait=args.strict)  # without --strict a graph that fails is logged and marked stale
         features.release_btf()
         server.start()
+        jobs.start()
         attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)
         log.info("serving http://%s:%d/metrics after %.2f s; probes: %s; graph: %s", args.address, server.port,
                  time.perf_counter() - start, attached or "none", adapter_name)
         done.wait()
     finally:
+        jobs.stop()
         server.stop()
         follower.stop()
         agent.stop(unload=not args.keep_loaded)
     return 0
+
+
+def _token(address: str, path: str) -> str:
+    """The API token, from --token-file or $DRUMS_TOKEN; required to listen off loopback."""
+    import ipaddress
+    import os
+
+    token = os.environ.get("DRUMS_TOKEN", "")
+    if path:
+        try:
+            with open(path) as f:
+                token = f.read().strip()
+        except OSError as e:
+            raise UsageError(f"--token-file {path}: {e.strerror}") from None
+        if not token:
+            raise UsageError(f"--token-file {path}: the file is empty")
+    try:
+        loopback = address == "localhost" or ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback and not token:
+        raise UsageError(f"--address {address}: off loopback the job API needs a token "
+                         "(--token-file FILE or $DRUMS_TOKEN)")
+    return token
 
 
 def run_graph(args) -> int:

@@ -1,0 +1,202 @@
+"""The agent's HTTP server: /metrics for Prometheus, /graph, and the job API under /drums/v1
+(described by the OpenAPI document it serves at /drums/v1/openapi.json).
+
+Reads are open to anyone who can reach the port. With a token, every request that changes
+something (POST, DELETE) must carry `Authorization: Bearer <token>`, compared in constant time;
+the CLI refuses to bind off loopback without one.
+"""
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+import os
+import sys
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Callable
+from urllib.parse import parse_qs, urlsplit
+
+from drums.errors import DrumsError, UsageError
+from drums.exporters.jobs import Jobs, NotFound, job_target, parse_interval
+
+log = logging.getLogger("drums")
+
+API = "/drums/v1"
+MAX_BODY = 64 << 10  # a job's body is a few bytes
+JSON = "application/json"
+TEXT = "text/plain; charset=utf-8"
+OPENAPI = os.path.join(os.path.dirname(__file__), "openapi.yaml")
+
+# A page: query parameters -> (body, content type); raises UsageError for a bad query (400).
+Page = Callable[[dict[str, str]], tuple[bytes, str]]
+
+
+class HttpError(Exception):
+    def __init__(self, code: int, message: str, headers: dict | None = None):
+        super().__init__(message)
+        self.code, self.headers = code, headers or {}
+
+
+def openapi_document() -> bytes:
+    import yaml
+    with open(OPENAPI) as f:
+        return json.dumps(yaml.safe_load(f), indent=1).encode()
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):
+        """One line, not socketserver's traceback (a request the handler could not even read)."""
+        log.warning("request from %s failed: %s", client_address[0], sys.exc_info()[1])
+
+
+class HttpServer:
+    def __init__(self, address: str, port: int, pages: dict[str, Page], jobs: Jobs | None = None,
+                 info: Callable[[], dict] | None = None, token: str = ""):
+        handler = _handler(pages, jobs, info or dict, token)
+        try:
+            self.httpd = _Server((address, port), handler)
+        except OSError as e:
+            raise DrumsError(f"cannot listen on {address}:{port}: {e.strerror}") from None
+        self.port = self.httpd.server_address[1]
+        self._thread = threading.Thread(target=self.httpd.serve_forever, name="http", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        if self._thread.is_alive():
+            self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def _handler(pages: dict[str, Page], jobs: Jobs | None, info: Callable[[], dict], token: str):
+    links = sorted(pages) + ([f"{API}/openapi.json"] if jobs else [])
+    document = openapi_document() if jobs else b""
+
+    def api(method: str, parts: list[str], body: bytes) -> tuple[int, object]:
+        """(status, JSON value) of a request under /drums/v1."""
+        if parts in (["info"], ["openapi.json"], ["jobs"]):
+            if method != "GET":
+                raise HttpError(405, f"{method} {API}/{parts[0]}: only GET", {"Allow": "GET"})
+            if parts == ["info"]:
+                return 200, info()
+            return 200, (json.loads(document) if parts == ["openapi.json"] else {"jobs": jobs.list()})
+        if len(parts) < 2 or parts[0] != "monitor" or parts[1] not in ("pid", "host", "socket"):
+            raise NotFound(f"no such path {API}/{'/'.join(parts)}")
+        kind = parts[1]
+        target = job_target(kind, parts[2:])
+        job_id = f"{kind}/{target}" if target else kind
+        if method == "GET":
+            return 200, jobs.get(job_id)
+        if method == "DELETE":
+            jobs.remove(job_id)
+            return 204, None
+        try:
+            value = json.loads(body) if body.strip() else None
+        except (ValueError, UnicodeDecodeError) as e:
+            raise UsageError(f"the body is not JSON ({e})") from None
+        job, created = jobs.add(kind, target, parse_interval(value))
+        return (201 if created else 200), job
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self):
+            self._serve("GET")
+
+        def do_POST(self):
+            self._serve("POST")
+
+        def do_DELETE(self):
+            self._serve("DELETE")
+
+        def do_PUT(self):
+            self._serve("PUT")
+
+        def do_PATCH(self):
+            self._serve("PATCH")
+
+        def _serve(self, method: str) -> None:
+            url = urlsplit(self.path)
+            try:
+                if url.path == API or url.path.startswith(API + "/"):
+                    if jobs is None:
+                        raise NotFound("the job API is off")
+                    self._api(method, url.path)
+                    return
+                if method != "GET":
+                    raise HttpError(405, f"{method} {url.path}: only GET", {"Allow": "GET"})
+                if url.path == "/":
+                    body = "".join(f'<a href="{p}">{p}</a> ' for p in links)
+                    self._reply(200, f"<html><body>{body}</body></html>\n".encode(), "text/html; charset=utf-8")
+                    return
+                page = pages.get(url.path)
+                if page is None:
+                    raise NotFound(f"not found: Drums serves {', '.join(links)}")
+                query = {k: v[-1] for k, v in parse_qs(url.query).items()}
+                body, content_type = page(query)
+                self._reply(200, body, content_type)
+            except HttpError as e:
+                self._reply(e.code, f"{e}\n".encode(), TEXT, e.headers)
+            except NotFound as e:
+                self._reply(404, f"{e}\n".encode(), TEXT)
+            except UsageError as e:
+                self._reply(400, f"{e}\n".encode(), TEXT)
+            except Exception as e:  # a request must never take the agent down
+                log.error("%s %s failed: %s", method, url.path, e, exc_info=log.isEnabledFor(logging.DEBUG))
+                self._reply(500, f"failed: {e}\n".encode(), TEXT)
+
+        def _api(self, method: str, path: str) -> None:
+            try:
+                if method not in ("GET", "POST", "DELETE"):
+                    raise HttpError(405, f"{method}: the API takes GET, POST and DELETE",
+                                    {"Allow": "GET, POST, DELETE"})
+                if method != "GET" and token and not self._authorized():
+                    raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
+                                    {"WWW-Authenticate": "Bearer"})
+                code, value = api(method, [p for p in path[len(API):].split("/") if p], self._body())
+            except HttpError as e:
+                self._json(e.code, {"error": str(e)}, e.headers)
+            except NotFound as e:
+                self._json(404, {"error": str(e)})
+            except UsageError as e:
+                self._json(400, {"error": str(e)})
+            else:
+                self._json(code, value)
+
+        def _authorized(self) -> bool:
+            given = self.headers.get("Authorization", "")
+            scheme, _, value = given.partition(" ")
+            return scheme.lower() == "bearer" and hmac.compare_digest(value.strip().encode(), token.encode())
+
+        def _body(self) -> bytes:
+            length = self.headers.get("Content-Length", "0")
+            if not length.isdigit():
+                raise HttpError(400, f"Content-Length {length!r} is not a length")
+            if int(length) > MAX_BODY:
+                raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
+            return self.rfile.read(int(length))
+
+        def _json(self, code: int, value, headers: dict | None = None) -> None:
+            body = b"" if code == 204 else json.dumps(value).encode() + b"\n"
+            self._reply(code, body, JSON, headers)
+
+        def _reply(self, code: int, body: bytes, content_type: str, headers: dict | None = None) -> None:
+            try:
+                self.send_response(code)
+                if code != 204:
+                    self.send_header("Content-Type", content_type)
+                    self.send_header("Content-Length", str(len(body)))
+                for name, value in (headers or {}).items():
+                    self.send_header(name, value)
+                self.end_headers()
+                if code != 204:
+                    self.wfile.write(body)
+            except (BrokenPipeError, ConnectionResetError):
+                pass  # the client hung up before the answer (a scrape can take a while): no news
+
+        def log_message(self, fmt, *args):  # scrapes are not news
+            pass
+
+    return Handler
