@@ -133,7 +133,6 @@ class Agent:
         self._durations: dict[str, float] = {}
         self._success: dict[str, int] = {}
         self.wanted_pids: Callable[[], set[int]] = set  # processes a client asked for (jobs): always read
-        self.raw = Snapshot()  # the last collect's rows before selection and budget, for jobs
 
     def start(self, strict: bool = False) -> None:
         for i, probe in enumerate(self.probes):
@@ -171,15 +170,15 @@ class Agent:
     def collect(self) -> Snapshot:
         """One consistent snapshot; concurrent scrapes wait for each other rather than interleave."""
         with self._lock:
-            return self._collect()
+            return self._collect()[1]
 
     def collect_raw(self) -> Snapshot:
         """A fresh snapshot's rows before selection and budget: every entity with its own rows."""
         with self._lock:
-            self._collect()
-            return self.raw
+            return self._collect()[0]
 
-    def _collect(self) -> Snapshot:
+    def _collect(self) -> tuple[Snapshot, Snapshot]:
+        """(the probes' rows before selection and budget, the snapshot to export)."""
         began = time.perf_counter()
         self.proctable.refresh()
         pids = self._process_pids()
@@ -202,19 +201,16 @@ class Agent:
             if probe.status.reason != self._reasons.get(probe.name, probe.status.reason):
                 log.warning("probe %s: %s", probe.name, probe.status.reason or "recovered")
             self._reasons[probe.name] = probe.status.reason
-        self.raw = raw
         joined = Snapshot()
         if self.graph is not None:
             join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
                  joined)
-        if not self.selection.everything:
-            raw = self._select(raw)
-        snap = self.budget.apply(raw)
+        snap = self.budget.apply(raw if self.selection.everything else self._select(raw))
         for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
             snap.rows(metric).extend(rows)
         self._self_metrics(snap)
         snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
-        return snap
+        return raw, snap
 
     def _chosen(self) -> set[int]:
         pt = self.proctable

@@ -4,7 +4,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 import urllib.error
 import urllib.request
 
@@ -12,6 +11,7 @@ import psutil
 import pytest
 
 from tests.agentproc import running_agent, scrape
+from tests.conftest import eventually
 
 PROBES = ("--probe", "sockets", "--probe", "sched", "--probe", "process", "--probe", "host", "--graph", "auto")
 
@@ -47,15 +47,13 @@ def call(method: str, url: str, body=None, token: str = ""):
 
 def sample_of(api: str, job: str, check, timeout: float = 10):
     """The job's latest sample once `check(series)` holds."""
-    deadline = time.monotonic() + timeout
-    while True:
+    def ready():
         code, job_view = call("GET", f"{api}/monitor/{job}")
         assert code == 200, job_view
         series = (job_view["sample"] or {}).get("series", [])
-        if check(series):
-            return series
-        assert time.monotonic() < deadline, f"{job}: {series}"
-        time.sleep(0.1)
+        assert check(series), f"{job}: {series}"
+        return series
+    return eventually(ready, timeout)
 
 
 def value(series, name, **labels):
@@ -159,6 +157,22 @@ def test_host_job_and_info(api):
 def test_bad_requests_get_a_4xx_that_says_why(api, method, path, body, code, error):
     assert call(method, f"{api}/{path}", body) == (code, {"error": error})
     assert call("GET", f"{api}/jobs") == (200, {"jobs": []})
+
+
+@pytest.mark.parametrize("request_head, code, error", [
+    # Bytes that str.isdigit() takes for digits but int() refuses ("\xb2" is a superscript two).
+    (b"POST /drums/v1/monitor/pid/\xb2 HTTP/1.0\r\n", 400, "pid '\u00b2': a process ID is a whole number from 1 to 4194303"),
+    (b"POST /drums/v1/monitor/host HTTP/1.0\r\nContent-Length: \xb2\r\n", 400, "Content-Length '\u00b2' is not a length"),
+])
+def test_digits_that_are_not_ascii_are_a_400(api, request_head, code, error):
+    host, port = api.split("/")[2].split(":")
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(request_head + b"\r\n")
+        answer = b""
+        while chunk := s.recv(65536):
+            answer += chunk
+    head, _, body = answer.partition(b"\r\n\r\n")
+    assert head.split(b" ")[1] == str(code).encode() and json.loads(body) == {"error": error}
 
 
 def test_off_loopback_the_agent_needs_a_token_and_mutations_carry_it(tmp_path):

@@ -3,7 +3,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 import urllib.error
 import urllib.request
 
@@ -11,6 +10,7 @@ import networkx as nx
 import pytest
 
 from tests.agentproc import free_port, running_agent, samples, scrape
+from tests.conftest import eventually
 
 # Burns argv[1] s of CPU, says how much it used, then waits without running.
 BURNER = ("import sys, time\nwhile time.process_time() < float(sys.argv[1]): pass\n"
@@ -33,11 +33,10 @@ def test_graph_page_carries_node_metrics(tmp_path):
 
             def node():
                 data = json.loads(scrape(base + "/graph?format=json"))
-                return next((v for v in data["nodes"] if v["id"] == "node:/burner" and v.get("pid")), None)
-            deadline = time.monotonic() + 10
-            while (found := node()) is None or "cpu_seconds_total" not in found:
-                assert time.monotonic() < deadline, f"/burner never mapped with its CPU: {found}"
-                time.sleep(0.2)
+                found = next((v for v in data["nodes"] if v["id"] == "node:/burner" and v.get("pid")), None)
+                assert found and "cpu_seconds_total" in found, f"/burner not mapped with its CPU: {found}"
+                return found
+            found = eventually(node, timeout=10)
             assert found["pid"] == child.pid and found["mapped_by"] == "static"
             # The child waits on stdin: its CPU stays put from one collect to the next.
             assert burned <= found["cpu_seconds_total"] <= burned + 0.05

@@ -18,7 +18,7 @@ from typing import Callable
 from urllib.parse import parse_qs, urlsplit
 
 from drums.errors import DrumsError, UsageError
-from drums.exporters.jobs import Jobs, NotFound, job_target, parse_interval
+from drums.exporters.jobs import Jobs, NotFound, job_id, job_target, parse_interval, whole
 
 log = logging.getLogger("drums")
 
@@ -38,10 +38,10 @@ class HttpError(Exception):
         self.code, self.headers = code, headers or {}
 
 
-def openapi_document() -> bytes:
+def openapi_document() -> dict:
     import yaml
     with open(OPENAPI) as f:
-        return json.dumps(yaml.safe_load(f), indent=1).encode()
+        return yaml.safe_load(f)
 
 
 class _Server(ThreadingHTTPServer):
@@ -53,9 +53,9 @@ class _Server(ThreadingHTTPServer):
 
 
 class HttpServer:
-    def __init__(self, address: str, port: int, pages: dict[str, Page], jobs: Jobs | None = None,
-                 info: Callable[[], dict] | None = None, token: str = ""):
-        handler = _handler(pages, jobs, info or dict, token)
+    def __init__(self, address: str, port: int, pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict],
+                 token: str = ""):
+        handler = _handler(pages, jobs, info, token)
         try:
             self.httpd = _Server((address, port), handler)
         except OSError as e:
@@ -72,9 +72,16 @@ class HttpServer:
         self.httpd.server_close()
 
 
-def _handler(pages: dict[str, Page], jobs: Jobs | None, info: Callable[[], dict], token: str):
-    links = sorted(pages) + ([f"{API}/openapi.json"] if jobs else [])
-    document = openapi_document() if jobs else b""
+def _status(error: Exception) -> tuple[int, dict]:
+    """The HTTP status and extra headers that say what went wrong with a request."""
+    if isinstance(error, HttpError):
+        return error.code, error.headers
+    return (404 if isinstance(error, NotFound) else 400), {}
+
+
+def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token: str):
+    links = sorted(pages) + [f"{API}/openapi.json"]
+    document = openapi_document()
 
     def api(method: str, parts: list[str], body: bytes) -> tuple[int, object]:
         """(status, JSON value) of a request under /drums/v1."""
@@ -83,16 +90,15 @@ def _handler(pages: dict[str, Page], jobs: Jobs | None, info: Callable[[], dict]
                 raise HttpError(405, f"{method} {API}/{parts[0]}: only GET", {"Allow": "GET"})
             if parts == ["info"]:
                 return 200, info()
-            return 200, (json.loads(document) if parts == ["openapi.json"] else {"jobs": jobs.list()})
+            return 200, (document if parts == ["openapi.json"] else {"jobs": jobs.list()})
         if len(parts) < 2 or parts[0] != "monitor" or parts[1] not in ("pid", "host", "socket"):
             raise NotFound(f"no such path {API}/{'/'.join(parts)}")
         kind = parts[1]
         target = job_target(kind, parts[2:])
-        job_id = f"{kind}/{target}" if target else kind
         if method == "GET":
-            return 200, jobs.get(job_id)
+            return 200, jobs.get(job_id(kind, target))
         if method == "DELETE":
-            jobs.remove(job_id)
+            jobs.remove(job_id(kind, target))
             return 204, None
         try:
             value = json.loads(body) if body.strip() else None
@@ -119,10 +125,9 @@ def _handler(pages: dict[str, Page], jobs: Jobs | None, info: Callable[[], dict]
 
         def _serve(self, method: str) -> None:
             url = urlsplit(self.path)
+            in_api = url.path == API or url.path.startswith(API + "/")
             try:
-                if url.path == API or url.path.startswith(API + "/"):
-                    if jobs is None:
-                        raise NotFound("the job API is off")
+                if in_api:
                     self._api(method, url.path)
                     return
                 if method != "GET":
@@ -137,33 +142,23 @@ def _handler(pages: dict[str, Page], jobs: Jobs | None, info: Callable[[], dict]
                 query = {k: v[-1] for k, v in parse_qs(url.query).items()}
                 body, content_type = page(query)
                 self._reply(200, body, content_type)
-            except HttpError as e:
-                self._reply(e.code, f"{e}\n".encode(), TEXT, e.headers)
-            except NotFound as e:
-                self._reply(404, f"{e}\n".encode(), TEXT)
-            except UsageError as e:
-                self._reply(400, f"{e}\n".encode(), TEXT)
+            except (HttpError, UsageError) as e:  # the API answers in JSON, pages in text
+                code, headers = _status(e)
+                if in_api:
+                    self._json(code, {"error": str(e)}, headers)
+                else:
+                    self._reply(code, f"{e}\n".encode(), TEXT, headers)
             except Exception as e:  # a request must never take the agent down
                 log.error("%s %s failed: %s", method, url.path, e, exc_info=log.isEnabledFor(logging.DEBUG))
                 self._reply(500, f"failed: {e}\n".encode(), TEXT)
 
         def _api(self, method: str, path: str) -> None:
-            try:
-                if method not in ("GET", "POST", "DELETE"):
-                    raise HttpError(405, f"{method}: the API takes GET, POST and DELETE",
-                                    {"Allow": "GET, POST, DELETE"})
-                if method != "GET" and token and not self._authorized():
-                    raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
-                                    {"WWW-Authenticate": "Bearer"})
-                code, value = api(method, [p for p in path[len(API):].split("/") if p], self._body())
-            except HttpError as e:
-                self._json(e.code, {"error": str(e)}, e.headers)
-            except NotFound as e:
-                self._json(404, {"error": str(e)})
-            except UsageError as e:
-                self._json(400, {"error": str(e)})
-            else:
-                self._json(code, value)
+            if method not in ("GET", "POST", "DELETE"):
+                raise HttpError(405, f"{method}: the API takes GET, POST and DELETE", {"Allow": "GET, POST, DELETE"})
+            if method != "GET" and token and not self._authorized():
+                raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
+                                {"WWW-Authenticate": "Bearer"})
+            self._json(*api(method, [p for p in path[len(API):].split("/") if p], self._body()))
 
         def _authorized(self) -> bool:
             given = self.headers.get("Authorization", "")
@@ -171,12 +166,13 @@ def _handler(pages: dict[str, Page], jobs: Jobs | None, info: Callable[[], dict]
             return scheme.lower() == "bearer" and hmac.compare_digest(value.strip().encode(), token.encode())
 
         def _body(self) -> bytes:
-            length = self.headers.get("Content-Length", "0")
-            if not length.isdigit():
-                raise HttpError(400, f"Content-Length {length!r} is not a length")
-            if int(length) > MAX_BODY:
+            given = self.headers.get("Content-Length", "0")
+            length = whole(given)
+            if length is None:
+                raise HttpError(400, f"Content-Length {given!r} is not a length")
+            if length > MAX_BODY:
                 raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
-            return self.rfile.read(int(length))
+            return self.rfile.read(length)
 
         def _json(self, code: int, value, headers: dict | None = None) -> None:
             body = b"" if code == 204 else json.dumps(value).encode() + b"\n"

@@ -1,6 +1,6 @@
 """Monitoring jobs, the paper's runtime API: a client asks the agent to follow one process, the
 host, or the sockets on a port; the agent samples each job at its interval and keeps the latest
-sample for GET (and, with the stream, publishes it).
+sample for GET.
 
 A sample is the job's rows of one agent snapshot, taken before the cardinality budget folds
 anything: a job names its entity, so the entity always has its own rows. Each row is
@@ -24,6 +24,7 @@ log = logging.getLogger("drums")
 PROTOCOLS = ("tcp", "udp")
 DIRECTIONS = ("src", "dst", "any")  # the socket's local port, its peer's port, either
 MIN_INTERVAL, MAX_INTERVAL = 0.1, 3600.0
+MAX_JOBS = 1000  # each costs a pass over the snapshot per sample
 
 
 class NotFound(UsageError):
@@ -41,11 +42,12 @@ class Job:
 
     @property
     def id(self) -> str:
-        return f"{self.kind}/{self.target}" if self.target else self.kind
+        return job_id(self.kind, self.target)
 
-    def view(self, host: str, stream: str) -> dict:
+    def view(self, host: str) -> dict:
+        # No stream yet: its address stays empty until the agent publishes samples.
         return {"id": self.id, "kind": self.kind, "target": self.target, "interval": self.interval,
-                "created": self.created, "stream": {"address": stream, "key": f"{host}:{self.kind}:{self.target}"},
+                "created": self.created, "stream": {"address": "", "key": f"{host}:{self.kind}:{self.target}"},
                 "sample": self.sample}
 
     def pick(self, raw: Snapshot) -> list[dict]:
@@ -95,6 +97,16 @@ def parse_interval(body: dict | None) -> float:
     return float(interval)
 
 
+def job_id(kind: str, target: str) -> str:
+    """How a job is named in the API and in listings: "pid/1234", "host", "socket/tcp/src/80"."""
+    return f"{kind}/{target}" if target else kind
+
+
+def whole(text: str) -> int | None:
+    """The number an ASCII string of digits says, else None (str.isdigit also takes "²")."""
+    return int(text) if text.isascii() and text.isdigit() else None
+
+
 def job_target(kind: str, parts: list[str]) -> str:
     """The target of a job from the rest of its path; a UsageError says what is wrong with it."""
     if kind == "host":
@@ -102,9 +114,10 @@ def job_target(kind: str, parts: list[str]) -> str:
             raise NotFound("no such path: a host job is /drums/v1/monitor/host")
         return ""
     if kind == "pid":
-        if len(parts) != 1 or not parts[0].isdigit() or not 0 < int(parts[0]) < 1 << 22:
+        pid = whole(parts[0]) if len(parts) == 1 else None
+        if pid is None or not 0 < pid < 1 << 22:
             raise UsageError(f"pid {'/'.join(parts)!r}: a process ID is a whole number from 1 to 4194303")
-        return str(int(parts[0]))
+        return str(pid)
     if len(parts) != 3:
         raise UsageError("a socket job is /drums/v1/monitor/socket/<tcp|udp>/<src|dst|any>/<port>")
     protocol, direction, port = parts
@@ -112,23 +125,20 @@ def job_target(kind: str, parts: list[str]) -> str:
         raise UsageError(f"protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
     if direction not in DIRECTIONS:
         raise UsageError(f"direction {direction!r}: one of {', '.join(DIRECTIONS)}")
-    if not port.isdigit() or not 0 < int(port) < 65536:
+    number = whole(port)
+    if number is None or not 0 < number < 65536:
         raise UsageError(f"port {port!r}: a whole number from 1 to 65535")
-    return f"{protocol}/{direction}/{int(port)}"
+    return f"{protocol}/{direction}/{number}"
 
 
 class Jobs:
     """The agent's jobs, and the thread that samples them. `collect` returns the agent's raw
-    snapshot (before the budget); `published` is called with each new sample (the stream)."""
+    snapshot (before the budget)."""
 
-    def __init__(self, collect: Callable[[], Snapshot], host: str, stream: str = "",
-                 published: Callable[[Job], None] | None = None, limit: int = 1000, proc: str = "/proc"):
+    def __init__(self, collect: Callable[[], Snapshot], host: str):
         self.collect = collect
-        self.host, self.stream = host, stream
-        self.published = published
-        self.limit = limit  # jobs a client may start: each costs a pick per sample
-        self.proc = proc
-        self._jobs: dict[str, Job] = {}
+        self.host = host
+        self._jobs: dict[str, Job] = {}  # by id, oldest first
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -145,26 +155,26 @@ class Jobs:
 
     def add(self, kind: str, target: str, interval: float) -> tuple[dict, bool]:
         """(the job, whether it is new). Asking again for a job that exists changes its interval."""
-        if kind == "pid" and not os.path.exists(f"{self.proc}/{target}"):
+        if kind == "pid" and not os.path.exists(f"/proc/{target}"):
             raise NotFound(f"no process {target}")
         with self._lock:
-            job = self._jobs.get(Job(kind, target, interval).id)
+            job = self._jobs.get(job_id(kind, target))
             created = job is None
             if created:
-                if len(self._jobs) >= self.limit:
-                    raise UsageError(f"already {self.limit} jobs: delete some first")
-                job = Job(kind, target, interval)
-                self._jobs[job.id] = job
-            job.interval, job.due = interval, 0.0
+                if len(self._jobs) >= MAX_JOBS:
+                    raise UsageError(f"already {MAX_JOBS} jobs: delete some first")
+                job = self._jobs[job_id(kind, target)] = Job(kind, target, interval)
+            else:
+                job.interval, job.due = interval, 0.0
         self._wake.set()
-        return job.view(self.host, self.stream), created
+        return job.view(self.host), created
 
     def get(self, job_id: str) -> dict:
         with self._lock:
             job = self._jobs.get(job_id)
             if job is None:
                 raise NotFound(f"no job {job_id}")
-            return job.view(self.host, self.stream)
+            return job.view(self.host)
 
     def remove(self, job_id: str) -> None:
         with self._lock:
@@ -173,7 +183,7 @@ class Jobs:
 
     def list(self) -> list[dict]:
         with self._lock:
-            return [j.view(self.host, self.stream) for j in sorted(self._jobs.values(), key=lambda j: j.created)]
+            return [j.view(self.host) for j in self._jobs.values()]
 
     def pids(self) -> set[int]:
         with self._lock:
@@ -185,14 +195,13 @@ class Jobs:
                 now = time.monotonic()
                 due = [j for j in self._jobs.values() if j.due <= now]
                 wait = min((j.due - now for j in self._jobs.values() if j.due > now), default=None)
+                for job in due:
+                    job.due = now + job.interval
             if due:
                 try:
                     self._sample(due)
                 except Exception as e:  # a failed collect must not end the sampling
                     log.warning("sampling jobs failed: %s", e)
-                    with self._lock:
-                        for job in due:
-                            job.due = time.monotonic() + job.interval
                 continue
             self._wake.wait(wait)
             self._wake.clear()
@@ -204,6 +213,3 @@ class Jobs:
             sample = {"time": at, "series": job.pick(raw)}
             with self._lock:
                 job.sample = sample
-                job.due = time.monotonic() + job.interval
-            if self.published:
-                self.published(job)
