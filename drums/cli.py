@@ -43,6 +43,13 @@ def _graph_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--graph-file", default="", help="the YAML description for --graph static")
 
 
+def _pin_flag(parser: argparse.ArgumentParser) -> None:
+    from drums.kernel.bpffs import PIN_ROOT
+    parser.add_argument("--pin-dir", default=PIN_ROOT,
+                        help=f"where the BPF programs are pinned (default {PIN_ROOT}); agents that share a "
+                             "kernel (one per network namespace or container) each need their own")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from drums.exporters.prometheus import DEFAULT_PORT
     from drums.graph.export import FORMATS
@@ -69,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="refuse to start unless every probe attaches with eBPF and the graph adapter starts")
     agent.add_argument("--keep-loaded", action="store_true",
                        help="leave the BPF programs pinned on exit, so a restart needs no compile")
+    _pin_flag(agent)
     agent.add_argument("--pid", type=_positive, action="append", default=[], help="monitor this process")
     agent.add_argument("--process-name", action="append", default=[],
                        help="monitor processes whose name matches this regular expression")
@@ -90,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "metrics of its nodes, topics and edges, instead of discovering it here")
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
-    sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded")
+    _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
     return parser
 
 
@@ -116,7 +124,7 @@ def run_agent(args) -> int:
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
     features = Features()
-    probes = build(features, proctable, names)
+    probes = build(features, proctable, names, args.pin_dir)
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
     graph = Graph()
@@ -250,16 +258,15 @@ def _agent_graph(url: str, fmt: str) -> str:
         raise UsageError(f"--agent {url}: {getattr(reason, 'strerror', None) or reason}") from None
 
 
-def run_unload(_args) -> int:
+def run_unload(args) -> int:
     import os
     import shutil
 
     from drums.errors import KernelError
-    from drums.kernel.bpffs import PIN_ROOT
-    shutil.rmtree(PIN_ROOT, ignore_errors=True)
-    if os.path.exists(PIN_ROOT):
-        raise KernelError(f"could not remove {PIN_ROOT} (root is needed)")
-    print(f"removed {PIN_ROOT}")
+    shutil.rmtree(args.pin_dir, ignore_errors=True)
+    if os.path.exists(args.pin_dir):
+        raise KernelError(f"could not remove {args.pin_dir} (root is needed)")
+    print(f"removed {args.pin_dir}")
     return 0
 
 

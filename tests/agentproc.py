@@ -10,9 +10,6 @@ import urllib.request
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-PIN_ROOT = "/sys/fs/bpf/drums"
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -22,9 +19,11 @@ def free_port() -> int:
 @contextlib.contextmanager
 def running_agent(*argv, bpf: bool = True):
     """`drums agent` on a free port, serving; yields its /metrics URL. Stops it and checks it
-    left no traceback and (for an agent with BPF probes, `bpf`) no pins behind."""
+    left no traceback and (for an agent with BPF probes, `bpf`) no pins behind. Each agent pins
+    in a folder of its own, so that agents of tests running side by side leave each other alone."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port), *argv],
+    pins = f"/sys/fs/bpf/drums_agent_{port}"
+    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port), "--pin-dir", pins, *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}/metrics"
     deadline = time.monotonic() + 30
@@ -43,7 +42,7 @@ def running_agent(*argv, bpf: bool = True):
     log = proc.stdout.read()
     assert "Traceback" not in log, log
     if bpf:
-        assert not os.path.exists(PIN_ROOT) or not os.listdir(PIN_ROOT), "pins left behind after shutdown"
+        assert not os.path.exists(pins), "pins left behind after shutdown"
 
 
 def scrape(url: str) -> str:

@@ -9,7 +9,8 @@ PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl")
 ROS2_PROBES = ("rtps", "rcl")  # run by default only with the ros2 graph: they count per DDS writer and topic
 
 
-def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Probe]:
+def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "") -> list[Probe]:
+    """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums)."""
     from drums.probes.host import HostProbe
     from drums.probes.process import ProcessProbe
     from drums.probes.procsched import ProcSchedProbe
@@ -20,15 +21,18 @@ def build(features: Features, proctable: ProcessTable, names=PROBES) -> list[Pro
     from drums.probes.sockets import SocketsProbe
     from drums.probes.tcp import SockDiagTcpProbe, TcpProbe
 
+    from drums.kernel.bpffs import PIN_ROOT
+
+    pin_root = pin_root or PIN_ROOT
     dds = MappedLibraries(proctable, DDS_LIBRARIES)  # each process's maps read once for both probes
     makers = {
-        "sockets": lambda: SocketsProbe(features, proctable),
-        "sched": lambda: SchedProbe(features, proctable),
-        "tcp": lambda: TcpProbe(features),
+        "sockets": lambda: SocketsProbe(features, proctable, pin_root=pin_root),
+        "sched": lambda: SchedProbe(features, proctable, pin_root=pin_root),
+        "tcp": lambda: TcpProbe(features, pin_root=pin_root),
         "host": HostProbe,
         "process": ProcessProbe,
-        "rtps": lambda: RtpsProbe(features, proctable, dds),
-        "rcl": lambda: RclProbe(features, proctable, dds),
+        "rtps": lambda: RtpsProbe(features, proctable, dds, pin_root=pin_root),
+        "rcl": lambda: RclProbe(features, proctable, dds, pin_root=pin_root),
     }
     # What runs where eBPF cannot (not root, no bcc, old kernel): the kernel's own counters.
     fallbacks = {
