@@ -1,4 +1,4 @@
-"""The `drums` command: agent, graph, doctor, unload. Errors become one line on stderr and exit code 2."""
+"""The `drums` command: agent, graph, sd, doctor, unload. Errors become one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
@@ -36,6 +36,13 @@ def _port(text: str) -> int:
     return value
 
 
+def _address(text: str) -> str:
+    from drums.netfmt import is_address
+    if not is_address(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither an IP address nor a DNS name")
+    return text
+
+
 def _graph_flags(parser: argparse.ArgumentParser) -> None:
     from drums.graph.registry import ADAPTERS
     parser.add_argument("--graph", choices=ADAPTERS, default=None,
@@ -62,6 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--address", default="127.0.0.1",
                        help="address to serve /metrics on (default 127.0.0.1; 0.0.0.0 for Prometheus "
                             "on another host)")
+    agent.add_argument("--advertise", metavar="ADDRESS", type=_address, default=None,
+                       help="the IP address or DNS name other hosts reach this host and agent at, which "
+                            "the ros2 graph announces to the other agents (default: --address unless it "
+                            "is a wildcard, else the source address of the default route)")
     agent.add_argument("--token-file", default="",
                        help="file holding the token that POST and DELETE on the job API must carry "
                             "(Authorization: Bearer ...); needed off loopback ($DRUMS_TOKEN also works)")
@@ -97,6 +108,20 @@ def build_parser() -> argparse.ArgumentParser:
                        help="ask the agent at URL (e.g. http://localhost:9969) for its graph, with the "
                             "metrics of its nodes, topics and edges, instead of discovering it here")
 
+    sd = sub.add_parser("sd", help="write the hosts of the graph as a Prometheus file_sd target file",
+                        description="One target group per host of the graph, labelled host=<name>: the "
+                                    "address and port its agent announced, else its address and --port, else "
+                                    "its name and --port (resolved by Prometheus through DNS).")
+    _graph_flags(sd)
+    sd.add_argument("--output", metavar="FILE", required=True,
+                    help="the file for Prometheus's file_sd_configs, replaced whole (by rename) when written")
+    sd.add_argument("--port", type=_port, default=DEFAULT_PORT,
+                    help=f"the agents' port, for hosts that did not announce their agent (default {DEFAULT_PORT})")
+    sd.add_argument("--agent", metavar="URL", default="",
+                    help="take the hosts of the graph of the agent at URL (e.g. http://localhost:9969) "
+                         "instead of discovering them here")
+    sd.add_argument("--watch", action="store_true", help="keep running: write the file again when the hosts change")
+
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
     return parser
@@ -119,7 +144,7 @@ def run_agent(args) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="drums: %(message)s")
     selection = Selection.parse(args.pid, args.process_name, args.cgroup)
     adapter_name = args.graph or registry.default()
-    adapter = registry.build(adapter_name, args.graph_file)
+    adapter = registry.build(adapter_name, args.graph_file, _announcement(args))
     default = [p for p in PROBES if adapter_name == "ros2" or p not in ROS2_PROBES]
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
@@ -164,6 +189,16 @@ def run_agent(args) -> int:
     return 0
 
 
+def _announcement(args):
+    """This agent's host as the ros2 reader announces it: name, where to reach it, its URL."""
+    from drums.graph.model import Host
+    from drums.netfmt import hostport, primary_address
+
+    address = args.advertise or (primary_address() if args.address in ("", "0.0.0.0", "::") else args.address)
+    # With --port 0 the port is known only once bound: the URL is left out rather than wrong.
+    return Host(socket.gethostname(), address, f"http://{hostport(address, args.port)}" if args.port else "")
+
+
 def _token(address: str, path: str) -> str:
     """The API token, from --token-file or $DRUMS_TOKEN; required to listen off loopback."""
     import ipaddress
@@ -188,16 +223,11 @@ def _token(address: str, path: str) -> str:
     return token
 
 
-def run_graph(args) -> int:
-    if args.agent:
-        if args.watch or args.graph or args.graph_file:
-            raise UsageError("--agent takes the agent's graph as it is: not with --watch, --graph or --graph-file")
-        _write(args.output, _agent_graph(args.agent, args.format))
-        return 0
-
+def _settled(args):
+    """(graph, follower) of the graph --graph names, followed from here, once discovery has settled:
+    the first answer is rarely all of it. The caller stops the follower."""
     from drums.graph import registry
     from drums.graph.adapter import Follower
-    from drums.graph.export import render
     from drums.graph.model import Graph
 
     logging.basicConfig(level="WARNING", format="drums: %(message)s")
@@ -211,7 +241,7 @@ def run_graph(args) -> int:
             time.sleep(0.05)
         if not graph.updated_at:
             raise GraphError(graph.error or "no graph within the time allowed")
-        # Discovery goes on after the first answer: print once nothing changed for `settle` s.
+        # Discovery goes on after the first answer: done once nothing changed for `settle` s.
         _, cursor = graph.changes_since(0)
         quiet_since, give_up = time.monotonic(), time.monotonic() + 4 * adapter.settle
         while time.monotonic() - quiet_since < adapter.settle and time.monotonic() < give_up:
@@ -219,6 +249,23 @@ def run_graph(args) -> int:
             changes, cursor = graph.changes_since(cursor)
             if changes:
                 quiet_since = time.monotonic()
+    except BaseException:
+        follower.stop()
+        raise
+    return graph, follower
+
+
+def run_graph(args) -> int:
+    if args.agent:
+        if args.watch or args.graph or args.graph_file:
+            raise UsageError("--agent takes the agent's graph as it is: not with --watch, --graph or --graph-file")
+        _write(args.output, _agent_graph(args.agent, args.format))
+        return 0
+
+    from drums.graph.export import render
+
+    graph, follower = _settled(args)
+    try:
         _write(args.output, render(graph.snapshot(), args.format, stale=graph.error))
         if args.watch:
             _, cursor = graph.changes_since(0)
@@ -230,6 +277,47 @@ def run_graph(args) -> int:
     finally:
         follower.stop()
     return 0
+
+
+def run_sd(args) -> int:
+    from drums.exporters import file_sd
+
+    logging.basicConfig(level="WARNING", format="drums: %(message)s")
+    follower = None
+    if args.agent:
+        if args.graph or args.graph_file:
+            raise UsageError("--agent takes the hosts of the agent's graph: not with --graph or --graph-file")
+
+        def hosts():
+            return file_sd.hosts_of(_agent_graph(args.agent, "json"), f"--agent {args.agent}")
+    else:
+        graph, follower = _settled(args)
+
+        def hosts():
+            return graph.entities("host")
+    try:
+        written, failed = None, ""
+        while True:
+            try:
+                groups = file_sd.target_groups(hosts(), args.port)
+            except DrumsError as e:
+                if written is None:
+                    raise
+                if str(e) != failed:  # an agent that restarts: the file stays as it was meanwhile
+                    log.warning("%s; keeping %s as it is", e, args.output)
+                failed = str(e)
+            else:
+                failed = ""
+                if groups != written:
+                    file_sd.write(args.output, groups)
+                    written = groups
+                    print(f"{args.output}: {', '.join(g['targets'][0] for g in groups) or 'no hosts'}", flush=True)
+            if not args.watch:
+                return 0
+            time.sleep(1)
+    finally:
+        if follower is not None:
+            follower.stop()
 
 
 def _write(output: str, text: str) -> None:
@@ -277,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
             return run_agent(args)
         if args.command == "graph":
             return run_graph(args)
+        if args.command == "sd":
+            return run_sd(args)
         if args.command == "doctor":
             from drums.doctor import run
             return run()

@@ -17,13 +17,15 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def running_agent(*argv, bpf: bool = True):
+def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = ()):
     """`drums agent` on a free port, serving; yields its /metrics URL. Stops it and checks it
     left no traceback and (for an agent with BPF probes, `bpf`) no pins behind. Each agent pins
-    in a folder of its own, so that agents of tests running side by side leave each other alone."""
+    in a folder of its own, so that agents of tests running side by side leave each other alone.
+    `under`: a command that execs the agent, e.g. one that gives it a host name of its own."""
     port = free_port()
     pins = f"/sys/fs/bpf/drums_agent_{port}"
-    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port), "--pin-dir", pins, *argv],
+    proc = subprocess.Popen([*under, sys.executable, "-m", "drums", "agent", "--port", str(port), "--pin-dir", pins,
+                             *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}/metrics"
     deadline = time.monotonic() + 30

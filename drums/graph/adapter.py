@@ -42,6 +42,7 @@ class ChildAdapter(Adapter):
 
     module = ""
     env: dict[str, str] = {}  # for the child, where the environment does not set them already
+    child_args: list[str] = []  # for the child's command line, after --interval
 
     def __init__(self, interval: float = 0.5, timeout: float = 5.0):
         self.interval = interval
@@ -53,7 +54,8 @@ class ChildAdapter(Adapter):
         self._lock = threading.Lock()
 
     def _spawn(self) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", self.module, "--interval", str(self.interval)],
+        self._proc = subprocess.Popen([sys.executable, "-m", self.module, "--interval", str(self.interval),
+                                       *self.child_args],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                       text=True, env={**self.env, **os.environ})
         self._heard_at = time.monotonic()

@@ -102,7 +102,8 @@ def _text(g: nx.MultiDiGraph, metrics: dict, stale: str) -> str:
     lines = [f"(stale: {stale})"] if stale else []
     nodes = of("node")
     for vid, host in of("host"):
-        lines.append(f"host {host.name}")
+        where = ", ".join(f"{k} {v}" for k, v in (("address", host.address), ("agent", host.agent)) if v)
+        lines.append(f"host {host.name} ({where})" if where else f"host {host.name}")
         for _, p in [(v, e) for v, e in of("process") if e.host == host.name]:
             lines.append(f"  process {p.pid} {p.name}")
             for vid, n in [(v, e) for v, e in nodes if e.pid == p.pid and e.host == host.name]:

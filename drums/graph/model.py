@@ -20,7 +20,12 @@ from drums.errors import GraphError
 
 @dataclass(frozen=True)
 class Host:
+    """A machine of the graph. `address` (an IP or DNS name) reaches the host and its Drums agent,
+    "" where unknown; `agent` is the agent's base URL (http://10.0.0.2:9969) where it is known."""
+
     name: str
+    address: str = ""
+    agent: str = ""
 
 
 @dataclass(frozen=True)

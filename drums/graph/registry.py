@@ -6,6 +6,7 @@ import os
 
 from drums.errors import UsageError
 from drums.graph.adapter import Adapter
+from drums.graph.model import Host
 
 ADAPTERS = ("ros2", "ros1", "static", "auto")
 
@@ -19,10 +20,12 @@ def default() -> str:
     return "auto"
 
 
-def build(name: str, graph_file: str = "") -> Adapter:
+def build(name: str, graph_file: str = "", announce: Host | None = None) -> Adapter:
+    """`announce`: an agent's own host, address and URL, which the ros2 reader tells the other
+    agents of its ROS domain (ROS 1 and static graphs name their hosts themselves)."""
     if name == "ros2":
         from drums.graph.ros2 import Ros2Adapter
-        return Ros2Adapter()
+        return Ros2Adapter(announce=announce)
     if name == "ros1":
         from drums.graph.ros1 import Ros1Adapter
         return Ros1Adapter()

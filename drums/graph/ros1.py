@@ -1,6 +1,7 @@
 """The ROS 1 graph, read over XML-RPC: the master says which node publishes and subscribes to what
 (getSystemState, getTopicTypes) and where each node's slave API listens (lookupNode); each slave
-says its connections (getBusInfo) and its PID (getPid).
+says its connections (getBusInfo) and its PID (getPid). A node runs on the host its slave URI
+names, reached at the name or address the URI gives (this host's name for any of its addresses).
 
 A Connection's `local` is the publisher's socket address and `remote` the subscriber's, both as
 the publisher's socket sees them (a TCPROS publisher accepts: `local` carries its server port).
@@ -69,6 +70,13 @@ def _where(uri: str) -> tuple[str, int | None]:
         return (url.hostname or "", url.port) if url.scheme == "http" else ("", None)
     except ValueError:
         return "", None
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def parse_info(text) -> tuple[int, str, int] | None:
@@ -312,11 +320,7 @@ class Ros1Adapter(Adapter):
     def _host(self, uri: str) -> str:
         """The host a slave URI names; this host's name when it names one of this host's addresses."""
         host = _where(uri)[0]
-        try:
-            loopback = ipaddress.ip_address(host).is_loopback
-        except ValueError:
-            loopback = False
-        return self._here if loopback or host in self._local else host
+        return self._here if _loopback(host) or host in self._local else host
 
     def poll(self) -> GraphState:
         deadline = time.monotonic() + self.timeout
@@ -334,14 +338,18 @@ class Ros1Adapter(Adapter):
         state = GraphState()
         self.table.refresh()
         by_uri = {}
+        named: dict[str, set[str]] = {}  # host -> the names or addresses its nodes' URIs give it
         for name, slave in slaves.items():
             host = self._host(slave.uri) if slave.uri else ""
             if slave.uri:
                 by_uri[_where(slave.uri)] = name
+                named.setdefault(host, set()).add(_where(slave.uri)[0])
             state.nodes.append(Node(name, host, slave.pid, "getPid" if slave.pid else "unmapped", {"uri": slave.uri}))
             if slave.pid:
                 state.processes.append(Process(host, slave.pid, self.table.name(slave.pid) if host == self._here else ""))
-        state.hosts = [Host(h) for h in sorted({n.host for n in state.nodes if n.host})]
+        # This host may be named several ways (127.0.0.1, localhost, its name): the address is one
+        # that other hosts can use too where a node gives one.
+        state.hosts = [Host(h, min(names, key=lambda a: (_loopback(a), a))) for h, names in sorted(named.items())]
         state.processes = sorted(set(state.processes), key=lambda p: (p.host, p.pid))
         self._pids = {slave.uri: self._pids[slave.uri] for slave in slaves.values() if slave.uri in self._pids}
 

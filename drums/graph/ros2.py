@@ -4,6 +4,10 @@ QoS, each node mapped to its process (drums.graph.nodepids).
 rclpy and the DDS participant it creates live in a child process (`python -m drums.graph.ros2`)
 that prints one JSON graph state per line: the agent stays lean, and a DDS stack that hangs or
 crashes costs the graph its freshness, never the agent its kernel data.
+
+ROS 2 has no list of hosts: each agent's reader announces its own on ANNOUNCE_TOPIC (a
+std_msgs/String holding {"host", "address", "agent"} as JSON) and every reader lists the hosts
+announced there, each for as long as its announcer is in the graph.
 """
 from __future__ import annotations
 
@@ -12,15 +16,21 @@ import json
 import os
 import socket
 import sys
+import time
+import uuid
+from dataclasses import asdict
+from urllib.parse import urlsplit
 
 from drums.graph.adapter import ChildAdapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
 from drums.graph.nodepids import ProcScan, map_nodes
+from drums.netfmt import is_address
 
-OWN_NODE = "_drums_graph"  # a leading underscore hides a node from `ros2 node list`
+OWN_NODE = "_drums_graph"  # a leading underscore hides a node from `ros2 node list`; every agent's reader has it
+ANNOUNCE_TOPIC = "/drums/agents"
 # The name rmw gives an endpoint whose node is not discovered yet: skipped until it is.
 UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
-INSTALL_HINT = "pip install ros-rclpy ros-rmw-fastrtps-cpp (ROS 2 from PyPI)"
+INSTALL_HINT = "pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp (ROS 2 from PyPI)"
 
 
 def full_name(namespace: str, name: str) -> str:
@@ -38,10 +48,67 @@ def _qos(profile) -> dict:
     return out
 
 
-def discover(node, scan: ProcScan, host: str) -> GraphState:
+def announced(text: str) -> Host | None:
+    """The host an announcement names, None for anything else (it comes from the network)."""
+    try:
+        data = json.loads(text)
+    except ValueError:
+        return None
+    if not isinstance(data, dict) or not all(isinstance(data.get(k), str) for k in ("host", "address", "agent")):
+        return None
+    host, address, agent = data["host"], data["address"], data["agent"]
+    try:
+        url = urlsplit(agent)
+        good_agent = not agent or (url.scheme == "http" and bool(url.hostname) and bool(url.port))
+    except ValueError:
+        good_agent = False
+    if not host or (address and not is_address(address)) or not good_agent:
+        return None
+    return Host(host, address, agent)
+
+
+class Agents:
+    """The hosts of the agents on this ROS domain, as they announce them, each for as long as its
+    announcer's publisher is in the graph; and this reader's own host, as it announces it or, when
+    it does not (`drums graph`), as an agent of this host does or else by name."""
+
+    def __init__(self, node, string_type, own: Host, announce: bool):
+        """`string_type`: std_msgs/msg/String, imported where a missing package is reported."""
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+        self.node, self.own, self.announce = node, own, announce
+        self._by_writer: dict[str, Host] = {}  # announcer's GID (hex) -> the host it announced
+        # Transient local: a reader that starts later still gets every live agent's announcement.
+        qos = {"reliability": ReliabilityPolicy.RELIABLE, "durability": DurabilityPolicy.TRANSIENT_LOCAL}
+        if announce:
+            self._publisher = node.create_publisher(string_type, ANNOUNCE_TOPIC, QoSProfile(depth=1, **qos))
+            self._publisher.publish(string_type(data=json.dumps(
+                {"host": own.name, "address": own.address, "agent": own.agent})))
+        # Keep all until taken: announcements of many agents arrive at once when a reader starts.
+        node.create_subscription(string_type, ANNOUNCE_TOPIC, self._heard,
+                                 QoSProfile(history=HistoryPolicy.KEEP_ALL, **qos))
+
+    def _heard(self, message, info) -> None:
+        host = announced(message.data)
+        if host is not None:  # garbage from one announcer must not cost the graph its other hosts
+            self._by_writer[bytes(info["publisher_gid"]["data"]).hex()] = host
+
+    def hosts(self) -> list[Host]:
+        live = {bytes(e.endpoint_gid).hex() for e in self.node.get_publishers_info_by_topic(ANNOUNCE_TOPIC)}
+        self._by_writer = {gid: h for gid, h in self._by_writer.items() if gid in live}
+        hosts: dict[str, Host] = {}
+        for gid in sorted(self._by_writer):  # one host announced twice: every reader keeps the same one
+            hosts.setdefault(self._by_writer[gid].name, self._by_writer[gid])
+        if self.announce or self.own.name not in hosts:
+            hosts[self.own.name] = self.own
+        return list(hosts.values())
+
+
+def discover(node, scan: ProcScan, agents: Agents) -> GraphState:
     """One look at the graph as this node's DDS participant knows it."""
     from rclpy.qos import QoSCompatibility, qos_check_compatible
 
+    host = agents.own.name
     names = [full_name(ns, n) for n, ns in node.get_node_names_and_namespaces() if n != OWN_NODE]
     prefixes: dict[str, bytes | None] = dict.fromkeys(names)
     own = b""  # our participant's GUID prefix: its host id tells local nodes from remote ones
@@ -49,11 +116,12 @@ def discover(node, scan: ProcScan, host: str) -> GraphState:
     for topic, types in node.get_topic_names_and_types():
         pubs = node.get_publishers_info_by_topic(topic)
         subs = node.get_subscriptions_info_by_topic(topic)
-        ours = [e for e in pubs + subs if e.node_name == OWN_NODE]
+        readers = [e for e in pubs + subs if e.node_name == OWN_NODE]  # ours and other agents'
+        ours = [e for e in readers if e.node_namespace == node.get_namespace()]
         if ours:
             own = bytes(ours[0].endpoint_gid)[:12]
-            if len(ours) == len(pubs) + len(subs):
-                continue  # a topic only we use (our /parameter_events publisher)
+        if readers and len(readers) == len(pubs) + len(subs):
+            continue  # a topic only readers use (their /parameter_events publishers, ANNOUNCE_TOPIC)
         state.topics.append(Topic(topic, tuple(types)))
         pubs = [e for e in pubs if e.node_name not in (OWN_NODE, UNKNOWN_NODE)]
         subs = [e for e in subs if e.node_name not in (OWN_NODE, UNKNOWN_NODE)]
@@ -84,7 +152,7 @@ def discover(node, scan: ProcScan, host: str) -> GraphState:
         state.nodes.append(Node(name, host if pid is not None else "", pid, how, extra))
         if pid is not None:
             pids.add(pid)
-    state.hosts.append(Host(host))
+    state.hosts = agents.hosts()
     state.processes.extend(Process(host, pid, scan.name(pid)) for pid in sorted(pids))
     return state
 
@@ -95,23 +163,34 @@ class Ros2Adapter(ChildAdapter):
     env = {"FASTDDS_DEFAULT_PROFILES_FILE": os.path.join(os.path.dirname(__file__), "fastdds_reader.xml")}
     settle = 3.0  # every DDS participant announces itself every 3 s (Fast DDS's default)
 
+    def __init__(self, interval: float = 0.5, timeout: float = 5.0, announce: Host | None = None):
+        """`announce`: the host this reader's agent runs on, to tell the other agents."""
+        super().__init__(interval, timeout)
+        self.child_args = ["--announce", json.dumps(asdict(announce))] if announce else []
 
-def child(interval: float) -> int:
+
+def child(interval: float, announce: Host | None) -> int:
     """The child process: print the graph every interval until stdin closes or we are killed."""
     try:
         import rclpy
         from rclpy.node import Node as RclNode
+        from std_msgs.msg import String
     except ImportError as e:
-        print(json.dumps({"error": f"rclpy cannot be imported ({e}): {INSTALL_HINT}"}), flush=True)
+        print(json.dumps({"error": f"ROS 2 cannot be imported ({e}): {INSTALL_HINT}"}), flush=True)
         return 2
     rclpy.init(args=[])
-    node = RclNode(OWN_NODE, enable_rosout=False, start_parameter_services=False)
-    scan, host = ProcScan(), socket.gethostname()
+    # A namespace of its own tells this reader's endpoints from other agents' readers' (same name).
+    node = RclNode(OWN_NODE, namespace=f"/_drums_{uuid.uuid4().hex}", enable_rosout=False,
+                   start_parameter_services=False)
+    agents = Agents(node, String, announce or Host(socket.gethostname()), announce is not None)
+    scan = ProcScan()
     try:
         while True:
-            rclpy.spin_once(node, timeout_sec=interval)
+            until = time.monotonic() + interval
+            while time.monotonic() < until:  # one spin runs one callback: take every announcement
+                rclpy.spin_once(node, timeout_sec=max(0.0, until - time.monotonic()))
             try:
-                state = discover(node, scan, host)
+                state = discover(node, scan, agents)
             except Exception as e:  # the middleware answered something we cannot read: say so, go on
                 print(json.dumps({"error": f"reading the ROS 2 graph: {e}"}), flush=True)
                 continue
@@ -126,7 +205,10 @@ def child(interval: float) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(prog="python -m drums.graph.ros2")
     parser.add_argument("--interval", type=float, default=0.5)
-    return child(parser.parse_args().interval)
+    parser.add_argument("--announce", type=lambda text: Host(**json.loads(text)), default=None,
+                        help="the host to announce to other agents, as JSON: {name, address, agent}")
+    args = parser.parse_args()
+    return child(args.interval, args.announce)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,13 @@
 """A graph described in a YAML file, for systems without ROS. Processes are found by a regular
 expression over their command line at each poll, so restarts keep their names:
 
-    host: arm-controller          # optional; default: this host's name
+    host: arm-controller          # optional: the host of the nodes; default: this host's name
+    hosts:                        # optional: where each host and its Drums agent are reached
+      - name: arm-controller
+        address: 10.0.0.2         # an IP address or a DNS name
+        agent_port: 9969          # optional: the port its agent listens on
+      - name: base
+        address: base.local
     nodes:
       - name: /planner
         process: "python3 .*planner\\.py"
@@ -25,6 +31,9 @@ from drums.errors import GraphError
 from drums.graph.adapter import Adapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
 from drums.graph.nodepids import ProcScan
+from drums.netfmt import hostport, is_address
+
+HOST_KEYS = ("name", "address", "agent_port")
 
 
 def _list(doc: dict, key: str, where: str) -> list:
@@ -41,9 +50,31 @@ def _name(item, where: str) -> str:
     return name
 
 
-def parse(text: str, path: str = "graph") -> tuple[str, dict[str, re.Pattern | None], list[dict]]:
-    """(host, node -> process pattern, topics) from the YAML text; every mistake is a GraphError
-    that names the file and the entry."""
+def _hosts(doc: dict, path: str) -> list[Host]:
+    hosts: dict[str, Host] = {}
+    for i, item in enumerate(_list(doc, "hosts", f"{path}: ")):
+        where = f"{path}: hosts[{i}]"
+        if not isinstance(item, dict):
+            raise GraphError(f"{where}: a mapping with {', '.join(HOST_KEYS)}, not {type(item).__name__}")
+        unknown = set(item) - set(HOST_KEYS)
+        if unknown:
+            raise GraphError(f"{where}: unknown key {sorted(map(str, unknown))[0]!r} ({', '.join(HOST_KEYS)})")
+        name, address, port = item.get("name"), item.get("address"), item.get("agent_port")
+        if not isinstance(name, str) or not name:
+            raise GraphError(f"{where}: needs a name (got {name!r})")
+        if name in hosts:
+            raise GraphError(f"{where}: host {name!r} is listed twice")
+        if not isinstance(address, str) or not is_address(address):
+            raise GraphError(f"{where}: needs an address, an IP address or a DNS name (got {address!r})")
+        if port is not None and (type(port) is not int or not 0 < port < 65536):
+            raise GraphError(f"{where}: agent_port is a port, 1-65535 (got {port!r})")
+        hosts[name] = Host(name, address, f"http://{hostport(address, port)}" if port else "")
+    return list(hosts.values())
+
+
+def parse(text: str, path: str = "graph") -> tuple[str, list[Host], dict[str, re.Pattern | None], list[dict]]:
+    """(host of the nodes, hosts listed, node -> process pattern, topics) from the YAML text; every
+    mistake is a GraphError that names the file and the entry."""
     import yaml
 
     try:
@@ -52,10 +83,11 @@ def parse(text: str, path: str = "graph") -> tuple[str, dict[str, re.Pattern | N
         raise GraphError(f"{path}: not YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(doc, dict):
         raise GraphError(f"{path}: a mapping with nodes and topics, not {type(doc).__name__}")
-    unknown = set(doc) - {"host", "nodes", "topics"}
+    unknown = set(doc) - {"host", "hosts", "nodes", "topics"}
     if unknown:
-        raise GraphError(f"{path}: unknown key {sorted(unknown)[0]!r} (host, nodes, topics)")
+        raise GraphError(f"{path}: unknown key {sorted(unknown)[0]!r} (host, hosts, nodes, topics)")
     host = doc.get("host") or socket.gethostname()
+    hosts = _hosts(doc, path)
     nodes: dict[str, re.Pattern | None] = {}
     for i, item in enumerate(_list(doc, "nodes", f"{path}: ")):
         where = f"{path}: nodes[{i}]"
@@ -75,7 +107,7 @@ def parse(text: str, path: str = "graph") -> tuple[str, dict[str, re.Pattern | N
             if node not in nodes:
                 raise GraphError(f"{where}: node {node!r} is not among the nodes")
         topics.append(topic)
-    return str(host), nodes, topics
+    return str(host), hosts, nodes, topics
 
 
 class StaticAdapter(Adapter):
@@ -103,9 +135,10 @@ class StaticAdapter(Adapter):
 
     def poll(self) -> GraphState:
         self._read()
-        host, nodes, topics = self._parsed
+        host, hosts, nodes, topics = self._parsed
         self.scan.refresh()
-        state = GraphState(hosts=[Host(host)])
+        listed = any(h.name == host for h in hosts)
+        state = GraphState(hosts=hosts if listed else [Host(host), *hosts])
         pids = set()
         for name, pattern in nodes.items():
             found = [pid for pid in self.scan.pids()

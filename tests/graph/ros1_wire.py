@@ -4,7 +4,7 @@ XML-RPC APIs, TCPROS), from the standard library alone: the ground truth of test
     python ros1_wire.py master [--port P] [--mode good|garbage|silent|bomb]
     python ros1_wire.py node --name /camera --master URI --publish /image:sensor_msgs/Image \\
         [--subscribe /objects:vision_msgs/Detection2DArray] [--messages 3] [--size 100] \\
-        [--hang getPid] [--bus-info roscpp|opaque]
+        [--hang getPid] [--bus-info roscpp|opaque] [--hostname NAME]
 
 A master prints "ready <uri>" and takes "mode <mode>" lines on stdin: "garbage" answers HTTP 200
 with a body that is not XML, "bomb" an XML entity bomb, "silent" reads nothing and never answers.
@@ -202,7 +202,7 @@ class RosNode:
         self.tcpros = socket.create_server((HOST, 0))
         self.slave = Server((HOST, 0), allow_none=True, logRequests=False)
         self.slave.register_instance(self._api())
-        self.uri = f"http://{HOST}:{self.slave.server_address[1]}/"
+        self.uri = f"http://{args.hostname}:{self.slave.server_address[1]}/"
 
     def _api(self):
         node = self
@@ -342,6 +342,8 @@ def main() -> None:
     node.add_argument("--size", type=int, default=100)
     node.add_argument("--hang", action="append", default=[], choices=("getPid", "getBusInfo"))
     node.add_argument("--bus-info", default="roscpp", choices=("roscpp", "opaque"))
+    node.add_argument("--hostname", default=HOST,
+                      help="the host its URI names, as ROS_HOSTNAME sets it; it still listens on " + HOST)
     args = parser.parse_args()
     if args.role == "master":
         run_master(args.port, args.mode)

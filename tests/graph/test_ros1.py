@@ -130,7 +130,7 @@ def test_the_graph_has_each_node_pid_topic_and_socket(wire):
     assert {n.name: n for n in graph.entities("node")} == {
         name: Node(name, HERE, w.pid, "getPid", {"uri": w.uri}) for name, w in nodes.items()}
     assert set(graph.entities("process")) == {Process(HERE, w.pid, comm(w.pid)) for w in nodes.values()}
-    assert graph.entities("host") == [Host(HERE)]
+    assert graph.entities("host") == [Host(HERE, "127.0.0.1")]
     assert set(graph.entities("topic")) == {Topic("/image", ("sensor_msgs/Image",)),
                                             Topic("/objects", ("vision_msgs/Detection2DArray",))}
     assert sorted(graph.entities("endpoint"), key=str) == sorted(
@@ -220,6 +220,20 @@ def test_a_node_that_exits_leaves_within_two_polls_and_a_killed_one_is_unmapped(
             "/listener": Node("/listener", HERE, None, "unmapped", {"uri": nodes["/listener"].uri})}
     finally:
         follower.stop()
+
+
+def test_each_host_node_uris_name_is_a_host_at_the_address_they_give(wire):
+    master = wire.master()
+    wire.node("/loopback", master, "--publish", STATUS)
+    wire.node("/named", master, "--publish", STATUS, "--hostname", HERE)  # roscpp's default: the host name
+    # Another host (a documentation address): its slave never answers, its node stays unmapped.
+    wire.node("/away", master, "--publish", STATUS, "--hostname", "203.0.113.9")
+    graph, _ = poll_once(master.uri, timeout=1.0)
+    # 127.0.0.1 and the host's name are one host, reached from elsewhere by its name.
+    assert sorted(graph.entities("host"), key=str) == sorted([Host(HERE, HERE), Host("203.0.113.9", "203.0.113.9")],
+                                                               key=str)
+    assert {n.name: (n.host, n.mapped_by) for n in graph.entities("node")} == {
+        "/loopback": (HERE, "getPid"), "/named": (HERE, "getPid"), "/away": ("203.0.113.9", "unmapped")}
 
 
 def test_slaves_that_do_not_answer_leave_their_nodes_unmapped_and_the_poll_on_time(wire):

@@ -2,11 +2,14 @@
 processes; and what the graph does with a reader that answers garbage or nothing."""
 from __future__ import annotations
 
+import json
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
 
+import networkx as nx
 import psutil
 import pytest
 
@@ -14,7 +17,7 @@ from drums.cli import main
 from drums.errors import GraphError
 from drums.graph.adapter import ChildAdapter, Follower
 from drums.graph.auto import AutoAdapter
-from drums.graph.model import Graph
+from drums.graph.model import Graph, Host
 from drums.graph.static import StaticAdapter, parse
 from tests.conftest import wait_until
 
@@ -63,11 +66,47 @@ def test_static_file_names_nodes_processes_and_edges(tmp_path, procs):
     ("nodes: [{name: /p, process: '('}]", "nodes[0]: process is not a regular expression"),
     ("topics: [{name: /t, publishers: [/ghost]}]", "topics[0]: node '/ghost' is not among the nodes"),
     ("colour: blue", "unknown key 'colour'"),
+    ("hosts: {arm: 10.0.0.2}", "hosts: a list, not dict"),
+    ("hosts: [arm]", "hosts[0]: a mapping with name, address, agent_port, not str"),
+    ("hosts: [{name: arm, address: 10.0.0.2, port: 9969}]", "hosts[0]: unknown key 'port' (name, address, agent_port)"),
+    ("hosts: [{address: 10.0.0.2}]", "hosts[0]: needs a name (got None)"),
+    ("hosts: [{name: arm}]", "hosts[0]: needs an address, an IP address or a DNS name (got None)"),
+    ("hosts: [{name: arm, address: 'http://arm'}]", "needs an address, an IP address or a DNS name (got 'http://arm')"),
+    ("hosts: [{name: arm, address: a}, {name: arm, address: b}]", "hosts[1]: host 'arm' is listed twice"),
+    ("hosts: [{name: arm, address: a, agent_port: 65536}]", "hosts[0]: agent_port is a port, 1-65535 (got 65536)"),
+    ("hosts: [{name: arm, address: a, agent_port: '9969'}]", "hosts[0]: agent_port is a port, 1-65535 (got '9969')"),
 ])
 def test_bad_static_files_are_one_line_errors(text, error):
     with pytest.raises(GraphError, match=None) as e:
         parse(text, "robot.yaml")
     assert error in str(e.value) and str(e.value).startswith("robot.yaml: ") and "\n" not in str(e.value)
+
+
+def test_listed_hosts_carry_their_addresses_into_the_graph_and_its_exports(tmp_path, capsys):
+    path = tmp_path / "robot.yaml"
+    path.write_text(textwrap.dedent("""
+        host: arm
+        hosts:
+          - {name: base, address: base.local}
+          - {name: arm, address: 10.0.0.2, agent_port: 9970}
+        nodes: [{name: /planner, process: no-such-process-3b8e}]
+    """))
+    graph = Graph()
+    graph.update(StaticAdapter(str(path)).poll())
+    assert sorted(graph.entities("host"), key=lambda h: h.name) == [
+        Host("arm", "10.0.0.2", "http://10.0.0.2:9970"), Host("base", "base.local")]
+    assert main(["graph", "--graph", "static", "--graph-file", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines()[:2] == [
+        "host arm (address 10.0.0.2, agent http://10.0.0.2:9970)", "host base (address base.local)"]
+    assert main(["graph", "--graph", "static", "--graph-file", str(path), "--format", "json"]) == 0
+    vertices = {v["id"]: v for v in json.loads(capsys.readouterr().out)["nodes"]}
+    assert vertices["host:arm"] == {"id": "host:arm", "kind": "host", "name": "arm", "address": "10.0.0.2",
+                                    "agent": "http://10.0.0.2:9970"}
+    assert main(["graph", "--graph", "static", "--graph-file", str(path), "--format", "graphml"]) == 0
+    assert nx.parse_graphml(capsys.readouterr().out).nodes["host:base"]["address"] == "base.local"
+    # A file without hosts: its one host by name, as before.
+    path.write_text("nodes: [{name: /planner}]\n")
+    assert StaticAdapter(str(path)).poll().hosts == [Host(socket.gethostname())]
 
 
 def test_drums_graph_with_a_bad_file_says_one_line(tmp_path, capsys):
