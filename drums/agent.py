@@ -205,7 +205,8 @@ class Agent:
         if self.graph is not None:
             join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
                  joined)
-        snap = self.budget.apply(raw if self.selection.everything else self._select(raw))
+        everything = self.selection.everything and self.proctable.netns is None
+        snap = self.budget.apply(raw if everything else self._select(raw))
         for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
             snap.rows(metric).extend(rows)
         self._self_metrics(snap)

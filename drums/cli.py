@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import socket
 import sys
@@ -59,6 +60,7 @@ def _pin_flag(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from drums.exporters.prometheus import DEFAULT_PORT
+    from drums.exporters.stream import DEFAULT_PORT as STREAM_PORT
     from drums.graph.export import FORMATS
     from drums.probes.registry import PROBES
 
@@ -77,6 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
                        help="file holding the token that POST and DELETE on the job API must carry "
                             "(Authorization: Bearer ...); needed off loopback ($DRUMS_TOKEN also works)")
     agent.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"port for /metrics (default {DEFAULT_PORT})")
+    agent.add_argument("--stream-port", type=_port, default=STREAM_PORT,
+                       help=f"port of the ZeroMQ stream of job samples, on --address (default {STREAM_PORT}; 0: any "
+                            "free port, as /drums/v1/info says; CURVE-encrypted off loopback)")
+    agent.add_argument("--latency-target", action="append", default=[], metavar="HOST",
+                       help="a host latency jobs may probe, besides the hosts of the graph (repeatable)")
+    agent.add_argument("--latency-mesh", action="store_true",
+                       help="probe the round-trip time to every other host of the graph, every second")
     _graph_flags(agent)
     agent.add_argument("--probe", action="append", choices=PROBES, default=None,
                        help="run only these probes (repeatable; default all, rtps and rcl only with the "
@@ -93,10 +102,19 @@ def build_parser() -> argparse.ArgumentParser:
                        help="monitor processes whose name matches this regular expression")
     agent.add_argument("--cgroup", action="append", default=[],
                        help="monitor processes in this cgroup (path prefix, e.g. /system.slice)")
+    agent.add_argument("--own-netns", action="store_true",
+                       help="monitor only processes in the agent's network namespace (one agent per "
+                            "namespace or container standing for a host)")
     for kind, default in (("processes", 100), ("threads", 200), ("sockets", 500), ("connections", 500)):
         agent.add_argument(f"--max-{kind}", type=_positive, default=default,
                            help=f"{kind} with series of their own; the rest are summed as other "
                                 f"(default {default})")
+    agent.add_argument("--diagnostics", action="store_true",
+                       help="publish a diagnostic_msgs/DiagnosticArray on the ROS 2 topic /diagnostics: a "
+                            "status per node of this host and one for the host, OK, WARN or ERROR by thresholds")
+    agent.add_argument("--diagnostics-config", metavar="FILE", default="",
+                       help="YAML file of thresholds and interval for --diagnostics, which it implies "
+                            "(format and defaults in the README)")
     agent.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
 
     graph = sub.add_parser("graph", help="print the computation graph: nodes, topics, connections")
@@ -131,18 +149,24 @@ def run_agent(args) -> int:
     from drums.agent import Agent, Selection
     from drums.budget import Budget
     from drums.exporters import prometheus
+    from drums.exporters.diagnostics import Diagnostics, load_config
     from drums.exporters.http import HttpServer
     from drums.exporters.jobs import Jobs
+    from drums.exporters.stream import Stream
     from drums.graph import registry
     from drums.graph.adapter import Follower
     from drums.graph.export import document
     from drums.graph.model import Graph
     from drums.kernel.features import Features
     from drums.probes.registry import PROBES, ROS2_PROBES, build
-    from drums.proctable import ProcessTable
+    from drums.proctable import OWN_NETNS, ProcessTable
 
     logging.basicConfig(level=args.log_level.upper(), format="drums: %(message)s")
+    if args.own_netns:
+        os.environ[OWN_NETNS] = "1"  # for the process table, here and in the graph reader child
     selection = Selection.parse(args.pid, args.process_name, args.cgroup)
+    diagnostics = (Diagnostics(load_config(args.diagnostics_config))
+                   if args.diagnostics or args.diagnostics_config else None)
     adapter_name = args.graph or registry.default()
     adapter = registry.build(adapter_name, args.graph_file, _announcement(args))
     default = [p for p in PROBES if adapter_name == "ros2" or p not in ROS2_PROBES]
@@ -160,7 +184,14 @@ def run_agent(args) -> int:
         signal.signal(sig, lambda *_: done.set())
     token = _token(args.address, args.token_file)
     host = socket.gethostname()
-    jobs = Jobs(agent.collect_raw, host)
+    latency = next((p for p in probes if p.name == "latency"), None)
+
+    def graph_hosts() -> set[str]:  # the other hosts of the graph
+        return {h.name for h in graph.entities("host")} - {host}
+    stream = Stream(args.address, args.stream_port, curve=not _loopback(args.address))
+    jobs = Jobs(agent.collect_raw, host, stream, latency,
+                latency_targets=lambda: graph_hosts() | set(args.latency_target),
+                mesh=graph_hosts if args.latency_mesh else None)
     agent.wanted_pids = jobs.pids
 
     def info() -> dict:
@@ -169,7 +200,8 @@ def run_agent(args) -> int:
                                     "reason": p.status.reason} for p in agent.probes}}
     pages = {"/metrics": lambda _query: (prometheus.render(agent.collect()), prometheus.CONTENT_TYPE),
              "/graph": lambda query: document(graph, agent.collect(), query.get("format", "json"))}
-    server = HttpServer(args.address, args.port, pages, jobs, info, token)
+    server = HttpServer(args.address, args.port, pages, jobs, info, token,
+                        {"port": stream.port, "curve_public_key": stream.public_key})
     try:
         start = time.perf_counter()
         agent.start(strict=args.strict)
@@ -177,12 +209,17 @@ def run_agent(args) -> int:
         features.release_btf()
         server.start()
         jobs.start()
+        if diagnostics:
+            diagnostics.start(agent.collect)
         attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)
         log.info("serving http://%s:%d/metrics after %.2f s; probes: %s; graph: %s", args.address, server.port,
                  time.perf_counter() - start, attached or "none", adapter_name)
         done.wait()
     finally:
+        if diagnostics:
+            diagnostics.stop()
         jobs.stop()
+        stream.close()
         server.stop()
         follower.stop()
         agent.stop(unload=not args.keep_loaded)
@@ -199,10 +236,16 @@ def _announcement(args):
     return Host(socket.gethostname(), address, f"http://{hostport(address, args.port)}" if args.port else "")
 
 
+def _loopback(address: str) -> bool:
+    import ipaddress
+    try:
+        return address == "localhost" or ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return False
+
+
 def _token(address: str, path: str) -> str:
     """The API token, from --token-file or $DRUMS_TOKEN; required to listen off loopback."""
-    import ipaddress
-    import os
 
     token = os.environ.get("DRUMS_TOKEN", "")
     if path:
@@ -213,11 +256,7 @@ def _token(address: str, path: str) -> str:
             raise UsageError(f"--token-file {path}: {e.strerror}") from None
         if not token:
             raise UsageError(f"--token-file {path}: the file is empty")
-    try:
-        loopback = address == "localhost" or ipaddress.ip_address(address).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback and not token:
+    if not _loopback(address) and not token:
         raise UsageError(f"--address {address}: off loopback the job API needs a token "
                          "(--token-file FILE or $DRUMS_TOKEN)")
     return token
@@ -347,7 +386,6 @@ def _agent_graph(url: str, fmt: str) -> str:
 
 
 def run_unload(args) -> int:
-    import os
     import shutil
 
     from drums.errors import KernelError

@@ -2,19 +2,39 @@
 
 Refreshed once per collect from one listing of /proc; a name is read only for a PID not seen in
 the previous listing, so a process that exits and whose PID is reused gets its new name.
+
+With $DRUMS_OWN_NETNS=1 (`drums agent --own-netns`, inherited by the graph reader the agent
+starts) the table holds only the processes in this process's network namespace: where namespaces
+or containers stand for hosts, one agent per namespace reports its own host and nothing else.
 """
 from __future__ import annotations
 
 import os
 
+OWN_NETNS = "DRUMS_OWN_NETNS"
+
+
+def netns(proc: str, pid: int | str) -> int | None:
+    """The inode of a process's network namespace (None if it is gone or hidden)."""
+    try:
+        return os.stat(f"{proc}/{pid}/ns/net").st_ino
+    except OSError:
+        return None
+
 
 class ProcessTable:
     def __init__(self, proc: str = "/proc"):
         self.proc = proc
+        self.netns = netns(proc, "self") if os.environ.get(OWN_NETNS) == "1" else None
         self._names: dict[int, str] = {}
+        self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
 
     def refresh(self) -> None:
         alive = {int(d) for d in os.listdir(self.proc) if d.isdigit()}
+        if self.netns is not None:  # each PID is checked when it first appears, as its name is read
+            self._elsewhere = {pid for pid in alive if pid in self._elsewhere or (
+                pid not in self._names and netns(self.proc, pid) != self.netns)}
+            alive -= self._elsewhere
         self._names = {pid: self._names.get(pid) or self._read_name(pid) for pid in alive}
 
     def _read_name(self, pid: int) -> str:

@@ -25,7 +25,7 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = ()):
     port = free_port()
     pins = f"/sys/fs/bpf/drums_agent_{port}"
     proc = subprocess.Popen([*under, sys.executable, "-m", "drums", "agent", "--port", str(port), "--pin-dir", pins,
-                             *argv],
+                             "--stream-port", "0", *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}/metrics"
     deadline = time.monotonic() + 30

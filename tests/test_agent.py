@@ -31,7 +31,7 @@ def test_every_probe_attached_with_its_attach_type(agent):
     # rclpy is importable here, so the graph is ros2 and the per-topic probes run too.
     assert got == {"sockets": ("raw_tracepoint", 1), "sched": ("raw_tracepoint", 1), "tcp": ("raw_tracepoint", 1),
                    "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("tracepoint", 1),
-                   "rcl": ("uprobe", 1)}
+                   "rcl": ("uprobe", 1), "latency": ("icmp", 1)}
 
 
 def test_exited_process_series_gone_within_two_scrapes(agent):
@@ -95,7 +95,8 @@ def test_port_in_use_is_one_line():
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        out = subprocess.run([sys.executable, "-m", "drums", "agent", "--port", str(port), "--probe", "host"],
+        out = subprocess.run([sys.executable, "-m", "drums", "agent", "--port", str(port), "--probe", "host",
+                              "--stream-port", "0"],
                              capture_output=True, text=True, timeout=30)
     assert out.returncode == 2
     assert out.stderr.strip() == f"drums: cannot listen on 127.0.0.1:{port}: Address already in use"
@@ -106,7 +107,7 @@ def test_strict_refuses_when_a_probe_cannot_attach(tmp_path):
     nobody = shutil.which("setpriv")
     assert nobody, "setpriv (util-linux) is needed for this test"
     out = subprocess.run([nobody, "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-m",
-                          "drums", "agent", "--port", "0", "--strict"],
+                          "drums", "agent", "--port", "0", "--stream-port", "0", "--strict"],
                          capture_output=True, text=True, timeout=30, cwd=tmp_path)
     assert out.returncode == 2
     assert out.stderr.startswith("drums: probe sockets: not root") and "(--strict)" in out.stderr
@@ -116,7 +117,7 @@ def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
     """As an unprivileged user no BPF program can load: the agent runs on /proc and sock_diag."""
     port = free_port()
     proc = subprocess.Popen(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable,
-                             "-m", "drums", "agent", "--port", str(port)],
+                             "-m", "drums", "agent", "--port", str(port), "--stream-port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
     try:
         deadline = time.monotonic() + 30
@@ -132,7 +133,7 @@ def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
         # The per-topic probes have no fallback: nothing outside the kernel sees RTPS or rcl calls.
         assert attached == {"sockets": ("sock_diag", 1), "sched": ("proc", 1), "tcp": ("sock_diag", 1),
                             "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("none", 0),
-                            "rcl": ("none", 0)}
+                            "rcl": ("none", 0), "latency": ("icmp-unprivileged", 1)}
         assert samples(text, "drums_process_cpu_seconds_total")
     finally:
         proc.terminate()

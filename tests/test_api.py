@@ -147,7 +147,7 @@ def test_host_job_and_info(api):
     ("POST", "monitor/host", [1], 400, "the body is a JSON object, not list"),
     ("POST", "monitor/host", {"interval": "x"}, 400, "interval: a number of seconds, not 'x'"),
     ("POST", "monitor/host", {"interval": 0}, 400, "interval: 0 s is outside 0.1-3600 s"),
-    ("POST", "monitor/host", {"every": 1}, 400, "unknown field 'every': a job takes only 'interval'"),
+    ("POST", "monitor/host", {"every": 1}, 400, "unknown field 'every': a host job takes interval"),
     ("POST", "monitor/host", b"x" * (65 << 10), 413, "a body over 64 KiB"),
     ("POST", "monitor/cpu", None, 404, "no such path /drums/v1/monitor/cpu"),
     ("DELETE", "monitor/host", None, 404, "no job host"),

@@ -18,7 +18,7 @@ from typing import Callable
 from urllib.parse import parse_qs, urlsplit
 
 from drums.errors import DrumsError, UsageError
-from drums.exporters.jobs import Jobs, NotFound, job_id, job_target, parse_interval, whole
+from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body, whole
 
 log = logging.getLogger("drums")
 
@@ -27,6 +27,7 @@ MAX_BODY = 64 << 10  # a job's body is a few bytes
 JSON = "application/json"
 TEXT = "text/plain; charset=utf-8"
 OPENAPI = os.path.join(os.path.dirname(__file__), "openapi.yaml")
+READ_ONLY = (["info"], ["openapi.json"], ["jobs"])  # API paths that take only GET
 
 # A page: query parameters -> (body, content type); raises UsageError for a bad query (400).
 Page = Callable[[dict[str, str]], tuple[bytes, str]]
@@ -54,8 +55,9 @@ class _Server(ThreadingHTTPServer):
 
 class HttpServer:
     def __init__(self, address: str, port: int, pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict],
-                 token: str = ""):
-        handler = _handler(pages, jobs, info, token)
+                 token: str = "", stream: dict | None = None):
+        """`stream`: the stream's {"port", "curve_public_key"}, named in every job."""
+        handler = _handler(pages, jobs, info, token, stream or {})
         try:
             self.httpd = _Server((address, port), handler)
         except OSError as e:
@@ -76,36 +78,40 @@ def _status(error: Exception) -> tuple[int, dict]:
     """The HTTP status and extra headers that say what went wrong with a request."""
     if isinstance(error, HttpError):
         return error.code, error.headers
-    return (404 if isinstance(error, NotFound) else 400), {}
+    return (404 if isinstance(error, NotFound) else 403 if isinstance(error, Forbidden) else 400), {}
 
 
-def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token: str):
+def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token: str, stream: dict):
     links = sorted(pages) + [f"{API}/openapi.json"]
     document = openapi_document()
 
-    def api(method: str, parts: list[str], body: bytes) -> tuple[int, object]:
-        """(status, JSON value) of a request under /drums/v1."""
-        if parts in (["info"], ["openapi.json"], ["jobs"]):
-            if method != "GET":
-                raise HttpError(405, f"{method} {API}/{parts[0]}: only GET", {"Allow": "GET"})
+    def api(method: str, parts: list[str], body: bytes, local: str) -> tuple[int, object]:
+        """(status, JSON value) of a request under /drums/v1 that reached the agent at `local`."""
+        where = {"address": f"tcp://{f'[{local}]' if ':' in local else local}:{stream['port']}",
+                 "curve_public_key": stream["curve_public_key"]} if stream else {}
+
+        def located(job: dict) -> dict:  # the stream as this client can reach it
+            job["stream"].update(where)
+            return job
+        if parts in READ_ONLY:  # GET only (_api said 405 to anything else)
             if parts == ["info"]:
-                return 200, info()
-            return 200, (document if parts == ["openapi.json"] else {"jobs": jobs.list()})
-        if len(parts) < 2 or parts[0] != "monitor" or parts[1] not in ("pid", "host", "socket"):
+                return 200, dict(info(), stream=where)
+            return 200, (document if parts == ["openapi.json"] else {"jobs": [located(j) for j in jobs.list()]})
+        if len(parts) < 2 or parts[0] != "monitor" or parts[1] not in KINDS:
             raise NotFound(f"no such path {API}/{'/'.join(parts)}")
         kind = parts[1]
         target = job_target(kind, parts[2:])
         if method == "GET":
-            return 200, jobs.get(job_id(kind, target))
+            return 200, located(jobs.get(job_id(kind, target)))
         if method == "DELETE":
             jobs.remove(job_id(kind, target))
             return 204, None
         try:
-            value = json.loads(body) if body.strip() else None
+            value = json.loads(body) if body.strip() else {}  # no body: the defaults; a JSON null is no object
         except (ValueError, UnicodeDecodeError) as e:
             raise UsageError(f"the body is not JSON ({e})") from None
-        job, created = jobs.add(kind, target, parse_interval(value))
-        return (201 if created else 200), job
+        job, created = jobs.add(kind, target, *parse_body(kind, value))
+        return (201 if created else 200), located(job)
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self):
@@ -122,6 +128,13 @@ def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token
 
         def do_PATCH(self):
             self._serve("PATCH")
+
+        def __getattr__(self, name: str):
+            # Any other method (TRACE, OPTIONS, HEAD, QUERY...) gets the 405 that says what is served,
+            # not http.server's HTML 501 page.
+            if name.startswith("do_"):
+                return lambda: self._serve(name[3:])
+            raise AttributeError(name)
 
         def _serve(self, method: str) -> None:
             url = urlsplit(self.path)
@@ -153,12 +166,17 @@ def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token
                 self._reply(500, f"failed: {e}\n".encode(), TEXT)
 
         def _api(self, method: str, path: str) -> None:
+            parts = [p for p in path[len(API):].split("/") if p]
             if method not in ("GET", "POST", "DELETE"):
-                raise HttpError(405, f"{method}: the API takes GET, POST and DELETE", {"Allow": "GET, POST, DELETE"})
+                # Allow names what this resource takes (RFC 9110): the read-only ones take only GET.
+                allow = "GET" if parts in READ_ONLY else "GET, POST, DELETE"
+                raise HttpError(405, f"{method}: the API takes GET, POST and DELETE", {"Allow": allow})
+            if parts in READ_ONLY and method != "GET":  # before the token: no token makes it a method they take
+                raise HttpError(405, f"{method} {API}/{parts[0]}: only GET", {"Allow": "GET"})
             if method != "GET" and token and not self._authorized():
                 raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
                                 {"WWW-Authenticate": "Bearer"})
-            self._json(*api(method, [p for p in path[len(API):].split("/") if p], self._body()))
+            self._json(*api(method, parts, self._body(), self.connection.getsockname()[0]))
 
         def _authorized(self) -> bool:
             given = self.headers.get("Authorization", "")
@@ -187,7 +205,7 @@ def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token
                 for name, value in (headers or {}).items():
                     self.send_header(name, value)
                 self.end_headers()
-                if code != 204:
+                if code != 204 and self.command != "HEAD":  # an answer to HEAD has no body
                     self.wfile.write(body)
             except (BrokenPipeError, ConnectionResetError):
                 pass  # the client hung up before the answer (a scrape can take a while): no news

@@ -1,6 +1,6 @@
 """Monitoring jobs, the paper's runtime API: a client asks the agent to follow one process, the
-host, or the sockets on a port; the agent samples each job at its interval and keeps the latest
-sample for GET.
+host, the sockets on a port, or the round-trip time to another host; the agent samples each job at
+its interval, keeps the latest sample for GET and publishes each on the stream.
 
 A sample is the job's rows of one agent snapshot, taken before the cardinality budget folds
 anything: a job names its entity, so the entity always has its own rows. Each row is
@@ -18,6 +18,7 @@ from typing import Callable
 
 from drums.errors import UsageError
 from drums.metrics import Histogram, Snapshot
+from drums.probes.latency import METHODS, LatencyProbe
 
 log = logging.getLogger("drums")
 
@@ -25,30 +26,51 @@ PROTOCOLS = ("tcp", "udp")
 DIRECTIONS = ("src", "dst", "any")  # the socket's local port, its peer's port, either
 MIN_INTERVAL, MAX_INTERVAL = 0.1, 3600.0
 MAX_JOBS = 1000  # each costs a pass over the snapshot per sample
+MESH_PERIOD = 2.0  # how often the latency mesh follows the graph's hosts
+MESH_INTERVAL = 1.0
+KINDS = ("pid", "host", "socket", "latency")
+# What a job's body may set, beyond its interval: name -> (default, check, what the check wants).
+LATENCY_SETTINGS = {
+    "count": (3, lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
+              "a whole number of probes per round, 1-100"),
+    "method": ("auto", lambda v: v in METHODS, f"one of {', '.join(METHODS)}"),
+    "port": (9969, lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 < v < 65536,
+             "the TCP port to connect to, 1-65535"),
+}
 
 
 class NotFound(UsageError):
     """The job, or the entity a job would follow, does not exist (HTTP 404)."""
 
 
+class Forbidden(UsageError):
+    """The request is well formed but not allowed here (HTTP 403)."""
+
+
 @dataclass
 class Job:
-    kind: str  # "pid", "host" or "socket"
-    target: str  # "1234", "", "tcp/src/8080"
+    kind: str  # one of KINDS
+    target: str  # "1234", "", "tcp/src/8080", "10.0.0.2"
     interval: float
+    settings: dict = field(default_factory=dict)  # a latency job's count, method and port
     created: float = field(default_factory=time.time)
     sample: dict | None = None
     due: float = 0.0  # time.monotonic() of the next sample
+    mesh: bool = False  # started by the agent for a host of the graph, not by a client
 
     @property
     def id(self) -> str:
         return job_id(self.kind, self.target)
 
     def view(self, host: str) -> dict:
-        # No stream yet: its address stays empty until the agent publishes samples.
+        # The stream's address depends on where the client reached the agent: the HTTP server adds it.
         return {"id": self.id, "kind": self.kind, "target": self.target, "interval": self.interval,
-                "created": self.created, "stream": {"address": "", "key": f"{host}:{self.kind}:{self.target}"},
-                "sample": self.sample}
+                **self.settings, "created": self.created, "mesh": self.mesh,
+                "stream": {"key": self.key(host)}, "sample": self.sample}
+
+    def key(self, host: str) -> str:
+        """The job's key on the stream."""
+        return f"{host}:{self.kind}:{self.target}"
 
     def pick(self, raw: Snapshot) -> list[dict]:
         """This job's rows of `raw`."""
@@ -59,6 +81,10 @@ class Job:
                 if not metric.name.startswith("drums_host_"):
                     continue
                 matches = series
+            elif self.kind == "latency":
+                if not metric.name.startswith("drums_latency_"):
+                    continue
+                matches = [(v, x) for v, x in series if v[0] == self.target]
             elif self.kind == "pid":
                 if "pid" not in labels:
                     continue
@@ -81,20 +107,27 @@ class Job:
         return rows
 
 
-def parse_interval(body: dict | None) -> float:
-    """The request body: {} or {"interval": seconds}; anything else is a UsageError saying why."""
-    body = {} if body is None else body
+def parse_body(kind: str, body: object) -> tuple[float, dict]:
+    """(interval, settings) from a request body: {"interval": seconds} and, for a latency job, its
+    settings; anything else is a UsageError saying why."""
     if not isinstance(body, dict):
-        raise UsageError(f"the body is a JSON object, not {type(body).__name__}")
-    unknown = sorted(set(body) - {"interval"})
+        raise UsageError(f"the body is a JSON object, not {'null' if body is None else type(body).__name__}")
+    allowed = {"interval", *(LATENCY_SETTINGS if kind == "latency" else ())}
+    unknown = sorted(set(body) - allowed)
     if unknown:
-        raise UsageError(f"unknown field {unknown[0]!r}: a job takes only 'interval'")
+        raise UsageError(f"unknown field {unknown[0]!r}: a {kind} job takes {', '.join(sorted(allowed))}")
     interval = body.get("interval", 1.0)
     if isinstance(interval, bool) or not isinstance(interval, (int, float)) or interval != interval:
         raise UsageError(f"interval: a number of seconds, not {interval!r}")
     if not MIN_INTERVAL <= interval <= MAX_INTERVAL:
         raise UsageError(f"interval: {interval:g} s is outside {MIN_INTERVAL:g}-{MAX_INTERVAL:g} s")
-    return float(interval)
+    settings = {}
+    if kind == "latency":
+        for name, (default, ok, wanted) in LATENCY_SETTINGS.items():
+            settings[name] = body.get(name, default)
+            if not ok(settings[name]):
+                raise UsageError(f"{name}: {wanted}, not {settings[name]!r}")
+    return float(interval), settings
 
 
 def job_id(kind: str, target: str) -> str:
@@ -113,6 +146,10 @@ def job_target(kind: str, parts: list[str]) -> str:
         if parts:
             raise NotFound("no such path: a host job is /drums/v1/monitor/host")
         return ""
+    if kind == "latency":
+        if len(parts) != 1:
+            raise UsageError("a latency job is /drums/v1/monitor/latency/<host name or address>")
+        return parts[0]
     if kind == "pid":
         pid = whole(parts[0]) if len(parts) == 1 else None
         if pid is None or not 0 < pid < 1 << 22:
@@ -133,12 +170,20 @@ def job_target(kind: str, parts: list[str]) -> str:
 
 class Jobs:
     """The agent's jobs, and the thread that samples them. `collect` returns the agent's raw
-    snapshot (before the budget)."""
+    snapshot (before the budget); `stream`, if given, gets every sample. Latency jobs run rounds
+    on `latency` to the targets `latency_targets()` allows; with `mesh`, the agent keeps a latency
+    job of its own on each host `mesh()` returns."""
 
-    def __init__(self, collect: Callable[[], Snapshot], host: str):
+    def __init__(self, collect: Callable[[], Snapshot], host: str, stream=None, latency: LatencyProbe | None = None,
+                 latency_targets: Callable[[], set[str]] = set, mesh: Callable[[], set[str]] | None = None):
         self.collect = collect
         self.host = host
+        self.stream = stream
+        self.latency = latency
+        self.latency_targets = latency_targets
+        self.mesh = mesh
         self._jobs: dict[str, Job] = {}  # by id, oldest first
+        self._gone: list[str] = []  # stream keys of deleted jobs, for the jobs thread to forget
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -153,21 +198,31 @@ class Jobs:
         if self._thread.is_alive():
             self._thread.join(timeout=5)
 
-    def add(self, kind: str, target: str, interval: float) -> tuple[dict, bool]:
-        """(the job, whether it is new). Asking again for a job that exists changes its interval."""
+    def add(self, kind: str, target: str, interval: float, settings: dict | None = None,
+            mesh: bool = False) -> tuple[dict, bool]:
+        """(the job, whether it is new). Asking again for a job that exists changes its settings."""
+        settings = settings or {}
         if kind == "pid" and not os.path.exists(f"/proc/{target}"):
             raise NotFound(f"no process {target}")
+        if kind == "latency":
+            if self.latency is None:
+                raise Forbidden("this agent runs without the latency probe")
+            if target not in self.latency_targets():
+                raise Forbidden(f"latency to {target!r}: only to hosts of the graph or named by --latency-target")
         with self._lock:
             job = self._jobs.get(job_id(kind, target))
             created = job is None
             if created:
                 if len(self._jobs) >= MAX_JOBS:
                     raise UsageError(f"already {MAX_JOBS} jobs: delete some first")
-                job = self._jobs[job_id(kind, target)] = Job(kind, target, interval)
+                job = self._jobs[job_id(kind, target)] = Job(kind, target, interval, settings, mesh=mesh)
             else:
-                job.interval, job.due = interval, 0.0
+                job.interval, job.settings, job.due, job.mesh = interval, settings, 0.0, job.mesh and mesh
+            view = job.view(self.host)
+        if kind == "latency":
+            self.latency.watch(target, interval, **settings)
         self._wake.set()
-        return job.view(self.host), created
+        return view, created
 
     def get(self, job_id: str) -> dict:
         with self._lock:
@@ -178,8 +233,12 @@ class Jobs:
 
     def remove(self, job_id: str) -> None:
         with self._lock:
-            if self._jobs.pop(job_id, None) is None:
+            job = self._jobs.pop(job_id, None)
+            if job is None:
                 raise NotFound(f"no job {job_id}")
+            self._gone.append(job.key(self.host))
+        if job.kind == "latency":
+            self.latency.unwatch(job.target)
 
     def list(self) -> list[dict]:
         with self._lock:
@@ -190,13 +249,22 @@ class Jobs:
             return {int(j.target) for j in self._jobs.values() if j.kind == "pid"}
 
     def _run(self) -> None:
+        next_mesh = 0.0
         while not self._stop.is_set():
+            if self.mesh is not None and time.monotonic() >= next_mesh:
+                self._follow_mesh()
+                next_mesh = time.monotonic() + MESH_PERIOD
             with self._lock:
+                gone, self._gone = self._gone, []
                 now = time.monotonic()
                 due = [j for j in self._jobs.values() if j.due <= now]
                 wait = min((j.due - now for j in self._jobs.values() if j.due > now), default=None)
                 for job in due:
                     job.due = now + job.interval
+                if self.mesh is not None:
+                    wait = min(wait or MESH_PERIOD, max(0.0, next_mesh - now))
+            for key in gone if self.stream is not None else ():
+                self.stream.forget(key)
             if due:
                 try:
                     self._sample(due)
@@ -213,3 +281,26 @@ class Jobs:
             sample = {"time": at, "series": job.pick(raw)}
             with self._lock:
                 job.sample = sample
+            if self.stream is not None:
+                self.stream.publish(job.key(self.host), at, sample["series"])
+
+    def _follow_mesh(self) -> None:
+        """A latency job on every host the graph has, none on hosts it no longer has."""
+        try:
+            targets = self.mesh()
+        except Exception as e:  # the graph is read while it changes: try again next period
+            log.warning("latency mesh: %s", e)
+            return
+        with self._lock:
+            have = {j.target for j in self._jobs.values() if j.kind == "latency"}
+            stale = [j.id for j in self._jobs.values() if j.mesh and j.target not in targets]
+        for target in sorted(targets - have):
+            try:
+                self.add("latency", target, MESH_INTERVAL, parse_body("latency", {})[1], mesh=True)
+            except UsageError as e:
+                log.warning("latency mesh: %s", e)
+        for job in stale:
+            try:
+                self.remove(job)
+            except NotFound:
+                pass  # a client deleted it meanwhile

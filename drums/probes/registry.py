@@ -5,13 +5,14 @@ from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.proctable import MappedLibraries, ProcessTable
 
-PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl")
+PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl", "latency")
 ROS2_PROBES = ("rtps", "rcl")  # run by default only with the ros2 graph: they count per DDS writer and topic
 
 
 def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "") -> list[Probe]:
     """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums)."""
     from drums.probes.host import HostProbe
+    from drums.probes.latency import LatencyProbe
     from drums.probes.process import ProcessProbe
     from drums.probes.procsched import ProcSchedProbe
     from drums.probes.rcl import RclProbe
@@ -33,6 +34,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
         "process": ProcessProbe,
         "rtps": lambda: RtpsProbe(features, proctable, dds, pin_root=pin_root),
         "rcl": lambda: RclProbe(features, proctable, dds, pin_root=pin_root),
+        "latency": LatencyProbe,  # probes only the targets of latency jobs
     }
     # What runs where eBPF cannot (not root, no bcc, old kernel): the kernel's own counters.
     fallbacks = {
@@ -54,6 +56,7 @@ def all_metrics():
     from drums.agent import SELF_METRICS
     from drums.graph import join
     from drums.probes.host import HostProbe
+    from drums.probes.latency import LatencyProbe
     from drums.probes.process import ProcessProbe
     from drums.probes.rcl import RclProbe
     from drums.probes.rtps import RtpsProbe
@@ -61,7 +64,7 @@ def all_metrics():
     from drums.probes.sockets import SocketsProbe
     from drums.probes.tcp import TcpProbe
 
-    for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe, RtpsProbe, RclProbe):
+    for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe, RtpsProbe, RclProbe, LatencyProbe):
         yield cls.name, cls.metrics
     yield "graph", join.METRICS
     yield "agent", SELF_METRICS

@@ -1,0 +1,231 @@
+"""The client library: jobs on many agents, their streams merged into one live view, and their
+graphs merged into one graph of the whole system.
+
+    from drums.client import Client
+    with Client(["http://robot1:9969", "http://base:9969"], token="...") as c:
+        c.start("host")                      # a host job on every agent
+        c.start("pid", "4242", agent=c.agents[0])
+        while True:
+            for sample in c.poll(1.0):        # decoded stream messages as they arrive
+                print(sample.key, sample.missed, sample.series)
+            c.view                            # the latest sample of every key
+
+A sample knows what its subscriber missed: `missed` counts the messages between it and the one
+before it on the same key (sequence numbers), `late` that the subscriber joined after the first.
+"""
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+
+import msgpack
+import networkx as nx
+import zmq
+
+from drums.errors import DrumsError, UsageError
+
+
+class AgentError(DrumsError):
+    """An agent did not answer, or refused a request (its reason is in the message)."""
+
+
+@dataclass
+class Sample:
+    key: str  # <host>:<kind>:<target>
+    seq: int
+    time: float
+    series: dict[tuple[str, tuple[tuple[str, str], ...]], object]  # (name, sorted labels) -> value
+    missed: int = 0  # messages of this key lost between the previous sample and this one
+    late: bool = False  # the first sample this subscriber got, and not the key's first
+
+    def value(self, name: str, **labels: str):
+        """The value of the first series of `name` that has these labels (it may have more), or None."""
+        wanted = set(labels.items())
+        return next((v for (n, ls), v in self.series.items() if n == name and wanted <= set(ls)), None)
+
+
+class Agent:
+    """One agent's HTTP API."""
+
+    def __init__(self, url: str, token: str = "", timeout: float = 10):
+        self.url = url.rstrip("/")
+        self.token = token
+        self.timeout = timeout
+
+    def __repr__(self) -> str:
+        return f"Agent({self.url!r})"
+
+    def request(self, method: str, path: str, body: dict | None = None):
+        """The JSON answer of /drums/v1/<path>, or an AgentError with the agent's reason."""
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(f"{self.url}/drums/v1/{path}", data=data, method=method)
+        if data is not None:
+            request.add_header("Content-Type", "application/json")
+        if self.token:
+            request.add_header("Authorization", f"Bearer {self.token}")
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout) as reply:
+                text = reply.read()
+        except urllib.error.HTTPError as e:
+            try:
+                reason = json.loads(e.read())["error"]
+            except (ValueError, KeyError, TypeError):
+                reason = e.reason
+            raise AgentError(f"{self.url}: {method} {path}: {e.code} {reason}") from None
+        except (urllib.error.URLError, OSError) as e:
+            reason = getattr(e, "reason", e)
+            raise AgentError(f"{self.url}: {getattr(reason, 'strerror', None) or reason}") from None
+        return json.loads(text) if text else None
+
+    def info(self) -> dict:
+        return self.request("GET", "info")
+
+    def start(self, kind: str, target: str = "", **settings) -> dict:
+        return self.request("POST", _path(kind, target), settings)
+
+    def stop(self, kind: str, target: str = "") -> None:
+        self.request("DELETE", _path(kind, target))
+
+    def job(self, kind: str, target: str = "") -> dict:
+        return self.request("GET", _path(kind, target))
+
+    def jobs(self) -> list[dict]:
+        return self.request("GET", "jobs")["jobs"]
+
+    def graph(self) -> nx.MultiDiGraph:
+        """The agent's graph with its metrics (its /graph)."""
+        try:
+            with urllib.request.urlopen(f"{self.url}/graph?format=json", timeout=self.timeout) as reply:
+                return nx.node_link_graph(json.loads(reply.read()), edges="edges")
+        except (urllib.error.URLError, OSError, ValueError) as e:
+            raise AgentError(f"{self.url}: /graph: {getattr(e, 'reason', e)}") from None
+
+
+def _path(kind: str, target: str) -> str:
+    return f"monitor/{kind}/{target}" if target else f"monitor/{kind}"
+
+
+@dataclass
+class _Key:
+    """What a subscriber remembers of one stream key."""
+
+    seq: int = 0  # the last one received
+    first: int = 0  # the first one received
+    decoded: bool = False
+    layouts: dict[int, list] = field(default_factory=dict)
+
+
+class Client:
+    """Jobs on many agents and one subscriber to all their streams."""
+
+    def __init__(self, urls: list[str], token: str = ""):
+        if not urls:
+            raise UsageError("a client needs at least one agent URL")
+        self.agents = [Agent(u, token) for u in urls]
+        self.view: dict[str, Sample] = {}  # key -> its latest sample
+        self.undecodable = 0  # messages that came before their layout (a late subscriber's first few)
+        self._context = zmq.Context()
+        self._sockets: dict[str, zmq.Socket] = {}  # stream address -> SUB socket
+        self._poller = zmq.Poller()
+        self._keys: dict[str, _Key] = {}
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
+    def start(self, kind: str, target: str = "", agent: Agent | None = None, **settings) -> list[dict]:
+        """Start a job on `agent` (default: every agent) and subscribe to its samples."""
+        jobs = []
+        for a in [agent] if agent else self.agents:
+            job = a.start(kind, target, **settings)
+            self.subscribe(job["stream"])
+            jobs.append(job)
+        return jobs
+
+    def stop(self, kind: str, target: str = "", agent: Agent | None = None) -> None:
+        for a in [agent] if agent else self.agents:
+            a.stop(kind, target)
+
+    def subscribe(self, stream: dict) -> None:
+        """Receive the messages of one stream key ({"address", "key", "curve_public_key"}, as a
+        job names its stream)."""
+        sock = self._sockets.get(stream["address"])
+        if sock is None:
+            sock = self._context.socket(zmq.SUB)
+            sock.linger = 0
+            if stream.get("curve_public_key"):
+                public, secret = zmq.curve_keypair()
+                sock.curve_publickey, sock.curve_secretkey = public, secret
+                sock.curve_serverkey = stream["curve_public_key"].encode()
+            sock.connect(stream["address"])
+            self._sockets[stream["address"]] = sock
+            self._poller.register(sock, zmq.POLLIN)
+        # ZeroMQ filters by prefix; "h:pid:12" would also take "h:pid:123": poll() keeps exact keys.
+        sock.setsockopt(zmq.SUBSCRIBE, stream["key"].encode())
+        self._keys.setdefault(stream["key"], _Key())
+
+    def unsubscribe(self, stream: dict) -> None:
+        """Stop receiving a key; what it sends meanwhile counts as missed when it is subscribed again."""
+        self._sockets[stream["address"]].setsockopt(zmq.UNSUBSCRIBE, stream["key"].encode())
+
+    def poll(self, timeout: float) -> list[Sample]:
+        """The samples that arrive within `timeout` s (at least one wait; all that are queued)."""
+        out = []
+        ready = dict(self._poller.poll(timeout * 1000))
+        while ready:
+            for sock in ready:
+                key, payload = sock.recv_multipart()
+                sample = self._decode(key.decode(errors="replace"), payload)
+                if sample is not None:
+                    out.append(sample)
+            ready = dict(self._poller.poll(0))
+        return out
+
+    def _decode(self, key: str, payload: bytes) -> Sample | None:
+        known = self._keys.get(key)
+        if known is None:
+            return None  # a longer key that shares a subscribed prefix
+        message = msgpack.unpackb(payload)
+        seq = message["seq"]
+        missed = 0 if not known.seq or seq <= known.seq else seq - known.seq - 1  # lower: the job began again
+        known.seq, known.first = seq, known.first or seq
+        if "series" in message:
+            known.layouts = {message["layout"]: message["series"]}
+        series = known.layouts.get(message["layout"])
+        if series is None:
+            self.undecodable += 1
+            return None
+        values = {(name, tuple(sorted(labels.items()))): value for (name, labels), value in zip(series, message["values"])}
+        sample = Sample(key, seq, message["time"], values, missed, late=not known.decoded and known.first > 1)
+        known.decoded = True
+        self.view[key] = sample
+        return sample
+
+    def graph(self) -> nx.MultiDiGraph:
+        """One graph of the whole system from every agent's graph. Each agent knows the nodes of its
+        own host (with their process and metrics) and sees the others only through the middleware:
+        a node's attributes come from the agent whose host it is on; an edge's metrics from every
+        agent that measured one end of it."""
+        merged = nx.MultiDiGraph()
+        for agent in self.agents:
+            g = agent.graph()
+            for vid, data in g.nodes(data=True):
+                if vid not in merged:
+                    merged.add_node(vid, **data)
+                elif data.get("kind") != "node" or data.get("host"):  # the node's own agent knows it best
+                    merged.nodes[vid].update(data)
+            for u, v, key, data in g.edges(keys=True, data=True):
+                if merged.has_edge(u, v, key):
+                    merged.edges[u, v, key].update(data)
+                else:
+                    merged.add_edge(u, v, key=key, **data)
+        return merged
+
+    def close(self) -> None:
+        for sock in self._sockets.values():
+            sock.close()
+        self._context.term()

@@ -1,0 +1,435 @@
+"""ROS 2 /diagnostics: every interval, the agent's latest snapshot as one
+diagnostic_msgs/DiagnosticArray, with a status per ROS node that has a process on this host
+("drums: /talker") and one for the host ("drums: host <name>"), hardware_id the host's name.
+
+Each status is OK, WARN or ERROR by thresholds: a value above `warn` or `error` crosses it, and
+the message names each crossing ("cpu 97% > 95%"), else says "ok". Defaults, each replaceable in a
+YAML file given with --diagnostics-config (null: not checked):
+
+    interval: 1                                   # seconds between arrays (0.1-3600)
+    node:                                         # of the node's process, shared by its nodes
+      cpu_percent: {warn: 80, error: 95}          # of one core
+      memory_megabytes: {warn: null, error: null} # resident
+    host:
+      cpu_percent: {warn: 85, error: 95}          # of all cores
+      memory_percent: {warn: 85, error: 95}       # not available without swapping
+      network_errors_per_second: {warn: 1, error: 10}
+      network_drops_per_second: {warn: 10, error: 100}
+      tcp_retransmits_per_second: {warn: 10, error: 100}
+
+Rates (CPU, bytes and messages per second) are the difference between this snapshot and the
+previous one, so the first array goes out one interval after the start.
+
+rclpy runs in a child process (`python -m drums.exporters.diagnostics`) for the reasons the ros2
+graph reader does: the agent stays lean, and a DDS stack that hangs or crashes costs the
+diagnostics, never the agent's kernel data. A child that exits or stops answering is logged once
+and started again.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import math
+import os
+import select
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Callable
+
+import psutil
+
+from drums.errors import UsageError
+from drums.graph import join
+from drums.metrics import Snapshot
+from drums.probes import host as hostprobe
+from drums.probes import sockets, tcp
+
+log = logging.getLogger("drums")
+
+OK, WARN, ERROR = 0, 1, 2  # DiagnosticStatus levels
+OWN_NODE = "_drums_diagnostics"
+INSTALL_HINT = "pip install ros-rclpy ros-diagnostic-msgs (ROS 2 from PyPI)"
+# (section, key) -> (what a message calls the value, its unit, default warn, default error)
+THRESHOLDS = {
+    ("node", "cpu_percent"): ("cpu", "%", 80.0, 95.0),
+    ("node", "memory_megabytes"): ("memory", " MB", None, None),
+    ("host", "cpu_percent"): ("cpu", "%", 85.0, 95.0),
+    ("host", "memory_percent"): ("memory", "%", 85.0, 95.0),
+    ("host", "network_errors_per_second"): ("network errors", "/s", 1.0, 10.0),
+    # Some drivers count frames of protocols nobody listens to as drops: a few per second is normal.
+    ("host", "network_drops_per_second"): ("network drops", "/s", 10.0, 100.0),
+    ("host", "tcp_retransmits_per_second"): ("tcp retransmits", "/s", 10.0, 100.0),
+}
+MIN_INTERVAL, MAX_INTERVAL = 0.1, 3600.0
+
+
+@dataclass
+class Config:
+    interval: float = 1.0
+    limits: dict = field(default_factory=lambda: {k: (w, e) for k, (_, _, w, e) in THRESHOLDS.items()})
+
+
+def _mapping(doc, allowed: list[str], where: str) -> dict:
+    if not isinstance(doc, dict):
+        raise UsageError(f"{where}: a mapping of {', '.join(allowed)}, not {type(doc).__name__}")
+    unknown = sorted(str(k) for k in doc if k not in allowed)
+    if unknown:
+        raise UsageError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(allowed)})")
+    return doc
+
+
+def _number(value, where: str, low: float, high: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+        span = f"from {low:g} to {high:g}" if high < math.inf else f"from {low:g} up"
+        raise UsageError(f"{where}: a number {span}, not {value!r}")
+    return float(value)
+
+
+def load_config(path: str) -> Config:
+    """The defaults, with what the YAML file at `path` (if any) replaces; every mistake is a
+    UsageError naming the file and the key."""
+    import yaml
+
+    config = Config()
+    if not path:
+        return config
+    where = f"--diagnostics-config {path}"
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+    except OSError as e:
+        raise UsageError(f"{where}: {e.strerror}") from None
+    except yaml.YAMLError as e:
+        raise UsageError(f"{where}: not YAML ({str(e).splitlines()[0]})") from None
+    doc = _mapping({} if doc is None else doc, ["interval", "node", "host"], where)
+    if "interval" in doc:
+        config.interval = _number(doc["interval"], f"{where}: interval", MIN_INTERVAL, MAX_INTERVAL)
+    for section in ("node", "host"):
+        keys = [k for s, k in THRESHOLDS if s == section]
+        given = _mapping({} if doc.get(section) is None else doc[section], keys, f"{where}: {section}")
+        for key, levels in given.items():
+            at = f"{where}: {section}.{key}"
+            limits = dict(zip(("warn", "error"), config.limits[section, key]))
+            for level, value in _mapping(levels, ["warn", "error"], at).items():
+                limits[level] = None if value is None else _number(value, f"{at}.{level}", 0)
+            warn, error = limits["warn"], limits["error"]
+            if warn is not None and error is not None and warn > error:
+                raise UsageError(f"{at}: warn {warn:g} is above error {error:g}")
+            config.limits[section, key] = (warn, error)
+    return config
+
+
+def _cpu_seconds(pid: str) -> float | None:
+    """The process's CPU time up to now, its threads' current slices included. Not the sched
+    probe's count (drums_node_cpu_seconds_total), which adds a slice when its thread switches out:
+    a thread that keeps a core to itself switches out a few times a second, and a node pegged at
+    100% read 60 to 110% from one half-second interval to the next."""
+    try:
+        times = psutil.Process(int(pid)).cpu_times()
+    except (psutil.Error, ValueError):
+        return None
+    return times.user + times.system
+
+
+def _short(value: float) -> str:
+    return f"{value:.0f}" if abs(value) >= 10 else f"{value:.2g}"
+
+
+def _text(value) -> str:
+    return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+class Diagnostics:
+    """Turns snapshots into statuses, and every interval publishes them through the child."""
+
+    def __init__(self, config: Config):
+        missing = [m for m in ("rclpy", "diagnostic_msgs") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise UsageError(f"--diagnostics needs {' and '.join(missing)}: {INSTALL_HINT}")
+        self.config = config
+        self.host = socket.gethostname()
+        self.publisher = Publisher()
+        self._previous: dict = {}  # counter key -> value at the last snapshot, for rates
+        self._previous_at = 0.0
+        self._failure = ""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, collect: Callable[[], Snapshot]) -> None:
+        self._thread = threading.Thread(target=self._run, args=(collect,), name="diagnostics", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2 * self.publisher.timeout)
+        self.publisher.stop()
+
+    def _run(self, collect: Callable[[], Snapshot]) -> None:
+        while True:
+            began = time.monotonic()
+            try:
+                first = not self._previous_at
+                statuses = self.statuses(collect(), time.monotonic())
+                if not first:
+                    self.publisher.send(statuses)
+                self._failure = ""
+            except Exception as e:  # one bad snapshot costs one array, not the thread
+                if str(e) != self._failure:
+                    log.warning("diagnostics: %s", e)
+                self._failure = str(e)
+            if self._stop.wait(max(0.0, self.config.interval - (time.monotonic() - began))):
+                return
+
+    def statuses(self, snap: Snapshot, at: float) -> list[dict]:
+        """A status per node with a process here, then the host's; rates since the last call."""
+        counters: dict = {}
+        elapsed = at - self._previous_at
+
+        def rate(key, value) -> float | None:
+            counters[key] = value
+            before = self._previous.get(key)
+            if before is None or value < before or elapsed <= 0:
+                return None  # new, or restarted under the same key
+            return (value - before) / elapsed
+
+        memory = snap.values(join.NODE_MEMORY)
+        traffic = {name: defaultdict(int) for name in ("sent", "received")}
+        for name, table in traffic.items():
+            for (pid, _, _), value in snap.series.get(sockets.PROCESS[f"{name}_bytes"], ()):
+                table[pid] += value
+        topics = defaultdict(list)
+        for kind, metric in (("published", join.TOPIC_PUBLISHED), ("taken", join.TOPIC_TAKEN)):
+            for (topic, node), value in snap.series.get(metric, ()):
+                topics[node].append((f"{kind} messages/s {topic}", value))
+        out = []
+        for (node, pid, process, _, shares), _ in sorted(snap.series.get(join.NODE_INFO, ())):
+            if not pid:
+                continue  # on another host, or not found here: nothing measured
+            values, checks = {"pid": pid, "process": process}, {}
+            if shares:
+                values["shares process with"] = shares
+            seconds = _cpu_seconds(pid)
+            if seconds is not None:
+                per_second = rate((pid, "cpu"), seconds)
+                if per_second is not None:
+                    values["cpu %"] = checks["cpu_percent"] = 100 * per_second
+                values["cpu seconds"] = seconds
+            if (node,) in memory:
+                values["resident memory bytes"] = memory[node,]
+                checks["memory_megabytes"] = memory[node,] / 1e6
+            for name, table in traffic.items():
+                per_second = rate((pid, name), table[pid]) if pid in table else None
+                if per_second is not None:
+                    values[f"{name} bytes/s"] = per_second
+            for key, value in topics.get(node, ()):
+                per_second = rate((pid, node, key), value)
+                if per_second is not None:
+                    values[key] = per_second
+            out.append(self._status(f"drums: {node}", "node", values, checks))
+        out.append(self._status(f"drums: host {self.host}", "host", *self._host(snap, rate)))
+        self._previous, self._previous_at = counters, at
+        return out
+
+    def _host(self, snap: Snapshot, rate) -> tuple[dict, dict]:
+        values, checks = {}, {}
+        modes = {labels[0]: v for labels, v in snap.series.get(hostprobe.CPU_SECONDS, ())}
+        if modes:
+            total = rate("cpu", sum(modes.values()))
+            idle = rate("idle", modes.get("idle", 0) + modes.get("iowait", 0))
+            if total and idle is not None:
+                values["cpu %"] = checks["cpu_percent"] = 100 * (total - idle) / total
+        mem = {m: v for m in (hostprobe.MEMORY_TOTAL, hostprobe.MEMORY_AVAILABLE)
+               for _, v in snap.series.get(m, ())}
+        if mem.get(hostprobe.MEMORY_TOTAL):
+            total = mem[hostprobe.MEMORY_TOTAL]
+            values["memory used %"] = checks["memory_percent"] = \
+                100 * (total - mem.get(hostprobe.MEMORY_AVAILABLE, 0)) / total
+            values["memory total bytes"] = total
+        load = snap.values(hostprobe.LOAD).get(("1m",))
+        if load is not None:
+            values["load 1m"] = load
+        for name, key, metrics in (
+                ("network received bytes/s", None, (hostprobe.NET_RECEIVED_BYTES,)),
+                ("network sent bytes/s", None, (hostprobe.NET_SENT_BYTES,)),
+                ("network errors/s", "network_errors_per_second",
+                 (hostprobe.NET_RECEIVE_ERRORS, hostprobe.NET_TRANSMIT_ERRORS)),
+                ("network drops/s", "network_drops_per_second",
+                 (hostprobe.NET_RECEIVE_DROPS, hostprobe.NET_TRANSMIT_DROPS)),
+                ("tcp retransmits/s", "tcp_retransmits_per_second", (tcp.RETRANSMITS,))):
+            rows = [v for m in metrics for _, v in snap.series.get(m, ())]
+            per_second = rate(name, sum(rows)) if rows else None
+            if per_second is not None:
+                values[name] = per_second
+                if key:
+                    checks[key] = per_second
+        return values, checks
+
+    def _status(self, name: str, section: str, values: dict, checks: dict) -> dict:
+        level, crossed = OK, []
+        for key, value in checks.items():
+            what, unit, _, _ = THRESHOLDS[section, key]
+            warn, error = self.config.limits[section, key]
+            for limit_level, limit in ((ERROR, error), (WARN, warn)):
+                if limit is not None and value > limit:
+                    level = max(level, limit_level)
+                    crossed.append(f"{what} {_short(value)}{unit} > {limit:g}{unit}")
+                    break
+        return {"level": level, "name": name, "message": ", ".join(crossed) or "ok", "hardware_id": self.host,
+                "values": [[k, _text(v)] for k, v in values.items()]}
+
+
+class Publisher:
+    """The child that publishes: one JSON array per line on its stdin, one answer per array on its
+    stdout ({} or {"error": why}). A child that exits, or answers nothing for `timeout` s, is
+    replaced, at most once every `timeout` s; each new reason it is not publishing is logged once."""
+
+    def __init__(self, timeout: float = 5.0):
+        self.timeout = timeout
+        self._proc: subprocess.Popen | None = None
+        self._reader: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._spawned_at = -math.inf
+        self._sent = self._answered = 0
+        self._heard_at = 0.0
+        self._error = ""  # the child's last answer, if it was a failure
+        self._said = ""  # the child's last line that was not an answer
+        self._killed = ""  # why we killed the child, if we did
+        self._reason = ""  # what was logged last; "" while publishing
+
+    def _spawn(self) -> None:
+        self._proc = subprocess.Popen([sys.executable, "-m", "drums.exporters.diagnostics"], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        os.set_blocking(self._proc.stdin.fileno(), False)  # a child that stops reading must not stop us
+        with self._lock:
+            self._sent = self._answered = 0
+            self._error = self._said = self._killed = ""
+            self._heard_at = self._spawned_at = time.monotonic()
+        self._reader = threading.Thread(target=self._read, args=(self._proc,), daemon=True,
+                                        name="diagnostics-reader")
+        self._reader.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            try:
+                error = str(json.loads(line).get("error", ""))[:500]
+            except (ValueError, AttributeError):  # not an answer: rmw and DDS print here too
+                with self._lock:
+                    if proc is self._proc:
+                        self._said = line.decode(errors="replace").strip()[:500]
+                continue
+            with self._lock:
+                if proc is self._proc:
+                    self._answered += 1
+                    self._heard_at = time.monotonic()
+                    self._error = error
+
+    def _write(self, data: bytes) -> bool:
+        """All of `data` to the child within the timeout, or False."""
+        fd, deadline = self._proc.stdin.fileno(), time.monotonic() + self.timeout
+        try:
+            while data:
+                if not select.select([], [fd], [], max(0.0, deadline - time.monotonic()))[1]:
+                    return False
+                data = data[os.write(fd, data):]
+        except (BlockingIOError, BrokenPipeError):
+            return False
+        return True
+
+    def _kill(self, reason: str) -> None:
+        self._killed = reason
+        self._proc.kill()
+        self._proc.wait()
+
+    def _problem(self) -> str:
+        """Why arrays are not published, "" if they are. A new child changes nothing until it answers."""
+        if self._proc is None:
+            return ""
+        with self._lock:
+            error, answered, silent = self._error, self._answered, time.monotonic() - self._heard_at
+            waiting = self._sent > answered
+        if self._proc.poll() is None and waiting and silent > self.timeout:
+            self._kill(f"the publisher answered nothing for {silent:.0f} s")
+        code = self._proc.poll()
+        if code is not None:
+            self._reader.join(1)  # its last words, if any, say why it exited
+            with self._lock:
+                error = self._error or self._said
+            return self._killed or f"the publisher exited with {code}" + (f" ({error})" if error else "")
+        return error if answered else self._reason
+
+    def send(self, statuses: list[dict]) -> None:
+        problem = self._problem()
+        if problem != self._reason:
+            if problem:
+                log.warning("diagnostics: %s; /diagnostics is not published until it works again", problem)
+            else:
+                log.info("diagnostics: publishing again")
+            self._reason = problem
+        if self._proc is None or self._proc.poll() is not None:
+            if time.monotonic() - self._spawned_at < self.timeout:
+                return  # a child that keeps failing costs a start every `timeout` s, no more
+            self._spawn()
+        if not self._write((json.dumps({"status": statuses}) + "\n").encode()):
+            self._kill(f"the publisher read nothing for {self.timeout:.0f} s")
+            return
+        with self._lock:
+            self._sent += 1
+
+    def stop(self) -> None:
+        if self._proc is None or self._proc.poll() is not None:
+            return
+        self._proc.stdin.close()  # at the end of its input the child leaves the DDS domain and exits
+        try:
+            self._proc.wait(self.timeout)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+
+
+def _answer(**message) -> None:
+    print(json.dumps(message), flush=True)
+
+
+def child() -> int:
+    """The child process: publish each array read on stdin until stdin closes."""
+    try:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        rclpy.init(args=[])
+        node = rclpy.create_node(OWN_NODE, enable_rosout=False, start_parameter_services=False)
+        publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+    except Exception as e:  # no ROS 2, or a DDS that will not start: say why, the agent logs it
+        _answer(error=f"cannot publish /diagnostics: {e} ({INSTALL_HINT})")
+        return 2
+    try:
+        for line in sys.stdin:
+            try:
+                array = DiagnosticArray(status=[
+                    DiagnosticStatus(level=bytes([s["level"]]), name=s["name"], message=s["message"],
+                                     hardware_id=s["hardware_id"],
+                                     values=[KeyValue(key=k, value=v) for k, v in s["values"]])
+                    for s in json.loads(line)["status"]])
+                array.header.stamp = node.get_clock().now().to_msg()
+                publisher.publish(array)
+            except Exception as e:  # one array that cannot go out: say why, take the next
+                _answer(error=f"publishing /diagnostics: {e}")
+                continue
+            _answer()
+    except (KeyboardInterrupt, BrokenPipeError):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(child())

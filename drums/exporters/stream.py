@@ -1,0 +1,84 @@
+"""The sample stream, the paper's push channel: a ZeroMQ PUB socket on which the agent publishes
+every sample of every job as msgpack.
+
+Each message is two frames: the key `<host>:<kind>:<target>` (a subscriber filters by prefix, so
+"robot1:" takes one host and "robot1:pid:" its process jobs) and the payload, a map:
+
+    seq     1, 2, 3 ... per key: a gap, or a first seq above 1, says what the subscriber missed
+    time    when the sample was taken (Unix seconds)
+    layout  an id for the list of series the values belong to
+    series  [[name, {label: value}], ...]: only when the layout is new and every KEYFRAME messages
+    values  one value per series, in layout order; a histogram as [count, sum]
+
+Labels are most of a sample's bytes and rarely change, so they travel only with a new layout and
+in a periodic keyframe for subscribers that joined late; the messages between carry numbers only.
+
+Off loopback the socket uses CURVE: the agent makes a key pair at start and gives the public key
+in /drums/v1/info and in every job, and subscribers encrypt to it.
+"""
+from __future__ import annotations
+
+import hashlib
+
+import msgpack
+import zmq
+
+from drums.errors import DrumsError
+
+DEFAULT_PORT = 9970
+KEYFRAME = 10  # a late subscriber decodes from at most this many messages on
+
+
+def layout_id(series: list) -> int:
+    """A stable id of a list of [name, labels]: the same series in another run get the same id."""
+    return int.from_bytes(hashlib.blake2b(msgpack.packb(series), digest_size=8).digest(), "little")
+
+
+class Stream:
+    """Owned by one thread (ZeroMQ sockets are not thread-safe): the jobs thread publishes."""
+
+    def __init__(self, address: str, port: int, curve: bool):
+        self._context = zmq.Context()
+        self.socket = self._context.socket(zmq.PUB)
+        self.socket.linger = 0
+        self.public_key = ""
+        if curve:
+            public, secret = zmq.curve_keypair()
+            self.socket.curve_server = True
+            self.socket.curve_secretkey = secret
+            self.public_key = public.decode()
+        host = f"[{address}]" if ":" in address else address
+        try:
+            self.socket.bind(f"tcp://{host}:{port}")
+        except zmq.ZMQError as e:
+            self.close()
+            raise DrumsError(f"cannot publish the stream on {address}:{port}: {e.strerror}") from None
+        self.port = int(self.socket.last_endpoint.decode().rsplit(":", 1)[1])
+        self._seq: dict[str, int] = {}
+        self._layout: dict[str, tuple[list, int]] = {}  # key -> (series, its id)
+
+    def publish(self, key: str, time: float, rows: list[dict]) -> None:
+        """Publish one sample of `key`: rows of {"name", "labels", "value"}."""
+        series = [[r["name"], r["labels"]] for r in rows]
+        seq = self._seq.get(key, 0) + 1
+        self._seq[key] = seq
+        known, layout = self._layout.get(key, (None, 0))
+        message = {"seq": seq, "time": time}
+        if series != known:
+            layout = layout_id(series)
+            self._layout[key] = (series, layout)
+        if series != known or seq % KEYFRAME == 1:
+            message["series"] = series
+        message["layout"] = layout
+        message["values"] = [[v["count"], v["sum"]] if isinstance(v, dict) else v
+                             for v in (r["value"] for r in rows)]
+        self.socket.send_multipart([key.encode(), msgpack.packb(message)])
+
+    def forget(self, key: str) -> None:
+        """A job was deleted: if it comes back, its sequence starts again at 1."""
+        self._seq.pop(key, None)
+        self._layout.pop(key, None)
+
+    def close(self) -> None:
+        self.socket.close()
+        self._context.term()

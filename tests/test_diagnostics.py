@@ -1,0 +1,202 @@
+"""ROS 2 /diagnostics end to end: `drums agent --graph ros2 --diagnostics-config FILE` beside a ROS 2
+node that burns a core and one that idles, each in a process of its own, and a subscriber process
+that records each DiagnosticArray together with the CPU time the busy process had really used
+(psutil) when the array arrived.
+
+Run as a module, this file is those processes: `python -m tests.test_diagnostics busy|idle|listen PID`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from urllib.parse import urlsplit
+
+import psutil
+import pytest
+
+from tests.agentproc import running_agent, scrape
+
+INTERVAL = 0.5
+CONFIG = f"""
+interval: {INTERVAL}
+node:
+  cpu_percent: {{warn: 5, error: 25}}   # a busy loop gets more than 25% of a core even on a busy host
+host:
+  cpu_percent: {{warn: 20, error: null}}   # one core of two is busy: WARN, never ERROR
+  memory_percent: {{warn: null, error: null}}
+  network_errors_per_second: {{warn: null}}
+  network_drops_per_second: {{warn: null, error: null}}
+  tcp_retransmits_per_second: {{warn: null, error: null}}
+"""
+OK, WARN, ERROR = 0, 1, 2
+HOST = socket.gethostname()
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class Role:
+    """`python -m tests.test_diagnostics ROLE ...` in a process of its own; ends when its input closes."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.test_diagnostics", *args], cwd=ROOT,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.lines: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: [self.lines.put(line) for line in self.proc.stdout], daemon=True).start()
+        self.pid = int(self.next(10).split()[1])  # "ready <pid>"
+
+    def next(self, timeout: float) -> str:
+        try:
+            return self.lines.get(timeout=timeout)
+        except queue.Empty:
+            pytest.fail(f"{self.proc.args[3:]} said nothing for {timeout} s")
+
+    def stop(self) -> None:
+        self.proc.stdin.close()
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture(scope="module")
+def ros_domain():
+    """A DDS domain of this session's own, apart from the graph tests' (1 + PID % 100)."""
+    env = {"ROS_DOMAIN_ID": str(1 + (os.getpid() + 50) % 100), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    yield
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture
+def roles(ros_domain):
+    started = []
+
+    def start(*args):
+        started.append(Role(*args))
+        return started[-1]
+    yield start
+    for role in started:
+        role.stop()
+
+
+def _arrays(listener: Role, until, timeout: float) -> list[dict]:
+    """What the listener records, from now until `until(records)` holds."""
+    records, deadline = [], time.monotonic() + timeout
+    while not records or not until(records):
+        if time.monotonic() > deadline:
+            pytest.fail(f"after {timeout} s, /diagnostics had: {records[-1:] or 'nothing'}")
+        records.append(json.loads(listener.next(max(0.1, deadline - time.monotonic()))))
+    return records
+
+
+def _measured(record: dict) -> bool:
+    status = record["statuses"]
+    return all("cpu %" in status.get(f"drums: /{n}", {}).get("values", {}) for n in ("busy", "idle"))
+
+
+def _publisher(url: str) -> psutil.Process:
+    """The agent's child that publishes /diagnostics."""
+    port = str(urlsplit(url).port)
+    agent = next(p for p in psutil.process_iter(["cmdline"]) if "agent" in (p.info["cmdline"] or ())
+                 and port in p.info["cmdline"])
+    return next(c for c in agent.children() if "drums.exporters.diagnostics" in c.cmdline())
+
+
+def test_levels_values_and_publisher_restarts(roles, tmp_path):
+    config = tmp_path / "diagnostics.yaml"
+    config.write_text(CONFIG)
+    busy, idle = roles("busy"), roles("idle")
+    with running_agent("--graph", "ros2", "--diagnostics-config", str(config)) as url:
+        listener = roles("listen", str(busy.pid))
+        # Ten arrays in a row that measured both nodes, after their first (which has no rate yet).
+        records = _arrays(listener, lambda r: len(r) >= 10 and all(map(_measured, r[-10:])), 40)[-10:]
+        for r in records:
+            statuses = r["statuses"]
+            assert {s["hardware_id"] for s in statuses.values()} == {HOST}
+            b, i, h = statuses["drums: /busy"], statuses["drums: /idle"], statuses[f"drums: host {HOST}"]
+            assert (b["level"], i["level"], i["message"], h["level"]) == (ERROR, OK, "ok", WARN), r
+            assert b["message"].startswith("cpu ") and b["message"].endswith("% > 25%"), b
+            assert h["message"].startswith("cpu ") and h["message"].endswith("% > 20%"), h
+            assert b["values"]["pid"] == str(busy.pid) and i["values"]["pid"] == str(idle.pid)
+            assert float(i["values"]["cpu %"]) < 5
+            # The CPU time the agent read at its last collect is what the process had used when the
+            # array arrived, less the collect-to-arrival delay (psutil counts in 10 ms ticks).
+            lag = r["busy_cpu"] - float(b["values"]["cpu seconds"])
+            assert -0.02 <= lag <= 0.15, (r["busy_cpu"], b["values"])
+        used = (records[-1]["busy_cpu"] - records[0]["busy_cpu"]) / (records[-1]["at"] - records[0]["at"])
+        reported = sum(float(r["statuses"]["drums: /busy"]["values"]["cpu %"]) for r in records[1:]) / 9
+        assert abs(reported - 100 * used) < 3, (reported, used)
+
+        # A publisher that dies is replaced at the next array; one that stops answering, once it
+        # has been silent for 5 s. The agent goes on serving meanwhile.
+        for sig, within in ((signal.SIGKILL, 10), (signal.SIGSTOP, 15)):
+            old = _publisher(url)
+            old.send_signal(sig)
+            at = time.monotonic()
+            _arrays(listener, lambda r: r[-1]["at"] > at + 1, within)
+            assert _publisher(url).pid != old.pid and not old.is_running()
+            assert "drums_agent_cpu_seconds_total" in scrape(url)
+
+
+@pytest.mark.parametrize("text, says", [
+    ("node: {cpu: {warn: 1}}", "node: unknown key 'cpu' (known: cpu_percent, memory_megabytes)"),
+    ("node: {cpu_percent: {warn: high}}", "node.cpu_percent.warn: a number from 0 up, not 'high'"),
+    ("host: {memory_percent: {warn: 99}}", "host.memory_percent: warn 99 is above error 95"),
+    ("interval: 0", "interval: a number from 0.1 to 3600, not 0"),
+    ("node: [", "not YAML"),
+])
+def test_bad_config_is_one_line_and_exit_2(tmp_path, text, says):
+    config = tmp_path / "diagnostics.yaml"
+    config.write_text(text)
+    done = subprocess.run([sys.executable, "-m", "drums", "agent", "--diagnostics-config", str(config)],
+                          capture_output=True, text=True, timeout=30)
+    assert (done.returncode, done.stdout, done.stderr.count("\n")) == (2, "", 1), done.stderr
+    assert done.stderr.startswith(f"drums: --diagnostics-config {config}: ") and says in done.stderr, done.stderr
+
+
+def _listen(node, busy: psutil.Process) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    def heard(array):
+        cpu = busy.cpu_times()
+        print(json.dumps({"at": time.monotonic(), "busy_cpu": cpu.user + cpu.system, "statuses": {
+            s.name: {"level": s.level[0], "message": s.message, "hardware_id": s.hardware_id,
+                     "values": {v.key: v.value for v in s.values}} for s in array.status}}), flush=True)
+    node.create_subscription(DiagnosticArray, "/diagnostics", heard, 10)
+
+
+def _burn() -> None:
+    while True:
+        pass
+
+
+def main() -> None:
+    import rclpy
+
+    role = sys.argv[1]
+    rclpy.init(args=[])
+    node = rclpy.create_node(role)
+    if role == "listen":
+        _listen(node, psutil.Process(int(sys.argv[2])))
+    elif role == "busy":
+        threading.Thread(target=_burn, daemon=True).start()
+    threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()
+    print("ready", os.getpid(), flush=True)
+    sys.stdin.read()
+    os._exit(0)
+
+
+if __name__ == "__main__":
+    main()

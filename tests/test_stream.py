@@ -1,0 +1,89 @@
+"""The ZeroMQ stream of job samples and the client library, against real agents."""
+import os
+import time
+
+import pytest
+
+from drums.client import AgentError, Client
+from drums.exporters.stream import KEYFRAME
+from tests.agentproc import free_port, running_agent
+
+CHEAP = ("--probe", "host", "--probe", "process", "--probe", "latency", "--graph", "auto")
+
+
+@pytest.fixture(scope="module")
+def agent():
+    with running_agent(*CHEAP, "--latency-target", "127.0.0.1", "--latency-target", "localhost",
+                       bpf=False) as url:
+        yield url.rsplit("/", 1)[0]
+
+
+def receive(client: Client, seconds: float, key: str, at_least: int = 0) -> list:
+    """The samples of `key` that come within `seconds`, or until `at_least` came (up to 20 s: a
+    loaded machine collects slowly)."""
+    got, began = [], time.monotonic()
+    while time.monotonic() - began < (seconds if len(got) >= at_least else 20):
+        got += [s for s in client.poll(0.2) if s.key == key]
+    return got
+
+
+def test_samples_on_the_stream_are_the_samples_of_the_api(agent):
+    with Client([agent]) as c:
+        job, = c.start("host", interval=0.2)
+        assert job["stream"]["address"].startswith("tcp://127.0.0.1:") and job["stream"]["curve_public_key"] == ""
+        got = receive(c, 2.0, job["stream"]["key"], at_least=5)
+        assert len(got) >= 5
+        assert all(s.missed == 0 for s in got) and [s.seq for s in got] == list(range(got[0].seq, got[-1].seq + 1))
+        latest = c.agents[0].job("host")["sample"]
+        got += receive(c, 0.5, job["stream"]["key"])  # the sample GET saw may still be on its way
+        c.agents[0].stop("host")
+    same = [s for s in got if s.time == latest["time"]] or pytest.fail("the API's sample never came on the stream")
+    assert same[0].series == {(r["name"], tuple(sorted(r["labels"].items()))): r["value"] for r in latest["series"]}
+
+
+def test_a_late_or_interrupted_subscriber_can_tell_what_it_missed(agent):
+    with Client([agent]) as c:
+        pid = str(os.getpid())
+        job = c.agents[0].start("pid", pid, interval=0.1)
+        key = job["stream"]["key"]
+        time.sleep(1.0)  # the job runs before anyone listens
+        c.subscribe(job["stream"])
+        got = receive(c, 1.5, key, at_least=1)
+        assert got[0].late and got[0].seq > 1 and got[0].value("drums_process_threads", pid=pid) >= 1
+        assert c.undecodable < KEYFRAME  # labels come again with every KEYFRAME-th message
+        c.unsubscribe(job["stream"])  # as a subscriber cut off for a second
+        time.sleep(1.0)
+        c.subscribe(job["stream"])
+        got += receive(c, 1.5, key)
+        c.agents[0].stop("pid", pid)
+    gaps = [s.missed for s in got if s.missed]
+    assert len(gaps) == 1 and 7 <= gaps[0] <= 13, gaps  # 1 s at 10 samples/s
+    assert len(got) + sum(gaps) + c.undecodable == got[-1].seq - got[0].seq + 1 + c.undecodable
+
+
+def test_latency_jobs_measure_targets_they_are_allowed_to(agent):
+    with Client([agent]) as c:
+        c.start("latency", "127.0.0.1", interval=0.3, count=4)
+        c.start("latency", "localhost", interval=0.3, count=2, method="tcp", port=free_port())  # refused
+        time.sleep(3.5)
+        here = c.agents[0].job("latency", "127.0.0.1")["sample"]["series"]
+        closed = c.agents[0].job("latency", "localhost")["sample"]["series"]
+        with pytest.raises(AgentError, match="403 latency to '10.1.2.3': only to hosts of the graph or named by"):
+            c.start("latency", "10.1.2.3")
+        with pytest.raises(AgentError, match="400 count: a whole number of probes per round, 1-100, not 0"):
+            c.start("latency", "127.0.0.1", count=0)
+        c.agents[0].stop("latency", "127.0.0.1")
+        c.agents[0].stop("latency", "localhost")
+    values = {r["name"]: (r["labels"], r["value"]) for r in here}
+    labels = {"target": "127.0.0.1", "method": "icmp"}
+    sent = values["drums_latency_probes_sent_total"]
+    assert sent[0] == labels and sent[1] > 0 and sent[1] % 4 == 0  # whole rounds of 4 echoes
+    assert values["drums_latency_probes_lost_total"] == (labels, 0)
+    assert values["drums_latency_loss_ratio"] == (labels, 0.0)
+    low, mean, high = (values[f"drums_latency_rtt_{s}_seconds"][1] for s in ("min", "mean", "max"))
+    assert 0 < low <= mean <= high < 0.01  # loopback
+    values = {r["name"]: (r["labels"], r["value"]) for r in closed}
+    labels = {"target": "localhost", "method": "tcp"}
+    assert values["drums_latency_loss_ratio"] == (labels, 0.0)  # a reset answers as well as a SYN-ACK
+    assert values["drums_latency_probes_sent_total"][1] % 2 == 0
+    assert 0 < values["drums_latency_rtt_mean_seconds"][1] < 0.01
