@@ -186,12 +186,13 @@ def run_agent(args) -> int:
     host = socket.gethostname()
     latency = next((p for p in probes if p.name == "latency"), None)
 
-    def graph_hosts() -> set[str]:  # the other hosts of the graph
-        return {h.name for h in graph.entities("host")} - {host}
+    def mesh() -> set[str]:  # the other hosts of the graph, where they are reached
+        return {h.address or h.name for h in graph.entities("host") if h.name != host}
+
+    def latency_targets() -> set[str]:  # the graph's hosts by name or address, and the operator's
+        return {t for h in graph.entities("host") for t in (h.name, h.address) if t} | set(args.latency_target)
     stream = Stream(args.address, args.stream_port, curve=not _loopback(args.address))
-    jobs = Jobs(agent.collect_raw, host, stream, latency,
-                latency_targets=lambda: graph_hosts() | set(args.latency_target),
-                mesh=graph_hosts if args.latency_mesh else None)
+    jobs = Jobs(agent.collect_raw, host, stream, latency, latency_targets, mesh if args.latency_mesh else None)
     agent.wanted_pids = jobs.pids
 
     def info() -> dict:

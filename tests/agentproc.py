@@ -17,17 +17,18 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = ()):
+def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address: str = "127.0.0.1"):
     """`drums agent` on a free port, serving; yields its /metrics URL. Stops it and checks it
     left no traceback and (for an agent with BPF probes, `bpf`) no pins behind. Each agent pins
     in a folder of its own, so that agents of tests running side by side leave each other alone.
-    `under`: a command that execs the agent, e.g. one that gives it a host name of its own."""
+    `under`: a command that execs the agent, e.g. one that gives it a host name of its own;
+    `address`: where it listens (and is reached)."""
     port = free_port()
     pins = f"/sys/fs/bpf/drums_agent_{port}"
     proc = subprocess.Popen([*under, sys.executable, "-m", "drums", "agent", "--port", str(port), "--pin-dir", pins,
-                             "--stream-port", "0", *argv],
+                             "--stream-port", "0", "--address", address, *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    url = f"http://127.0.0.1:{port}/metrics"
+    url = f"http://{address}:{port}/metrics"
     deadline = time.monotonic() + 30
     while True:
         try:
@@ -38,8 +39,10 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = ()):
                 proc.kill()
                 pytest.fail(f"agent did not serve: {proc.stdout.read()}")
             time.sleep(0.1)
-    yield url
-    proc.terminate()
+    try:
+        yield url
+    finally:  # a failed test stops its agent too
+        proc.terminate()
     assert proc.wait(timeout=10) == 0
     log = proc.stdout.read()
     assert "Traceback" not in log, log

@@ -24,8 +24,9 @@ def ros_domain():
 
 
 class RosProcess:
-    def __init__(self, role: str, *names: str, env: dict | None = None):
-        self.proc = subprocess.Popen([sys.executable, NODES, role, *names], stdin=subprocess.PIPE,
+    def __init__(self, role: str, *names: str, env: dict | None = None, under: tuple[str, ...] = ()):
+        """`under`: a command that execs the node's process, e.g. one that puts it on another host."""
+        self.proc = subprocess.Popen([*under, sys.executable, NODES, role, *names], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
         line = self.proc.stdout.readline().split()
         if line[:1] != ["ready"]:

@@ -1,8 +1,9 @@
 """ROS 2 test nodes, each run as its own process: `python rosnodes.py ROLE [NAME ...]`.
 
 Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), producer (a 1 MB
-image-like message on /image at 10 Hz), processor (/image -> /processed), sink (subscribes
-/processed), idle (a node with no endpoints of its own). Several NAMEs put several nodes in one
+image-like message on /image at 10 Hz; $DRUMS_TEST_IMAGE_BYTES sets another size), viewer
+(subscribes /image), processor (/image -> /processed), sink (subscribes /processed), idle (a node
+with no endpoints of its own). Several NAMEs put several nodes in one
 process; arguments after --ros-args go to ROS (remapping). Prints "ready <pid>" once its nodes
 exist, and on each line of input "count <n>" with the messages it published or received so far
 (a line "go" starts a burst instead: see DRUMS_TEST_BURST).
@@ -16,7 +17,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String, UInt8MultiArray
 
-IMAGE_BYTES = 1 << 20
+IMAGE_BYTES = int(os.environ.get("DRUMS_TEST_IMAGE_BYTES", 1 << 20))
 counted = [0]
 # With DRUMS_TEST_BURST=N a publisher waits for a line "go", publishes exactly N messages, and stops.
 burst = int(os.environ.get("DRUMS_TEST_BURST", "0"))
@@ -43,6 +44,8 @@ def make(role: str, name: str) -> Node:
     elif role == "producer":
         msg = UInt8MultiArray(data=bytes(IMAGE_BYTES))
         node.create_timer(0.1, publishes(node.create_publisher(UInt8MultiArray, "image", 10), msg))
+    elif role == "viewer":
+        node.create_subscription(UInt8MultiArray, "image", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
     elif role == "processor":
         pub = node.create_publisher(UInt8MultiArray, "processed", 10)
         node.create_subscription(UInt8MultiArray, "image",
