@@ -23,6 +23,7 @@ BENCHMARKS = (
     ("workload_overhead", ["--rounds", "1", "--seconds", "2"]),
     ("agent_cost", ["--seconds", "5"]),
     ("topic_latency", ["--rounds", "1", "--seconds", "2"]),
+    ("stream_bandwidth", ["--seconds", "3"]),
 )
 TIMEOUT = 600  # seconds; each benchmark is meant to finish within about 3 minutes
 

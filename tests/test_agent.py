@@ -1,4 +1,5 @@
 """The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
+import gzip
 import shutil
 import socket
 import struct
@@ -23,6 +24,17 @@ def test_promtool_finds_nothing_in_live_metrics(agent):
     text = scrape(agent)
     result = subprocess.run(["promtool", "check", "metrics"], input=text, capture_output=True, text=True)
     assert result.returncode == 0 and result.stdout == "" and result.stderr == "", result.stdout + result.stderr
+
+
+def test_a_scrape_asked_for_gzip_is_the_same_page_gzipped(agent):
+    request = urllib.request.Request(agent, headers={"Accept-Encoding": "gzip"})
+    with urllib.request.urlopen(request, timeout=10) as reply:
+        assert reply.headers["Content-Encoding"] == "gzip"
+        text = gzip.decompress(reply.read()).decode()
+    plain = scrape(agent)  # another collect: the same series, other values
+    assert [line.split(" ")[0] for line in text.splitlines() if "drums_probe_attached" in line] == \
+        [line.split(" ")[0] for line in plain.splitlines() if "drums_probe_attached" in line]
+    assert len(gzip.compress(text.encode())) * 5 < len(text)  # label text compresses at least 5 to 1
 
 
 def test_every_probe_attached_with_its_attach_type(agent):

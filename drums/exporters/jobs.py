@@ -259,8 +259,8 @@ class Jobs:
                 now = time.monotonic()
                 due = [j for j in self._jobs.values() if j.due <= now]
                 wait = min((j.due - now for j in self._jobs.values() if j.due > now), default=None)
-                for job in due:
-                    job.due = now + job.interval
+                for job in due:  # on the interval's grid: jobs with one interval share their collects
+                    job.due = (now // job.interval + 1) * job.interval
                 if self.mesh is not None:
                     wait = min(wait or MESH_PERIOD, max(0.0, next_mesh - now))
             for key in gone if self.stream is not None else ():
