@@ -225,6 +225,17 @@ class Client:
                     merged.add_edge(u, v, key=key, **data)
         return merged
 
+    def watch_nodes(self, interval: float = 1.0) -> dict[str, dict]:
+        """A process job for every node of the whole graph, on the agent of the node's own host
+        (what the paper's ROS adapter did); node name -> its job. Nodes that share a process
+        share its job."""
+        by_host = {agent.info()["host"]: agent for agent in self.agents}
+        jobs = {}
+        for _, d in self.graph().nodes(data=True):
+            if d["kind"] == "node" and d.get("pid") and d.get("host") in by_host:
+                jobs[d["name"]], = self.start("pid", str(d["pid"]), agent=by_host[d["host"]], interval=interval)
+        return jobs
+
     def close(self) -> None:
         for sock in self._sockets.values():
             sock.close()

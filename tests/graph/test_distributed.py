@@ -151,6 +151,22 @@ def test_the_client_sees_every_node_on_its_host_and_every_edge_with_its_bytes(la
         assert abs(got["received_bytes_total"] - sent) <= 0.02 * sent, (got, sent)
 
 
+def test_the_client_follows_every_node_on_its_own_host_in_one_stream(lab):
+    _, nodes, client = lab
+    jobs = client.watch_nodes(interval=0.5)
+    ours = {f"/{name}": f"robot{PLACES[name][-1]}:pid:{n.pid}" for name, n in nodes.items()}
+    assert {name: job["stream"]["key"] for name, job in jobs.items() if name in ours} == ours
+    seen = {}
+    wait_for("a sample of every node's process, from its own host's agent",
+             lambda: seen.update({s.key: s for s in client.poll(0.5)}) or set(ours.values()) <= set(seen))
+    for name, key in ours.items():
+        pid = key.rsplit(":", 1)[1]
+        assert seen[key].value("drums_process_threads", pid=pid) >= 1, name
+    for job in jobs.values():
+        host, _, pid = job["stream"]["key"].split(":")
+        next(a for a in client.agents if a.info()["host"] == host).stop("pid", pid)
+
+
 def test_each_agent_reports_only_its_own_host(lab):
     urls, nodes, _ = lab
     for i in HOSTS:
