@@ -131,7 +131,7 @@ def test_host_job_and_info(api):
         ("sockets", "sched", "process", "host"), True)
     code, document = call("GET", f"{api}/openapi.json")
     assert code == 200 and set(document["paths"]) == {
-        "/info", "/jobs", "/openapi.json", "/monitor/host", "/monitor/pid/{pid}",
+        "/info", "/jobs", "/openapi.json", "/monitor/host", "/monitor/pid/{pid}", "/monitor/latency/{target}",
         "/monitor/socket/{protocol}/{direction}/{port}"}
 
 
