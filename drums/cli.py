@@ -247,7 +247,6 @@ def _loopback(address: str) -> bool:
 
 def _token(address: str, path: str) -> str:
     """The API token, from --token-file or $DRUMS_TOKEN; required to listen off loopback."""
-
     token = os.environ.get("DRUMS_TOKEN", "")
     if path:
         try:

@@ -116,24 +116,28 @@ def edge(graph, topic: str, publisher: str, subscriber: str) -> dict:
     return graph.edges[f"node:/{publisher}", f"node:/{subscriber}", topic]
 
 
-def wait_for(what: str, check, within: float = 30):
+def wait_for(what: str, check, within: float = 30, seen: dict | None = None):
+    """check()'s first true value; `seen` is what the failure shows if none comes."""
     deadline = time.monotonic() + within
     while True:
         value = check()
         if value:
             return value
-        assert time.monotonic() < deadline, f"{what} within {within} s"
+        assert time.monotonic() < deadline, f"{what} within {within} s; last seen: {seen}"
         time.sleep(0.5)
 
 
 def test_the_client_sees_every_node_on_its_host_and_every_edge_with_its_bytes(lab):
     urls, nodes, client = lab
 
+    seen = {}
+
     def placed():
         g = client.graph()
-        ok = {f"/{n}": h for n, h in PLACES.items()}.items() <= hosts_of_nodes(g).items()
+        seen.update(nodes=hosts_of_nodes(g), edges=sorted(g.edges(keys=True)))
+        ok = {f"/{n}": h for n, h in PLACES.items()}.items() <= seen["nodes"].items()
         return ok and all(g.has_edge("node:/talker", f"node:/listener{i}", "/chatter") for i in (2, 3)) and g
-    graph = wait_for("every node on its host and both /chatter edges", placed)
+    graph = wait_for("every node on its host and both /chatter edges", placed, within=60, seen=seen)
     assert {d["name"] for _, d in graph.nodes(data=True) if d["kind"] == "host"} == {"robot1", "robot2", "robot3"}
     assert {d["name"]: d["address"] for _, d in graph.nodes(data=True) if d["kind"] == "host"} == {
         f"robot{i}": address(i) for i in HOSTS}
