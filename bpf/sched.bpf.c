@@ -43,8 +43,14 @@ struct exited_sched_t {
 BPF_HASH(thread_sched, u32, struct thread_sched_t, 65536);
 // Threads that exited, folded per process until the process is reaped.
 BPF_HASH(exited_sched, u32, struct exited_sched_t, 16384);
-// When the current task of each CPU was switched in.
-BPF_PERCPU_ARRAY(switched_in_at, u64, 1);
+// The current task of each CPU and when it was switched in: the agent adds the running slice of a
+// thread that keeps its CPU (it may not switch out for seconds) to what its switches counted.
+struct oncpu_t {
+    u64 since;
+    u32 tid;
+    u32 pad;
+};
+BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
 // main file, so each program declares this map and its helper itself.)
@@ -121,9 +127,10 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 now = bpf_ktime_get_ns();
     int zero = 0;
-    u64 *since = switched_in_at.lookup(&zero);
-    if (!since)
+    struct oncpu_t *current = oncpu.lookup(&zero);
+    if (!current)
         return 0;
+    u64 *since = &current->since;
     u64 prev = ctx->args[1], next = ctx->args[2];
     u32 prev_tid = 0, next_tid = 0;
     bpf_probe_read_kernel(&prev_tid, 4, (void *)(prev + TASK_PID_OFF));
@@ -178,6 +185,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         }
     }
     *since = now;
+    current->tid = next_tid;
     return 0;
 }
 

@@ -126,10 +126,8 @@ def load_config(path: str) -> Config:
 
 
 def _cpu_seconds(pid: str) -> float | None:
-    """The process's CPU time up to now, its threads' current slices included. Not the sched
-    probe's count (drums_node_cpu_seconds_total), which adds a slice when its thread switches out:
-    a thread that keeps a core to itself switches out a few times a second, and a node pegged at
-    100% read 60 to 110% from one half-second interval to the next."""
+    """The process's CPU time since it started, as `top` shows it: the sched probe's count
+    (drums_node_cpu_seconds_total) starts when the probe loaded, and needs the probe."""
     try:
         times = psutil.Process(int(pid)).cpu_times()
     except (psutil.Error, ValueError):

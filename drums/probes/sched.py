@@ -6,6 +6,7 @@ Process totals include threads that exited, so they never go backwards while the
 from __future__ import annotations
 
 import struct
+import time
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
@@ -39,6 +40,7 @@ _SCHED = "5Q24I"  # struct sched_t
 _THREAD_VALUE = struct.Struct("<IIQQ16s" + _SCHED)
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
+_ONCPU = struct.Struct("<QII")
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -54,7 +56,7 @@ def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
-    maps = ("thread_sched", "exited_sched", "dropped")
+    maps = ("thread_sched", "exited_sched", "oncpu", "dropped")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
     paths = (
@@ -89,6 +91,19 @@ class SchedProbe(BpfProbe):
             d.update(offset_defines(btf, {"TASK_STATE_OFF": ("task_struct", state)}))
         return d
 
+    def _running(self) -> dict[int, int]:
+        """Thread id -> nanoseconds it has been on its CPU, for the thread each CPU runs now."""
+        now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock; taken first,
+        # so that a slice that ends after the read below is never counted past its end
+        _, values, _ = self.read("oncpu")
+        stride = self.opened["oncpu"].value_size
+        out = {}
+        for cpu in range(len(values) // stride):
+            since, tid, _pad = _ONCPU.unpack_from(values, cpu * stride)
+            if tid and 0 < since <= now:
+                out[tid] = now - since
+        return out
+
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         totals = ProcessTotals()
@@ -97,10 +112,13 @@ class SchedProbe(BpfProbe):
             if pt.alive(tgid):
                 totals.add_exited(tgid, start, s)
         keys, values, _ = self.read("thread_sched")
+        running = self._running()  # read after the threads: a slice that ended meanwhile is in neither
         for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
             tgid, _pad, _enqueued, start, comm, *s = v
             if not pt.alive(tgid):
                 continue
+            if tid in running:
+                s[0] += running[tid]
             totals.add_thread(tgid, start, s)
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))

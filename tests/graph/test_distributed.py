@@ -233,7 +233,7 @@ def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, netwo
     run("ip", "netns", "exec", network, "tc", "qdisc", "add", "dev", f"{PREFIX}r3", "root", "tbf",
         "rate", THROTTLE, "burst", "16kb", "latency", "100ms")
     after = [interval() for _ in range(2)]
-    usual = {e: min(b[e] for b in before) for e in names}
+    usual = {e: sorted(b[e] for b in before)[1] for e in names}  # the median: one slow second is no rule
     # 10 messages of IMAGE bytes a second, to each viewer, before: within 20%.
     for e in names[:2]:
         assert 0.8 * 10 * IMAGE <= usual[e] <= 1.2 * 10 * IMAGE, (e, before)
