@@ -213,6 +213,23 @@ def test_the_api_off_loopback_needs_the_token_and_the_stream_is_encrypted(lab):
     plain.close()
 
 
+def test_a_host_that_ignores_ping_is_measured_by_tcp_connects(lab):
+    _, _, client = lab
+    agent = client.agents[0]  # robot1, whose mesh probes robot2
+
+    def last_round(method):
+        series = (agent.job("latency", address(2))["sample"] or {}).get("series", [])
+        return {r["name"]: r["value"] for r in series if r["labels"]["method"] == method}
+    assert wait_for("an ICMP round to robot2", lambda: last_round("icmp").get("drums_latency_loss_ratio") == 0.0)
+    run("ip", "netns", "exec", f"{PREFIX}h2", "sysctl", "-q", "-w", "net.ipv4.icmp_echo_ignore_all=1")
+    try:
+        tcp = wait_for("robot2 measured by TCP", lambda: last_round("tcp").get("drums_latency_rtt_mean_seconds"), 10)
+        assert 0 < tcp < 0.05
+        assert last_round("tcp")["drums_latency_loss_ratio"] == 0.0
+    finally:
+        run("ip", "netns", "exec", f"{PREFIX}h2", "sysctl", "-q", "-w", "net.ipv4.icmp_echo_ignore_all=0")
+
+
 def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, network):
     urls, nodes, client = lab
     wait_for("both viewers receiving", lambda: nodes["viewer2"].count() > 20 and nodes["viewer3"].count() > 20)
