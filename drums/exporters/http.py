@@ -117,24 +117,9 @@ def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token
         return (201 if created else 200), located(job)
 
     class Handler(BaseHTTPRequestHandler):
-        def do_GET(self):
-            self._serve("GET")
-
-        def do_POST(self):
-            self._serve("POST")
-
-        def do_DELETE(self):
-            self._serve("DELETE")
-
-        def do_PUT(self):
-            self._serve("PUT")
-
-        def do_PATCH(self):
-            self._serve("PATCH")
-
         def __getattr__(self, name: str):
-            # Any other method (TRACE, OPTIONS, HEAD, QUERY...) gets the 405 that says what is served,
-            # not http.server's HTML 501 page.
+            # http.server calls do_<METHOD>: every method goes to _serve, which answers what it does
+            # not take (TRACE, OPTIONS, PUT ...) with a 405 that says what is served, not a 501 page.
             if name.startswith("do_"):
                 return lambda: self._serve(name[3:])
             raise AttributeError(name)
