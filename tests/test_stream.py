@@ -1,5 +1,8 @@
 """The ZeroMQ stream of job samples and the client library, against real agents."""
+import json
 import os
+import subprocess
+import sys
 import time
 
 import pytest
@@ -87,3 +90,34 @@ def test_latency_jobs_measure_targets_they_are_allowed_to(agent):
     assert values["drums_latency_loss_ratio"] == (labels, 0.0)  # a reset answers as well as a SYN-ACK
     assert values["drums_latency_probes_sent_total"][1] % 2 == 0
     assert 0 < values["drums_latency_rtt_mean_seconds"][1] < 0.01
+
+
+# One latency probe to this host's loopback for a second, run as `nobody`: its rows as JSON.
+UNPRIVILEGED = r'''
+import json, time
+from drums.metrics import Snapshot
+from drums.probes.latency import LatencyProbe
+probe = LatencyProbe()
+probe.start()
+probe.watch("127.0.0.1", 0.2, count=3)
+time.sleep(1.0)
+snap = Snapshot()
+probe.collect(snap)
+probe.stop()
+print(json.dumps({m.name: [[list(labels), v] for labels, v in rows] for m, rows in snap.series.items()}))
+'''
+
+
+@pytest.mark.parametrize("ping_group_range, method", [("0 2147483647", "icmp"), ("1 0", "tcp")])
+def test_without_root_latency_uses_icmp_sockets_where_allowed_else_tcp(ping_group_range, method, tmp_path):
+    """ping_group_range (per network namespace) says which groups may open ICMP datagram sockets;
+    this machine's "1 0" allows none, so a namespace of the test's own sets it."""
+    out = subprocess.run(
+        ["unshare", "--net", "sh", "-c", f"ip link set lo up && sysctl -q -w net.ipv4.ping_group_range='{ping_group_range}' "
+         f'&& exec setpriv --reuid=65534 --regid=65534 --clear-groups "$@"', "sh", sys.executable, "-c", UNPRIVILEGED],
+        capture_output=True, text=True, timeout=30, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    rows = json.loads(out.stdout)
+    assert rows["drums_latency_loss_ratio"] == [[["127.0.0.1", method], 0.0]]
+    assert [labels for labels, _ in rows["drums_latency_probes_sent_total"]] == [["127.0.0.1", method]]
+    assert 0 < rows["drums_latency_rtt_mean_seconds"][0][1] < 0.01
