@@ -170,16 +170,32 @@ class Agent:
     def collect(self) -> Snapshot:
         """One consistent snapshot; concurrent scrapes wait for each other rather than interleave."""
         with self._lock:
-            return self._collect()[1]
+            return self._collect()
 
-    def collect_raw(self) -> Snapshot:
-        """A fresh snapshot's rows before selection and budget: every entity with its own rows."""
+    def collect_raw(self, probes: set[str]) -> Snapshot:
+        """A fresh read of the named probes, before selection and budget: every entity with its
+        own rows (what jobs sample; nothing else is read)."""
         with self._lock:
-            return self._collect()[0]
+            return self._read(probes)
 
-    def _collect(self) -> tuple[Snapshot, Snapshot]:
-        """(the probes' rows before selection and budget, the snapshot to export)."""
+    def _collect(self) -> Snapshot:
+        """The snapshot to export: every probe, joined onto the graph, selected and budgeted."""
         began = time.perf_counter()
+        raw = self._read({p.name for p in self.probes})
+        joined = Snapshot()
+        if self.graph is not None:
+            join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
+                 joined)
+        everything = self.selection.everything and self.proctable.netns is None
+        snap = self.budget.apply(raw if everything else self._select(raw))
+        for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
+            snap.rows(metric).extend(rows)
+        self._self_metrics(snap)
+        snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
+        return snap
+
+    def _read(self, names: set[str]) -> Snapshot:
+        """The rows of the probes called `names`."""
         self.proctable.refresh()
         pids = self._process_pids()
         for probe in self.probes:
@@ -187,7 +203,7 @@ class Agent:
                 probe.set_pids(pids)
         raw = Snapshot()
         for probe in self.probes:
-            if not probe.status.attached:
+            if not probe.status.attached or probe.name not in names:
                 continue
             start = time.perf_counter()
             try:
@@ -201,17 +217,7 @@ class Agent:
             if probe.status.reason != self._reasons.get(probe.name, probe.status.reason):
                 log.warning("probe %s: %s", probe.name, probe.status.reason or "recovered")
             self._reasons[probe.name] = probe.status.reason
-        joined = Snapshot()
-        if self.graph is not None:
-            join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
-                 joined)
-        everything = self.selection.everything and self.proctable.netns is None
-        snap = self.budget.apply(raw if everything else self._select(raw))
-        for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
-            snap.rows(metric).extend(rows)
-        self._self_metrics(snap)
-        snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
-        return raw, snap
+        return raw
 
     def _chosen(self) -> set[int]:
         pt = self.proctable

@@ -26,6 +26,9 @@ PROTOCOLS = ("tcp", "udp")
 DIRECTIONS = ("src", "dst", "any")  # the socket's local port, its peer's port, either
 MIN_INTERVAL, MAX_INTERVAL = 0.1, 3600.0
 MAX_JOBS = 1000  # each costs a pass over the snapshot per sample
+# The probes whose rows each kind of job picks: a sample reads those and no others.
+PROBES_OF = {"host": {"host"}, "latency": {"latency"}, "socket": {"sockets", "tcp"},
+             "pid": {"sockets", "sched", "tcp", "process", "rtps", "rcl"}}
 MESH_PERIOD = 2.0  # how often the latency mesh follows the graph's hosts
 MESH_INTERVAL = 1.0
 KINDS = ("pid", "host", "socket", "latency")
@@ -169,12 +172,12 @@ def job_target(kind: str, parts: list[str]) -> str:
 
 
 class Jobs:
-    """The agent's jobs, and the thread that samples them. `collect` returns the agent's raw
-    snapshot (before the budget); `stream`, if given, gets every sample. Latency jobs run rounds
+    """The agent's jobs, and the thread that samples them. `collect(probes)` reads the named
+    probes' rows (before the budget); `stream`, if given, gets every sample. Latency jobs run rounds
     on `latency` to the targets `latency_targets()` allows; with `mesh`, the agent keeps a latency
     job of its own on each host `mesh()` returns."""
 
-    def __init__(self, collect: Callable[[], Snapshot], host: str, stream=None, latency: LatencyProbe | None = None,
+    def __init__(self, collect: Callable[[set[str]], Snapshot], host: str, stream=None, latency: LatencyProbe | None = None,
                  latency_targets: Callable[[], set[str]] = set, mesh: Callable[[], set[str]] | None = None):
         self.collect = collect
         self.host = host
@@ -275,7 +278,7 @@ class Jobs:
             self._wake.clear()
 
     def _sample(self, due: list[Job]) -> None:
-        raw = self.collect()
+        raw = self.collect(set().union(*(PROBES_OF[j.kind] for j in due)))
         at = time.time()
         for job in due:
             sample = {"time": at, "series": job.pick(raw)}
