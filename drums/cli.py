@@ -1,4 +1,4 @@
-"""The `drums` command: agent, graph, sd, doctor, unload. Errors become one line on stderr and exit code 2."""
+"""The `drums` command: agent, graph, sd, top, doctor, unload. Errors become one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
@@ -42,6 +42,17 @@ def _address(text: str) -> str:
     if not is_address(text):
         raise argparse.ArgumentTypeError(f"{text!r} is neither an IP address nor a DNS name")
     return text
+
+
+def _seconds(text: str) -> float:
+    from drums.exporters.jobs import MAX_INTERVAL, MIN_INTERVAL
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not MIN_INTERVAL <= value <= MAX_INTERVAL:
+        raise argparse.ArgumentTypeError(f"{text} s is outside {MIN_INTERVAL:g}-{MAX_INTERVAL:g} s")
+    return value
 
 
 def _graph_flags(parser: argparse.ArgumentParser) -> None:
@@ -139,6 +150,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="take the hosts of the graph of the agent at URL (e.g. http://localhost:9969) "
                          "instead of discovering them here")
     sd.add_argument("--watch", action="store_true", help="keep running: write the file again when the hosts change")
+
+    top = sub.add_parser("top", help="every host and node of one or more agents, live")
+    top.add_argument("--agent", metavar="URL", action="append", default=None,
+                     help=f"an agent to show (repeatable; default http://127.0.0.1:{DEFAULT_PORT})")
+    top.add_argument("--token-file", default="",
+                     help="file holding the agents' API token, for agents off loopback ($DRUMS_TOKEN also works)")
+    top.add_argument("--interval", type=_seconds, default=1.0, help="seconds between updates (0.1-3600, default 1)")
+    top.add_argument("--once", action="store_true", help="print the first complete view and exit")
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
@@ -245,17 +264,23 @@ def _loopback(address: str) -> bool:
         return False
 
 
+def _read_token(path: str) -> str:
+    """The API token, from --token-file or $DRUMS_TOKEN ("" if neither)."""
+    if not path:
+        return os.environ.get("DRUMS_TOKEN", "")
+    try:
+        with open(path) as f:
+            token = f.read().strip()
+    except OSError as e:
+        raise UsageError(f"--token-file {path}: {e.strerror}") from None
+    if not token:
+        raise UsageError(f"--token-file {path}: the file is empty")
+    return token
+
+
 def _token(address: str, path: str) -> str:
-    """The API token, from --token-file or $DRUMS_TOKEN; required to listen off loopback."""
-    token = os.environ.get("DRUMS_TOKEN", "")
-    if path:
-        try:
-            with open(path) as f:
-                token = f.read().strip()
-        except OSError as e:
-            raise UsageError(f"--token-file {path}: {e.strerror}") from None
-        if not token:
-            raise UsageError(f"--token-file {path}: the file is empty")
+    """The agent's API token; required to listen off loopback."""
+    token = _read_token(path)
     if not _loopback(address) and not token:
         raise UsageError(f"--address {address}: off loopback the job API needs a token "
                          "(--token-file FILE or $DRUMS_TOKEN)")
@@ -403,6 +428,10 @@ def main(argv: list[str] | None = None) -> int:
             return run_agent(args)
         if args.command == "graph":
             return run_graph(args)
+        if args.command == "top":
+            from drums.exporters.prometheus import DEFAULT_PORT
+            from drums.top import run
+            return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval, args.once)
         if args.command == "sd":
             return run_sd(args)
         if args.command == "doctor":

@@ -59,6 +59,10 @@ class Agent:
 
     def request(self, method: str, path: str, body: dict | None = None):
         """The JSON answer of /drums/v1/<path>, or an AgentError with the agent's reason."""
+        return self.call(method, path, body)[1]
+
+    def call(self, method: str, path: str, body: dict | None = None) -> tuple[int, object]:
+        """(status, JSON answer) of /drums/v1/<path>, or an AgentError with the agent's reason."""
         data = None if body is None else json.dumps(body).encode()
         request = urllib.request.Request(f"{self.url}/drums/v1/{path}", data=data, method=method)
         if data is not None:
@@ -67,7 +71,7 @@ class Agent:
             request.add_header("Authorization", f"Bearer {self.token}")
         try:
             with urllib.request.urlopen(request, timeout=self.timeout) as reply:
-                text = reply.read()
+                status, text = reply.status, reply.read()
         except urllib.error.HTTPError as e:
             try:
                 reason = json.loads(e.read())["error"]
@@ -77,13 +81,18 @@ class Agent:
         except (urllib.error.URLError, OSError) as e:
             reason = getattr(e, "reason", e)
             raise AgentError(f"{self.url}: {getattr(reason, 'strerror', None) or reason}") from None
-        return json.loads(text) if text else None
+        return status, json.loads(text) if text else None
 
     def info(self) -> dict:
         return self.request("GET", "info")
 
     def start(self, kind: str, target: str = "", **settings) -> dict:
         return self.request("POST", _path(kind, target), settings)
+
+    def create(self, kind: str, target: str = "", **settings) -> tuple[dict, bool]:
+        """(the job, whether this call created it rather than found it)."""
+        status, job = self.call("POST", _path(kind, target), settings)
+        return job, status == 201
 
     def stop(self, kind: str, target: str = "") -> None:
         self.request("DELETE", _path(kind, target))
@@ -130,6 +139,7 @@ class Client:
         self._sockets: dict[str, zmq.Socket] = {}  # stream address -> SUB socket
         self._poller = zmq.Poller()
         self._keys: dict[str, _Key] = {}
+        self._created: list[tuple[Agent, str, str]] = []  # jobs this client made, for stop_all
 
     def __enter__(self) -> "Client":
         return self
@@ -141,7 +151,9 @@ class Client:
         """Start a job on `agent` (default: every agent) and subscribe to its samples."""
         jobs = []
         for a in [agent] if agent else self.agents:
-            job = a.start(kind, target, **settings)
+            job, created = a.create(kind, target, **settings)
+            if created:
+                self._created.append((a, kind, target))
             self.subscribe(job["stream"])
             jobs.append(job)
         return jobs
@@ -149,6 +161,16 @@ class Client:
     def stop(self, kind: str, target: str = "", agent: Agent | None = None) -> None:
         for a in [agent] if agent else self.agents:
             a.stop(kind, target)
+
+    def stop_all(self) -> None:
+        """Delete the jobs this client created (not those it found running); an agent that has
+        gone away meanwhile is passed over."""
+        for agent, kind, target in self._created:
+            try:
+                agent.stop(kind, target)
+            except AgentError:
+                pass
+        self._created = []
 
     def subscribe(self, stream: dict) -> None:
         """Receive the messages of one stream key ({"address", "key", "curve_public_key"}, as a
