@@ -259,4 +259,6 @@ def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, netwo
     dropped = {e for e in names if usual[e] > 0 and after[1][e] < 0.5 * usual[e]}
     assert dropped == {("/image", "producer", "viewer3")}, (before, after)
     assert after[1][names[1]] <= 50_000 * 1.2
-    assert after[1][names[0]] >= 0.8 * usual[names[0]]
+    # The edge to viewer2 keeps most of its rate; the publisher now also repairs what the throttled
+    # link loses, which cost viewer2 up to 28% for a second in one run of five.
+    assert after[1][names[0]] >= 0.6 * usual[names[0]]
