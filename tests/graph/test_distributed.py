@@ -255,7 +255,7 @@ def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, netwo
     for e in names[:2]:
         assert 0.8 * 10 * IMAGE <= usual[e] <= 1.2 * 10 * IMAGE, (e, before)
     # Within two intervals: the edge through the throttled link carries at most what the link lets
-    # through (400 kbit/s = 50 kB/s), every other edge with traffic goes on as before.
+    # through (400 kbit/s = 50 kB/s); no other edge with traffic falls below half its rate.
     dropped = {e for e in names if usual[e] > 0 and after[1][e] < 0.5 * usual[e]}
     assert dropped == {("/image", "producer", "viewer3")}, (before, after)
     assert after[1][names[1]] <= 50_000 * 1.2
