@@ -12,6 +12,7 @@ import urllib.request
 import pytest
 
 from tests.agentproc import free_port, running_agent, samples, scrape
+from tests.conftest import eventually
 
 
 @pytest.fixture(scope="module")
@@ -125,6 +126,12 @@ def test_strict_refuses_when_a_probe_cannot_attach(tmp_path):
     assert out.stderr.startswith("drums: probe sockets: not root") and "(--strict)" in out.stderr
 
 
+def check_graph_live(url: str) -> None:
+    text = scrape(url)
+    assert samples(text, "drums_graph_stale") == {(("adapter", "ros2"),): 0.0}
+    assert samples(text, "drums_graph_entities")[(("kind", "host"),)] == 1
+
+
 def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
     """As an unprivileged user no BPF program can load: the agent runs on /proc and sock_diag."""
     port = free_port()
@@ -147,6 +154,9 @@ def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
                             "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("none", 0),
                             "rcl": ("none", 0), "latency": ("icmp-unprivileged", 1)}
         assert samples(text, "drums_process_cpu_seconds_total")
+        # The ros2 graph works unprivileged too (HOME is still /root here: rclpy must not need to
+        # write ~/.ros/log), and the graph lists this host.
+        eventually(lambda: check_graph_live(f"http://127.0.0.1:{port}/metrics"), timeout=20)
     finally:
         proc.terminate()
         proc.wait(timeout=10)

@@ -401,7 +401,9 @@ def child() -> int:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-        rclpy.init(args=[])
+        from drums.graph.ros2 import RCLPY_ARGS
+
+        rclpy.init(args=RCLPY_ARGS)
         node = rclpy.create_node(OWN_NODE, enable_rosout=False, start_parameter_services=False)
         publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
     except Exception as e:  # no ROS 2, or a DDS that will not start: say why, the agent logs it

@@ -31,6 +31,9 @@ ANNOUNCE_TOPIC = "/drums/agents"
 # The name rmw gives an endpoint whose node is not discovered yet: skipped until it is.
 UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 INSTALL_HINT = "pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp (ROS 2 from PyPI)"
+# Drums's rclpy children log through the agent, not to files: rcl's file log needs a writable
+# ~/.ros/log, and without one (a user whose HOME is not theirs) rclpy.init fails.
+RCLPY_ARGS = ["--ros-args", "--disable-external-lib-logs"]
 
 
 def full_name(namespace: str, name: str) -> str:
@@ -178,7 +181,7 @@ def child(interval: float, announce: Host | None) -> int:
     except ImportError as e:
         print(json.dumps({"error": f"ROS 2 cannot be imported ({e}): {INSTALL_HINT}"}), flush=True)
         return 2
-    rclpy.init(args=[])
+    rclpy.init(args=RCLPY_ARGS)
     # A namespace of its own tells this reader's endpoints from other agents' readers' (same name).
     node = RclNode(OWN_NODE, namespace=f"/_drums_{uuid.uuid4().hex}", enable_rosout=False,
                    start_parameter_services=False)
