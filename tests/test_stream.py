@@ -71,6 +71,13 @@ def test_latency_jobs_measure_targets_they_are_allowed_to(agent):
         time.sleep(3.5)
         here = c.agents[0].job("latency", "127.0.0.1")["sample"]["series"]
         closed = c.agents[0].job("latency", "localhost")["sample"]["series"]
+        sent_before = next(r["value"] for r in here if r["name"] == "drums_latency_probes_sent_total")
+        c.start("latency", "127.0.0.1", interval=0.2, count=4)  # new settings: the totals go on
+        time.sleep(1.0)
+        again = c.agents[0].job("latency", "127.0.0.1")
+        assert again["interval"] == 0.2
+        assert next(r["value"] for r in again["sample"]["series"]
+                    if r["name"] == "drums_latency_probes_sent_total") > sent_before
         with pytest.raises(AgentError, match="403 latency to '10.1.2.3': only to hosts of the graph or named by"):
             c.start("latency", "10.1.2.3")
         with pytest.raises(AgentError, match="400 count: a whole number of probes per round, 1-100, not 0"):

@@ -100,12 +100,15 @@ class LatencyProbe(Probe):
         self.status.attach_type = "icmp" if os.geteuid() == 0 else "icmp-unprivileged"
 
     def watch(self, target: str, interval: float, count: int = 3, method: str = "auto", port: int = TCP_PORT) -> None:
-        """Probe `target` every `interval` s from now on (again with these settings if it was)."""
-        self.unwatch(target)
+        """Probe `target` every `interval` s from now on; if it was probed already, with these
+        settings from now on (its totals go on counting)."""
         w = Watch(interval, count, method, port, threading.Event())
         w.thread = threading.Thread(target=self._run, args=(target, w), name=f"latency {target}", daemon=True)
         with self._lock:
+            old = self._watches.get(target)
             self._watches[target] = w
+        if old is not None:
+            old.stop.set()  # its round in flight is dropped: it is no longer the target's watch
         w.thread.start()
 
     def unwatch(self, target: str) -> None:
