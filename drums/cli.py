@@ -397,17 +397,12 @@ def _write(output: str, text: str) -> None:
 
 def _agent_graph(url: str, fmt: str) -> str:
     """The graph an agent serves, with its metrics on it."""
-    import urllib.error
-    import urllib.request
+    from drums.client import Agent, AgentError
 
     try:
-        with urllib.request.urlopen(url.rstrip("/") + f"/graph?format={fmt}", timeout=30) as reply:
-            return reply.read().decode()
-    except urllib.error.HTTPError as e:
-        raise UsageError(f"--agent {url}: {e.code} {e.read().decode(errors='replace').strip()}") from None
-    except (urllib.error.URLError, OSError, ValueError) as e:
-        reason = getattr(e, "reason", e)
-        raise UsageError(f"--agent {url}: {getattr(reason, 'strerror', None) or reason}") from None
+        return Agent(url, timeout=30).page(f"/graph?format={fmt}")
+    except AgentError as e:
+        raise UsageError(f"--agent {e}") from None
 
 
 def run_unload(args) -> int:

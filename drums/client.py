@@ -69,25 +69,35 @@ class Agent:
             request.add_header("Content-Type", "application/json")
         if self.token:
             request.add_header("Authorization", f"Bearer {self.token}")
+        status, text = self._open(request, f"{method} {path}: ")
+        return status, json.loads(text) if text else None
+
+    def page(self, path: str) -> str:
+        """One of the agent's pages (e.g. "/graph?format=dot") as text."""
+        return self._open(urllib.request.Request(self.url + path))[1].decode()
+
+    def _open(self, request: urllib.request.Request, what: str = "") -> tuple[int, bytes]:
+        """(status, body) of a request to the agent; an AgentError says why not: the agent's
+        reason for a 4xx or 5xx (JSON from the API, text from a page), or why it was not reached."""
         try:
             with urllib.request.urlopen(request, timeout=self.timeout) as reply:
-                status, text = reply.status, reply.read()
+                return reply.status, reply.read()
         except urllib.error.HTTPError as e:
+            body = e.read().decode(errors="replace").strip()
             try:
-                reason = json.loads(e.read())["error"]
+                reason = json.loads(body)["error"]
             except (ValueError, KeyError, TypeError):
-                reason = e.reason
-            raise AgentError(f"{self.url}: {method} {path}: {e.code} {reason}") from None
-        except (urllib.error.URLError, OSError) as e:
+                reason = body or e.reason
+            raise AgentError(f"{self.url}: {what}{e.code} {reason}") from None
+        except (urllib.error.URLError, OSError, ValueError) as e:  # ValueError: not an http URL
             reason = getattr(e, "reason", e)
             raise AgentError(f"{self.url}: {getattr(reason, 'strerror', None) or reason}") from None
-        return status, json.loads(text) if text else None
 
     def info(self) -> dict:
         return self.request("GET", "info")
 
     def start(self, kind: str, target: str = "", **settings) -> dict:
-        return self.request("POST", _path(kind, target), settings)
+        return self.create(kind, target, **settings)[0]
 
     def create(self, kind: str, target: str = "", **settings) -> tuple[dict, bool]:
         """(the job, whether this call created it rather than found it)."""
@@ -106,10 +116,9 @@ class Agent:
     def graph(self) -> nx.MultiDiGraph:
         """The agent's graph with its metrics (its /graph)."""
         try:
-            with urllib.request.urlopen(f"{self.url}/graph?format=json", timeout=self.timeout) as reply:
-                return nx.node_link_graph(json.loads(reply.read()), edges="edges")
-        except (urllib.error.URLError, OSError, ValueError) as e:
-            raise AgentError(f"{self.url}: /graph: {getattr(e, 'reason', e)}") from None
+            return nx.node_link_graph(json.loads(self.page("/graph?format=json")), edges="edges")
+        except (ValueError, KeyError, TypeError) as e:
+            raise AgentError(f"{self.url}: /graph is not a graph in JSON ({e})") from None
 
 
 def _path(kind: str, target: str) -> str:

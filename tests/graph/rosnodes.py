@@ -15,9 +15,15 @@ import threading
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.serialization import serialize_message
 from std_msgs.msg import String, UInt8MultiArray
 
 IMAGE_BYTES = int(os.environ.get("DRUMS_TEST_IMAGE_BYTES", 1 << 20))
+
+
+def payload(msg) -> int:
+    """Bytes of the serialized message as an RTPS DATA submessage carries it: padded to 4."""
+    return -(-len(serialize_message(msg)) // 4) * 4
 counted = [0]
 # With DRUMS_TEST_BURST=N a publisher waits for a line "go", publishes exactly N messages, and stops.
 burst = int(os.environ.get("DRUMS_TEST_BURST", "0"))

@@ -12,12 +12,13 @@ import time
 import pytest
 import zmq
 from prometheus_client.parser import text_string_to_metric_families
-from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
 from drums.client import Client
 from tests.agentproc import running_agent, scrape
 from tests.graph.conftest import RosProcess
+from tests.graph.rosnodes import payload
+from tests.graph.test_hosts import named
 
 PREFIX = f"dd{os.getpid() % 10000}"  # names of this session's namespaces and links
 HOSTS = (1, 2, 3)
@@ -39,13 +40,7 @@ def run(*cmd: str) -> None:
 
 def on_host(i: int) -> tuple[str, ...]:
     """A command prefix that runs a program on host i: its network namespace and its host name."""
-    return ("nsenter", f"--net=/run/netns/{PREFIX}h{i}", "unshare", "--uts", "sh", "-c",
-            f'hostname robot{i} && exec "$@"', "sh")
-
-
-def payload(msg) -> int:
-    """Bytes of the serialized message as an RTPS DATA submessage carries it: padded to 4."""
-    return -(-len(serialize_message(msg)) // 4) * 4
+    return ("nsenter", f"--net=/run/netns/{PREFIX}h{i}", *named(f"robot{i}"))
 
 
 @pytest.fixture(scope="module")

@@ -6,14 +6,13 @@ from __future__ import annotations
 import json
 
 import pytest
-from rclpy.serialization import serialize_message
 from std_msgs.msg import String, UInt8MultiArray
 
 from drums.agent import Agent
 from drums.graph import join
 from drums.graph.export import graph_metrics, render
 from tests.conftest import wait_until
-from tests.graph.rosnodes import IMAGE_BYTES
+from tests.graph.rosnodes import IMAGE_BYTES, payload
 
 BURST = 30
 # Over UDP (FASTDDS_BUILTIN_TRANSPORTS=UDPv4; the LOCALHOST discovery range would put shared
@@ -21,11 +20,6 @@ BURST = 30
 UDP = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
 PIPELINE = (("talker", "/chatter", "listener"), ("producer", "/image", "processor"),
             ("processor", "/processed", "sink"))
-
-
-def _payload(msg) -> int:
-    """Bytes of the serialized message as an RTPS DATA submessage carries it: padded to 4."""
-    return -(-len(serialize_message(msg)) // 4) * 4
 
 
 @pytest.fixture
@@ -62,7 +56,7 @@ def test_udp_pipeline_counts_and_bytes_per_topic_and_edge(pipeline, ros2_graph, 
     samples, sent = snap.values(join.TOPIC_SAMPLES_SENT), snap.values(join.TOPIC_SENT_BYTES)
     wire = snap.values(join.TOPIC_SENT_WIRE_BYTES)
     edge_samples, edge_bytes = snap.values(join.EDGE_SAMPLES), snap.values(join.EDGE_RECEIVED_BYTES)
-    sizes = {"/chatter": _payload(String(data="hello")), "/image": _payload(UInt8MultiArray(data=bytes(IMAGE_BYTES)))}
+    sizes = {"/chatter": payload(String(data="hello")), "/image": payload(UInt8MultiArray(data=bytes(IMAGE_BYTES)))}
     sizes["/processed"] = sizes["/image"]
     for pub, topic, sub in PIPELINE:
         pub, sub = f"/{pub}", f"/{sub}"
