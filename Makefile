@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 9969
 
-.PHONY: setup setup-test run test bench readme clean
+.PHONY: setup setup-test run test bench readme lock clean
 
 setup:
 	@scripts/setup.sh
@@ -23,6 +23,18 @@ bench: setup-test
 # The README's metric table is generated from the probes' own declarations.
 readme: setup
 	$(PY) -m drums.docs README.md
+
+# Resolve the dependencies again at their newest versions and pin them, with their hashes, for every
+# platform and Python the project supports: requirements-test.lock for the tests (ROS 2 included),
+# requirements.lock for the agent alone, held to the same versions. Review the diff, run
+# `make test`, commit both.
+UV_VERSION := 0.13.8
+lock: setup
+	$(VENV)/bin/pip install -q --disable-pip-version-check uv==$(UV_VERSION)
+	$(VENV)/bin/uv pip compile -q --universal --python-version 3.10 --generate-hashes --upgrade \
+		--extra test -o requirements-test.lock pyproject.toml
+	$(VENV)/bin/uv pip compile -q --universal --python-version 3.10 --generate-hashes \
+		-c requirements-test.lock -o requirements.lock pyproject.toml
 
 clean:
 	-$(VENV)/bin/drums unload 2>/dev/null

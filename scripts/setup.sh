@@ -56,10 +56,14 @@ mountpoint -q /sys/fs/bpf || mount -t bpf bpf /sys/fs/bpf || log "cannot mount b
 if [ ! -x "$VENV/bin/python" ]; then
   /usr/bin/python3 -m venv --system-site-packages "$VENV"
 fi
-extras=""
-[ "${DRUMS_SETUP_TEST:-0}" = 1 ] && extras="[test]"
-stamp="$VENV/.installed$extras"
-if [ ! -e "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  "$VENV/bin/pip" install -q --disable-pip-version-check -e ".$extras"
+# Exactly the versions in the lock file (`make lock` writes it), checked against its hashes; then
+# Drums itself, with the setuptools the venv came with, so nothing unpinned is fetched to build it.
+lock=requirements.lock
+[ "${DRUMS_SETUP_TEST:-0}" = 1 ] && lock=requirements-test.lock
+stamp="$VENV/.installed-$(sha256sum "$lock" pyproject.toml | sha256sum | cut -c1-16)"
+if [ ! -e "$stamp" ]; then
+  "$VENV/bin/pip" install -q --disable-pip-version-check --require-hashes -r "$lock"
+  "$VENV/bin/pip" install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+  rm -f "$VENV"/.installed*
   touch "$stamp"
 fi

@@ -74,6 +74,9 @@ class ProcessProbe(Probe):
         if proc is None:
             proc = self._procs[pid] = psutil.Process(pid)
         with proc.oneshot():
+            # A zombie has exited: psutil 7 reads its memory as zeros rather than raising.
+            if proc.status() == psutil.STATUS_ZOMBIE:
+                raise psutil.ZombieProcess(pid)
             # memory_full_info reads smaps_rollup for USS and includes RSS, so one call gives both.
             mem = proc.memory_full_info()
             io = proc.io_counters()
