@@ -255,7 +255,7 @@ class Agent:
             snap.add(PROBE_SUCCESS, (probe.name,), self._success.get(probe.name, 0))
             for name, fill in sorted(st.map_fill.items()):
                 snap.add(PROBE_MAP_FILL, (probe.name, name), fill)
-            if st.map_fill:
+            if "dropped" in getattr(probe, "maps", ()):
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
         if self.graph is not None:
             snap.add(GRAPH_STALE, (self.graph_adapter,), int(bool(self.graph.error)))

@@ -9,9 +9,13 @@ or containers stand for hosts, one agent per namespace reports its own host and 
 """
 from __future__ import annotations
 
+import ctypes
 import os
+import threading
+from typing import Callable
 
 OWN_NETNS = "DRUMS_OWN_NETNS"
+_PR_SET_NAME = 15
 
 
 def netns(proc: str, pid: int | str) -> int | None:
@@ -22,6 +26,24 @@ def netns(proc: str, pid: int | str) -> int | None:
         return None
 
 
+HELPER = "drums-"  # the name (comm) of the agent's own helper processes starts so
+
+
+def name_helper(role: str) -> None:
+    """Name this process drums-<role> in ps, top and /proc/<pid>/comm, so that the agent's own
+    helpers (the ROS 2 graph reader, the /diagnostics publisher) are not taken for the robot's."""
+    ctypes.CDLL(None).prctl(_PR_SET_NAME, (HELPER + role).encode()[:15], 0, 0, 0)
+
+
+def comm(proc: str, pid: int) -> str:
+    """A process's name as the kernel keeps it ("" if it is gone)."""
+    try:
+        with open(f"{proc}/{pid}/comm") as f:
+            return f.read().rstrip("\n")
+    except OSError:
+        return ""
+
+
 class ProcessTable:
     def __init__(self, proc: str = "/proc"):
         self.proc = proc
@@ -30,22 +52,28 @@ class ProcessTable:
         self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
 
     def refresh(self) -> None:
-        alive = {int(d) for d in os.listdir(self.proc) if d.isdigit()}
+        alive = set(self.listing())
         if self.netns is not None:  # each PID is checked when it first appears, as its name is read
             self._elsewhere = {pid for pid in alive if pid in self._elsewhere or (
                 pid not in self._names and netns(self.proc, pid) != self.netns)}
             alive -= self._elsewhere
-        self._names = {pid: self._names.get(pid) or self._read_name(pid) for pid in alive}
-
-    def _read_name(self, pid: int) -> str:
-        try:
-            with open(f"{self.proc}/{pid}/comm") as f:
-                return f.read().rstrip("\n")
-        except OSError:
-            return ""
+        self._names = {pid: self._names.get(pid) or comm(self.proc, pid) for pid in alive}
 
     def alive(self, pid: int) -> bool:
         return pid in self._names
+
+    def listing(self) -> list[int]:
+        """The PIDs in /proc now, whatever their network namespace."""
+        return [int(d) for d in os.listdir(self.proc) if d.isdigit()]
+
+    def belongs(self, pid: int) -> bool:
+        """Whether the process is one of this table's, though it may have started after the last
+        listing: alive, and in this agent's network namespace where it reports only its own."""
+        if pid in self._names:
+            return True
+        if self.netns is None:
+            return os.path.exists(f"{self.proc}/{pid}")
+        return netns(self.proc, pid) == self.netns
 
     def name(self, pid: int) -> str:
         return self._names.get(pid, "")
@@ -72,23 +100,69 @@ class ProcessTable:
 
 
 class MappedLibraries:
-    """Which processes map which of some shared libraries (by file name prefix, e.g. "librcl.so"),
-    read from /proc/<pid>/maps once per process: the probes that follow a middleware find its
-    processes and the library files to put uprobes on."""
+    """Which processes map which of some shared libraries (by file name prefix, e.g. "librcl.so"):
+    the probes that follow a middleware find its processes, and the library files to put uprobes
+    on, here.
+
+    A process's memory map is read when the process is first listed, and again whenever the loads
+    probe (drums.probes.loads) says it exec'd or loaded a library, from that probe's thread: a
+    Python node maps librcl only when it imports rclpy, a second or more after it started. Each
+    process found to map a library it did not map before is handed to every listener, under
+    `lock`, before it can have used that library much."""
 
     def __init__(self, table: ProcessTable, prefixes: tuple[str, ...]):
         self.table = table
         self.prefixes = prefixes
+        self.lock = threading.RLock()
+        self.listeners: list[Callable[[int, dict[str, str]], None]] = []
         self._seen: dict[int, dict[str, str]] = {}  # pid -> {prefix: path as that process sees it}
 
-    def refresh(self) -> dict[int, dict[str, str]]:
-        """Every live process that maps at least one of the libraries. Call after table.refresh()."""
-        alive = self.table.pids()
-        self._seen = {pid: self._seen[pid] if pid in self._seen else self._read(pid) for pid in alive}
-        return {pid: libs for pid, libs in self._seen.items() if libs}
+    def refresh(self) -> None:
+        """Read the maps of processes listed for the first time. Call after table.refresh()."""
+        with self.lock:
+            for pid in self.table.pids() - self._seen.keys():
+                self._read(pid)
+            for pid in [pid for pid in self._seen if not self.table.belongs(pid)]:
+                del self._seen[pid]
 
-    def _read(self, pid: int) -> dict[str, str]:
-        return mapped_libraries(self.table.proc, pid, self.prefixes)
+    def look(self, pid: int) -> None:
+        """Read the process's map again: it exec'd or loaded a library just now."""
+        with self.lock:
+            if self.table.belongs(pid):
+                self._read(pid)
+
+    def rescan(self) -> None:
+        """Read every process's map again (when notices of loads were lost)."""
+        with self.lock:
+            for pid in self.table.listing():
+                self.look(pid)
+
+    def processes(self, prefixes: tuple[str, ...]) -> dict[int, dict[str, str]]:
+        """The processes that map at least one of `prefixes`, with the paths of all they map."""
+        with self.lock:
+            return {pid: libs for pid, libs in self._seen.items() if any(p in libs for p in prefixes)}
+
+    def _read(self, pid: int) -> None:
+        libs = mapped_libraries(self.table.proc, pid, self.prefixes)
+        if libs and comm(self.table.proc, pid).startswith(HELPER):
+            libs = {}  # the agent's own ROS 2 helpers are not the robot's: their topics are not counted
+        new = libs.keys() - self._seen.get(pid, {}).keys()
+        self._seen[pid] = libs
+        if new:
+            for listener in self.listeners:
+                listener(pid, libs)
+
+
+def mapped_file(proc: str, pid: int, path: str) -> tuple[str, tuple[int, int]] | None:
+    """A file the process maps, as this agent reaches it (through the process's root: in another
+    mount namespace the path may name another file), and its identity (device, inode); None if
+    the process is gone."""
+    host_path = f"{proc}/{pid}/root{path}"
+    try:
+        st = os.stat(host_path)
+    except OSError:
+        return None
+    return host_path, (st.st_dev, st.st_ino)
 
 
 def mapped_libraries(proc: str, pid: int, prefixes: tuple[str, ...]) -> dict[str, str]:

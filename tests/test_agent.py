@@ -44,7 +44,7 @@ def test_every_probe_attached_with_its_attach_type(agent):
     # rclpy is importable here, so the graph is ros2 and the per-topic probes run too.
     assert got == {"sockets": ("raw_tracepoint", 1), "sched": ("raw_tracepoint", 1), "tcp": ("raw_tracepoint", 1),
                    "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("tracepoint", 1),
-                   "rcl": ("uprobe", 1), "latency": ("icmp", 1)}
+                   "rcl": ("uprobe", 1), "loads": ("uprobe", 1), "latency": ("icmp", 1)}
 
 
 def test_exited_process_series_gone_within_two_scrapes(agent):
@@ -152,7 +152,7 @@ def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
         # The per-topic probes have no fallback: nothing outside the kernel sees RTPS or rcl calls.
         assert attached == {"sockets": ("sock_diag", 1), "sched": ("proc", 1), "tcp": ("sock_diag", 1),
                             "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("none", 0),
-                            "rcl": ("none", 0), "latency": ("icmp-unprivileged", 1)}
+                            "rcl": ("none", 0), "loads": ("none", 0), "latency": ("icmp-unprivileged", 1)}
         assert samples(text, "drums_process_cpu_seconds_total")
         # The ros2 graph works unprivileged too (HOME is still /root here: rclpy must not need to
         # write ~/.ros/log), and the graph lists this host.

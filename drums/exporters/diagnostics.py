@@ -49,6 +49,7 @@ from drums.graph import join
 from drums.metrics import Snapshot
 from drums.probes import host as hostprobe
 from drums.probes import sockets, tcp
+from drums.proctable import name_helper
 
 log = logging.getLogger("drums")
 
@@ -432,4 +433,5 @@ def child() -> int:
 
 
 if __name__ == "__main__":
+    name_helper("diagnostics")
     sys.exit(child())

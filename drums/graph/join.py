@@ -57,10 +57,14 @@ EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
                           "TCP segments retransmitted on the connection's socket", EDGE)
 EDGE_RTT = Metric("drums_edge_tcp_rtt_seconds", GAUGE, "Smoothed RTT of the connection's TCP socket", EDGE,
                   additive=False)
+UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
+                      "Per-process topic and edge counts of this scrape that no one node of the graph could be named for "
+                      "(summed under node \"unknown\"): a process the graph does not know yet, or several of its "
+                      "nodes on the topic and no endpoint GID", ("kind",))
+UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
            TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
-           EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES,
-           EDGE_RETRANSMITS, EDGE_RTT)
+           EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, UNATTRIBUTED)
 
 GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
 
@@ -98,40 +102,51 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     per_node(NODE_SWITCHES, sched.PROCESS_SWITCHES, 1)
     per_node(NODE_RUNQ, sched.PROCESS_RUNQ)
 
-    # A (process, topic) count belongs to the nodes of that process with an endpoint on the topic.
+    # A count belongs to the node of its endpoint (the rcl probe reads the GID from the process),
+    # else to the one node of its process with an endpoint of that kind on the topic. Where neither
+    # names exactly one node, it is summed under node "unknown", and counted.
     members: dict[tuple[str, str, str], list[str]] = defaultdict(list)  # (pid, kind, topic) -> nodes
-    writers: dict[str, Endpoint] = {}
+    by_gid: dict[str, Endpoint] = {}
     for e in endpoints:
         pid = pid_of.get(e.node)
         if pid is not None:
             members[(pid, e.kind, e.topic)].append(e.node)
-        if e.kind == "publisher":
-            writers[e.id[:GID_HEX]] = e
+        by_gid[e.id[:GID_HEX]] = e
+    unknown: dict[str, int] = defaultdict(int)
 
-    def owner(pid: str, kind: str, topic: str) -> str:
-        return ",".join(sorted(members.get((pid, kind, topic), ()))) or "unknown"
+    def owner(pid: str, kind: str, topic: str, gid: str = "") -> str:
+        e = by_gid.get(gid) if gid else None
+        if e is not None and e.kind == kind:
+            return e.node
+        nodes = members.get((pid, kind, topic), ())
+        if len(nodes) == 1:
+            return nodes[0]
+        unknown[kind] += 1
+        return UNKNOWN
 
-    # Rows that name the same entity are summed: processes whose nodes are unknown, a node with
-    # two writers on one topic.
+    # Rows that name the same entity are summed: counts no node is known for, a node with two
+    # writers on one topic.
     sums: dict[Metric, dict[tuple[str, ...], int]] = defaultdict(lambda: defaultdict(int))
     for metric, source, kind in ((TOPIC_PUBLISHED, rcl.PUBLISHED, "publisher"),
                                  (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
-        for (pid, _, topic), value in raw.series.get(source, ()):
-            sums[metric][topic, owner(pid, kind, topic)] += value
+        for (pid, _, topic, gid), value in raw.series.get(source, ()):
+            sums[metric][topic, owner(pid, kind, topic, gid)] += value
     for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES),
                            (TOPIC_SENT_WIRE_BYTES, rtps.SENT_WIRE_BYTES)):
         for (_, _, writer), value in raw.series.get(source, ()):
-            e = writers.get(writer)
-            if e is not None:
+            e = by_gid.get(writer)
+            if e is not None and e.kind == "publisher":
                 sums[metric][e.topic, e.node] += value
     for metric, source in ((EDGE_SAMPLES, rtps.SAMPLES_RECEIVED), (EDGE_RECEIVED_BYTES, rtps.RECEIVED_BYTES),
                            (EDGE_RECEIVED_WIRE_BYTES, rtps.RECEIVED_WIRE_BYTES)):
         for (pid, _, writer), value in raw.series.get(source, ()):
-            e = writers.get(writer)
-            if e is not None:
+            e = by_gid.get(writer)
+            if e is not None and e.kind == "publisher":
                 sums[metric][e.topic, e.node, owner(pid, "subscriber", e.topic)] += value
     for metric, rows in sums.items():
         out.rows(metric).extend(rows.items())
+    for kind in ("publisher", "subscriber"):
+        out.add(UNATTRIBUTED, (kind,), unknown[kind])
     _socket_edges(connections, raw, out)
 
 

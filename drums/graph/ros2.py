@@ -25,6 +25,7 @@ from drums.graph.adapter import ChildAdapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
 from drums.graph.nodepids import ProcScan, map_nodes
 from drums.netfmt import is_address
+from drums.proctable import name_helper
 
 OWN_NODE = "_drums_graph"  # a leading underscore hides a node from `ros2 node list`; every agent's reader has it
 ANNOUNCE_TOPIC = "/drums/agents"
@@ -211,6 +212,7 @@ def main() -> int:
     parser.add_argument("--announce", type=lambda text: Host(**json.loads(text)), default=None,
                         help="the host to announce to other agents, as JSON: {name, address, agent}")
     args = parser.parse_args()
+    name_helper("graph")
     return child(args.interval, args.announce)
 
 

@@ -2,11 +2,12 @@
 (bpf/rcl.bpf.c): counts that shared memory hides from every socket.
 
 The programs are loaded once; each librcl.so file that a process maps is found in
-/proc/<pid>/maps and gets its own pinned uprobe links, attached from this process without bcc.
-A handle (rcl_publisher_t or rcl_subscription_t) is named by reading the process's memory once:
-the handle points to rcl's private impl struct, whose layout changes between ROS distributions,
-so the rmw handle inside it is found by its shape (rmw_publisher_t and rmw_subscription_t, public
-and stable, begin with the RMW's name, a data pointer and the topic name).
+/proc/<pid>/maps (as soon as it is mapped: drums.probes.loads) and gets its own pinned uprobe
+links, attached from this process without bcc. A handle (rcl_publisher_t or rcl_subscription_t)
+is named by reading the process's memory once: the handle points to rcl's private impl struct,
+whose layout changes between ROS distributions, so the rmw handle inside it is found by its shape
+(rmw_publisher_t and rmw_subscription_t, public and stable, begin with the RMW's name, a data
+pointer and the topic name); the endpoint's GID is found the same way behind the data pointer.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from drums.kernel import bpffs, perflink
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Snapshot
 from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
-from drums.proctable import MappedLibraries, ProcessTable
+from drums.proctable import MappedLibraries, ProcessTable, mapped_file
 
 LIBRARY = "librcl.so"
 # (function, program, return probe): every way a message enters or leaves rcl.
@@ -37,7 +38,7 @@ UPROBES = (
 PROGRAMS = ("on_publish", "on_take", "on_take_return")
 UNKNOWN_TOPIC = "unknown"  # a handle whose topic could not be read (yet: it is tried again)
 
-LABELS = ("pid", "process", "topic")
+LABELS = ("pid", "process", "topic", "endpoint")  # endpoint: the publisher's or subscription's GID
 PUBLISHED = Metric("drums_ros_messages_published_total", COUNTER,
                    "Messages this process published on the topic (rcl_publish), whatever the transport", LABELS)
 TAKEN = Metric("drums_ros_messages_taken_total", COUNTER,
@@ -46,28 +47,8 @@ TAKEN = Metric("drums_ros_messages_taken_total", COUNTER,
 _KEY = struct.Struct("<IIQ")
 _U64 = struct.Struct("<Q")
 _IMPL_WORDS = 64  # how far into rcl's impl struct to look for the rmw handle
-
-
-def symbol_offsets(path: str, names) -> dict[str, int]:
-    """File offsets of the named dynamic symbols of an ELF shared library, for uprobes."""
-    from elftools.common.exceptions import ELFError
-    from elftools.elf.elffile import ELFFile
-
-    try:
-        with open(path, "rb") as f:
-            elf = ELFFile(f)
-            dynsym = elf.get_section_by_name(".dynsym")
-            loads = [s for s in elf.iter_segments() if s["p_type"] == "PT_LOAD"]
-            out = {}
-            for name in names:
-                for sym in dynsym.get_symbol_by_name(name) or () if dynsym else ():
-                    value = sym["st_value"]
-                    for seg in loads:
-                        if seg["p_vaddr"] <= value < seg["p_vaddr"] + seg["p_memsz"]:
-                            out[name] = value - seg["p_vaddr"] + seg["p_offset"]
-            return out
-    except (OSError, ELFError) as e:
-        raise ProbeError(f"{path}: cannot read its symbols ({e})") from None
+_GID_SEARCH = 1024  # how far into the RMW's publisher or subscription struct to look for its GID
+GID_BYTES = 16  # a DDS GUID: 12 bytes of participant prefix, 4 of entity id
 
 
 def _read(mem, address: int, size: int) -> bytes | None:
@@ -85,8 +66,9 @@ def _string(mem, address: int, prefix: bytes) -> str | None:
     return data.split(b"\0", 1)[0].decode(errors="replace")
 
 
-def topic_of(pid: int, handle: int) -> str | None:
-    """The topic of an rcl publisher or subscription handle in a process, from its memory."""
+def endpoint_of(pid: int, handle: int) -> tuple[str, str] | None:
+    """The topic of an rcl publisher or subscription handle in a process, and its endpoint's GID
+    (32 hex digits, or "" where it is not found), from the process's memory."""
     try:
         mem = os.open(f"/proc/{pid}/mem", os.O_RDONLY)
     except OSError:
@@ -99,14 +81,31 @@ def topic_of(pid: int, handle: int) -> str | None:
             rmw = _read(mem, candidate, 24) if candidate > 0xFFFF else None
             if rmw is None:
                 continue
-            identifier, _, name = struct.unpack("<QQQ", rmw)
+            identifier, data, name = struct.unpack("<QQQ", rmw)
             if _string(mem, identifier, b"rmw_") is not None:
                 topic = _string(mem, name, b"/")
                 if topic is not None:
-                    return topic
+                    return topic, _gid(mem, data, identifier)
         return None
     finally:
         os.close(mem)
+
+
+def _gid(mem: int, data: int, identifier: int) -> str:
+    """The endpoint's GID in the RMW's own struct behind rmw_*_t.data: an rmw_gid_t (public and
+    stable: the RMW's identifier pointer, then the GID's bytes) that the RMW keeps there, as
+    rmw_fastrtps and rmw_cyclonedds do. The identifier is the one the rmw handle holds."""
+    words = _read(mem, data, _GID_SEARCH) if data else None
+    if words is None:
+        return ""
+    tag = _U64.pack(identifier)
+    at = words.find(tag)
+    while at >= 0:
+        gid = words[at + 8:at + 8 + GID_BYTES]
+        if at % 8 == 0 and len(gid) == GID_BYTES and any(gid):
+            return gid.hex()
+        at = words.find(tag, at + 1)
+    return ""
 
 
 class RclProbe(BpfProbe):
@@ -123,9 +122,10 @@ class RclProbe(BpfProbe):
         super().__init__(features, **kw)
         self.proctable = proctable
         self.libraries = libraries or MappedLibraries(proctable, (LIBRARY,))  # may follow more libraries
+        self.libraries.listeners.append(self._found)
         self._programs: dict[str, int] = {}
         self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
-        self._topics: dict[tuple[int, int], str] = {}  # (pid, handle) -> topic
+        self._endpoints: dict[tuple[int, int], tuple[str, str]] = {}  # (pid, handle) -> (topic, GID)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         return {}  # only user memory, through the registers of the calling convention
@@ -137,6 +137,13 @@ class RclProbe(BpfProbe):
         except ProbeError:
             self.stop()
             raise
+        for pid, libs in self.libraries.processes((LIBRARY,)).items():  # found before the programs were here
+            self._found(pid, libs)
+
+    def _found(self, pid: int, libs: dict[str, str]) -> None:
+        """A process maps libraries it did not before (under the libraries' lock)."""
+        if LIBRARY in libs and self._programs:
+            self._attach(pid, libs[LIBRARY])
 
     def stop(self) -> None:
         for fd in self._programs.values():
@@ -148,20 +155,16 @@ class RclProbe(BpfProbe):
     def _attach(self, pid: int, path: str) -> None:
         """Put the uprobes on the librcl file a process maps, once per file (its device and inode:
         the path may name another file in the process's mount namespace)."""
-        host_path = f"/proc/{pid}/root{path}"
-        try:
-            st = os.stat(host_path)
-        except OSError:
-            return  # the process is gone
-        key = (st.st_dev, st.st_ino)
-        if key in self._files:
+        found = mapped_file(self.proctable.proc, pid, path)
+        if found is None or found[1] in self._files:
             return
-        prefix = os.path.join(self.pin_dir, f"lib-{st.st_dev}-{st.st_ino}-")
+        host_path, key = found
+        prefix = os.path.join(self.pin_dir, "lib-{}-{}-".format(*key))
         if glob.glob(prefix + "*"):  # pinned by an agent before this one
             self._files[key] = ""
             return
         try:
-            offsets = symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
+            offsets = perflink.symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
             for i, (fn, program, ret) in enumerate(UPROBES):
                 if fn in offsets:
                     link = perflink.uprobe(self._programs[program], host_path, offsets[fn], ret)
@@ -173,23 +176,24 @@ class RclProbe(BpfProbe):
         self.status.reason = "; ".join(sorted({why for why in self._files.values() if why}))
 
     def collect(self, snap: Snapshot) -> None:
-        processes = {pid: libs for pid, libs in self.libraries.refresh().items() if LIBRARY in libs}
-        for pid, libs in processes.items():
-            self._attach(pid, libs[LIBRARY])
+        self.libraries.refresh()
+        processes = self.libraries.processes((LIBRARY,))
         keys, values, _ = self.read("handles")
-        totals: dict[tuple[int, int, str], int] = {}
+        totals: dict[tuple[int, int, str, str], int] = {}
         for i, (pid, op, handle) in enumerate(_KEY.iter_unpack(keys)):
-            if pid not in processes:  # the process ended
-                self.opened["handles"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
+            if pid not in processes:
+                # Counted before its map was read again (it just loaded librcl), or ended.
+                if not self.proctable.belongs(pid):
+                    self.opened["handles"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
                 continue
-            topic = self._topics.get((pid, handle))
-            if topic is None:
-                topic = topic_of(pid, handle)
-                if topic is not None:
-                    self._topics[(pid, handle)] = topic
-            key = (pid, op, topic or UNKNOWN_TOPIC)
+            endpoint = self._endpoints.get((pid, handle))
+            if endpoint is None:
+                endpoint = endpoint_of(pid, handle)
+                if endpoint is not None:
+                    self._endpoints[(pid, handle)] = endpoint
+            key = (pid, op) + (endpoint or (UNKNOWN_TOPIC, ""))
             totals[key] = totals.get(key, 0) + _U64.unpack_from(values, i * 8)[0]
-        self._topics = {k: v for k, v in self._topics.items() if k[0] in processes}
-        for (pid, op, topic), count in totals.items():
-            snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic), count)
+        self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
+        for (pid, op, topic, gid), count in totals.items():
+            snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
         self.read_dropped()

@@ -5,14 +5,17 @@ from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.proctable import MappedLibraries, ProcessTable
 
-PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl", "latency")
-ROS2_PROBES = ("rtps", "rcl")  # run by default only with the ros2 graph: they count per DDS writer and topic
+PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl", "loads", "latency")
+# Run by default only with the ros2 graph: they count per DDS writer and topic (loads tells them
+# at once when a process loads ROS 2 or DDS).
+ROS2_PROBES = ("rtps", "rcl", "loads")
 
 
 def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "") -> list[Probe]:
     """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums)."""
     from drums.probes.host import HostProbe
     from drums.probes.latency import LatencyProbe
+    from drums.probes.loads import LINKERS, LoadsProbe
     from drums.probes.process import ProcessProbe
     from drums.probes.procsched import ProcSchedProbe
     from drums.probes.rcl import RclProbe
@@ -25,7 +28,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
     from drums.kernel.bpffs import PIN_ROOT
 
     pin_root = pin_root or PIN_ROOT
-    dds = MappedLibraries(proctable, DDS_LIBRARIES)  # each process's maps read once for both probes
+    dds = MappedLibraries(proctable, DDS_LIBRARIES + LINKERS)  # each process's map read once for all three
     makers = {
         "sockets": lambda: SocketsProbe(features, proctable, pin_root=pin_root),
         "sched": lambda: SchedProbe(features, proctable, pin_root=pin_root),
@@ -34,6 +37,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
         "process": ProcessProbe,
         "rtps": lambda: RtpsProbe(features, proctable, dds, pin_root=pin_root),
         "rcl": lambda: RclProbe(features, proctable, dds, pin_root=pin_root),
+        "loads": lambda: LoadsProbe(features, dds, pin_root=pin_root),
         "latency": LatencyProbe,  # probes only the targets of latency jobs
     }
     # What runs where eBPF cannot (not root, no bcc, old kernel): the kernel's own counters.
@@ -57,6 +61,7 @@ def all_metrics():
     from drums.graph import join
     from drums.probes.host import HostProbe
     from drums.probes.latency import LatencyProbe
+    from drums.probes.loads import LINKERS, LoadsProbe
     from drums.probes.process import ProcessProbe
     from drums.probes.rcl import RclProbe
     from drums.probes.rtps import RtpsProbe

@@ -68,27 +68,40 @@ class RtpsProbe(BpfProbe):
         super().__init__(features, **kw)
         self.proctable = proctable
         self.libraries = libraries or MappedLibraries(proctable, DDS_LIBRARIES)  # shared with rcl by the agent
+        self.libraries.listeners.append(self._found)
         self._watched: set[int] = set()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         return {}  # only user memory and tracepoint records, whose layouts are ABI
 
+    def start(self) -> None:
+        super().start()
+        with self.libraries.lock:
+            for pid, libs in self.libraries.processes(DDS_LIBRARIES).items():  # found before the map was here
+                self._found(pid, libs)
+
+    def _found(self, pid: int, libs: dict[str, str]) -> None:
+        """A process maps libraries it did not before (under the libraries' lock): parse its
+        datagrams from now on if one of them speaks DDS."""
+        if "watched" in self.opened and pid not in self._watched and any(lib in libs for lib in DDS_LIBRARIES):
+            self.opened["watched"].update(_U32.pack(pid), b"\x01")
+            self._watched.add(pid)
+
     def watch(self) -> None:
-        """Parse the datagrams of the processes that load a DDS library now, and no others."""
-        now = set(self.libraries.refresh())
-        m = self.opened["watched"]
-        for pid in now - self._watched:
-            m.update(_U32.pack(pid), b"\x01")
-        for pid in self._watched - now:
-            m.delete(_U32.pack(pid))
-        self._watched = now
+        """Stop parsing the datagrams of processes that ended."""
+        self.libraries.refresh()
+        with self.libraries.lock:
+            for pid in [pid for pid in self._watched if not self.proctable.belongs(pid)]:
+                self.opened["watched"].delete(_U32.pack(pid))
+                self._watched.discard(pid)
 
     def collect(self, snap: Snapshot) -> None:
         self.watch()
         keys, values, _ = self.read("writers")
         for i, (pid, direction, writer, counts) in enumerate(decode(keys, values)):
             if pid not in self._watched:  # the process ended
-                self.opened["writers"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
+                if not self.proctable.belongs(pid):
+                    self.opened["writers"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
                 continue
             labels = (str(pid), self.proctable.name(pid), writer)
             for metric, value in zip(_BY_DIRECTION[direction], counts):

@@ -6,17 +6,20 @@ image-like message on /image at 10 Hz; $DRUMS_TEST_IMAGE_BYTES sets another size
 with no endpoints of its own). Several NAMEs put several nodes in one
 process; arguments after --ros-args go to ROS (remapping). Prints "ready <pid>" once its nodes
 exist, and on each line of input "count <n>" with the messages it published or received so far
-(a line "go" starts a burst instead: see DRUMS_TEST_BURST).
+(a line "go" starts a burst instead: see DRUMS_TEST_BURST). With $DRUMS_TEST_IMPORT_DELAY=S it
+waits S seconds before it loads ROS 2, as a program that imports rclpy late does.
 """
 import os
 import sys
 import threading
+import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.serialization import serialize_message
-from std_msgs.msg import String, UInt8MultiArray
+time.sleep(float(os.environ.get("DRUMS_TEST_IMPORT_DELAY", "0")))
+import rclpy  # noqa: E402  (after the delay, on purpose)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.serialization import serialize_message  # noqa: E402
+from std_msgs.msg import String, UInt8MultiArray  # noqa: E402
 
 IMAGE_BYTES = int(os.environ.get("DRUMS_TEST_IMAGE_BYTES", 1 << 20))
 
@@ -25,17 +28,21 @@ def payload(msg) -> int:
     """Bytes of the serialized message as an RTPS DATA submessage carries it: padded to 4."""
     return -(-len(serialize_message(msg)) // 4) * 4
 counted = [0]
-# With DRUMS_TEST_BURST=N a publisher waits for a line "go", publishes exactly N messages, and stops.
+# With DRUMS_TEST_BURST=N each publisher waits for a line "go" and for a subscriber, publishes
+# exactly N messages, and stops.
 burst = int(os.environ.get("DRUMS_TEST_BURST", "0"))
-allowed = [0 if burst else -1]  # messages still to publish; -1: no limit
+bursts = []  # per publisher: messages still to publish; -1: no limit
 
 
 def publishes(pub, msg):
     """A timer callback: publish unless the burst is spent, and count what was published."""
+    left = [0 if burst else -1]
+    bursts.append(left)
+
     def tick():
-        if allowed[0] == 0:
+        if left[0] == 0 or (burst and pub.get_subscription_count() == 0):
             return
-        allowed[0] -= 1
+        left[0] -= 1
         pub.publish(msg)
         counted[0] += 1
     return tick
@@ -75,7 +82,8 @@ def main() -> None:
     def report():
         for line in sys.stdin:
             if line.strip() == "go":
-                allowed[0] = burst
+                for left in bursts:
+                    left[0] = burst
                 continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us

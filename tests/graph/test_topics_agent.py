@@ -1,0 +1,109 @@
+"""Per-topic counts from the `drums agent` process as the README starts it (`--graph ros2`), with
+every ROS 2 node started after the agent in a process of its own: the path a user runs, where the
+agent must find librcl in processes that load it late and name every count's node."""
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import pytest
+
+from tests.agentproc import running_agent, samples, scrape
+from tests.conftest import eventually, wait_until
+from tests.graph.test_topics import UDP
+
+N = 40  # messages each publisher sends: 4 s at 10 Hz
+TRANSPORTS = {"shm": {}, "udp": UDP}
+
+
+ARGS = ("--graph", "ros2", "--probe", "rcl", "--probe", "rtps", "--probe", "loads", "--probe", "process")
+
+
+@pytest.fixture(scope="module")
+def agent():
+    with running_agent(*ARGS) as url:
+        yield url
+
+
+@contextlib.contextmanager
+def scraped(url: str):
+    """Scrapes the agent every 0.5 s, as a Prometheus with a short interval would, until the end."""
+    stop = threading.Event()
+
+    def run():
+        while not stop.wait(0.5):
+            scrape(url)
+    thread = threading.Thread(target=run)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
+
+@pytest.fixture
+def scraper(agent):
+    with scraped(agent):
+        yield
+
+
+def topic_counts(url: str, topic: str) -> tuple[dict, dict]:
+    """{node: messages published} and {node: messages taken} on the topic, from /metrics."""
+    text = scrape(url)
+    out = []
+    for name in ("drums_topic_messages_published_total", "drums_topic_messages_taken_total"):
+        out.append({dict(k)["node"]: v for k, v in samples(text, name).items() if dict(k)["topic"] == topic})
+    return out[0], out[1]
+
+
+def burst(ros_nodes, env: dict, talkers: tuple[str, ...], listener: str, delay: float = 0):
+    """A listener, then a process of talker nodes (loading ROS 2 `delay` s after it starts) that
+    each publish N messages on /chatter once it is matched; waits until the listener has them all."""
+    env = {**env, "DRUMS_TEST_BURST": str(N)}
+    sub = ros_nodes("listener", listener, env=env)
+    pub = ros_nodes("talker", *talkers, env={**env, "DRUMS_TEST_IMPORT_DELAY": str(delay)})
+    pub.go()
+    wait_until(lambda: (pub.count(), sub.count()) == (N * len(talkers),) * 2, "the burst sent and taken", timeout=30)
+
+
+def expect(url: str, published: dict, taken: dict) -> None:
+    """Wait for /chatter's counts on /metrics to be exactly these (the graph may lag a second)."""
+    def check():
+        assert topic_counts(url, "/chatter") == (published, taken)
+    eventually(check, timeout=10)
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_nodes_started_after_the_agent_are_counted_exactly_while_it_is_scraped(agent, scraper, ros_nodes,
+                                                                               transport):
+    talker, listener = f"talker_{transport}", f"listener_{transport}"
+    burst(ros_nodes, TRANSPORTS[transport], (talker,), listener)
+    expect(agent, {f"/{talker}": N}, {f"/{listener}": N})
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_nodes_are_counted_exactly_when_nobody_scraped_until_the_end(agent, ros_nodes, transport):
+    talker, listener = f"quiet_talker_{transport}", f"quiet_listener_{transport}"
+    burst(ros_nodes, TRANSPORTS[transport], (talker,), listener)
+    expect(agent, {f"/{talker}": N}, {f"/{listener}": N})
+
+
+def test_a_process_that_loads_ros_late_is_counted_from_its_first_message(ros_nodes):
+    # An agent of its own, which has seen no librcl yet: the first process to load it does so
+    # 5 s after it started, long after the agent listed it.
+    with running_agent(*ARGS) as url, scraped(url):
+        burst(ros_nodes, {}, ("late_talker",), "late_listener", delay=5)
+        expect(url, {"/late_talker": N}, {"/late_listener": N})
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_two_nodes_of_one_process_on_one_topic_keep_their_own_counts(agent, scraper, ros_nodes, transport):
+    # Only the endpoints' GIDs tell the two apart: same process, same topic, same kind. And no
+    # count is left without its node (the agent's own ROS 2 reader is not counted).
+    a, b, listener = f"twin_a_{transport}", f"twin_b_{transport}", f"twin_listener_{transport}"
+    burst(ros_nodes, TRANSPORTS[transport], (a, b), listener)
+    expect(agent, {f"/{a}": N, f"/{b}": N}, {f"/{listener}": 2 * N})
+    text = scrape(agent)
+    assert samples(text, "drums_topic_unattributed_rows") == {(("kind", "publisher"),): 0,
+                                                              (("kind", "subscriber"),): 0}
