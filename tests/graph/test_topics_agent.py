@@ -7,9 +7,11 @@ import contextlib
 import threading
 
 import pytest
+from std_msgs.msg import String
 
 from tests.agentproc import running_agent, samples, scrape
 from tests.conftest import eventually, wait_until
+from tests.graph.rosnodes import payload
 from tests.graph.test_topics import UDP
 
 N = 40  # messages each publisher sends: 4 s at 10 Hz
@@ -74,12 +76,27 @@ def expect(url: str, published: dict, taken: dict) -> None:
     eventually(check, timeout=10)
 
 
+def expect_udp(url: str, talker: str, listener: str) -> None:
+    """Over UDP the RTPS parse has seen every sample from the first: once each, at its size."""
+    text = scrape(url)
+    size = payload(String(data="hello"))
+    topic = {"topic": "/chatter", "node": talker}
+    edge = {"topic": "/chatter", "publisher": talker, "subscriber": listener}
+    for name, labels, count in (("drums_topic_samples_sent_total", topic, N),
+                                ("drums_topic_sent_bytes_total", topic, N * size),
+                                ("drums_edge_samples_received_total", edge, N),
+                                ("drums_edge_received_bytes_total", edge, N * size)):
+        assert samples(text, name).get(tuple(sorted(labels.items()))) == count, (name, samples(text, name))
+
+
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_nodes_started_after_the_agent_are_counted_exactly_while_it_is_scraped(agent, scraper, ros_nodes,
                                                                                transport):
     talker, listener = f"talker_{transport}", f"listener_{transport}"
     burst(ros_nodes, TRANSPORTS[transport], (talker,), listener)
     expect(agent, {f"/{talker}": N}, {f"/{listener}": N})
+    if transport == "udp":
+        expect_udp(agent, f"/{talker}", f"/{listener}")
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
@@ -87,6 +104,8 @@ def test_nodes_are_counted_exactly_when_nobody_scraped_until_the_end(agent, ros_
     talker, listener = f"quiet_talker_{transport}", f"quiet_listener_{transport}"
     burst(ros_nodes, TRANSPORTS[transport], (talker,), listener)
     expect(agent, {f"/{talker}": N}, {f"/{listener}": N})
+    if transport == "udp":
+        expect_udp(agent, f"/{talker}", f"/{listener}")
 
 
 def test_a_process_that_loads_ros_late_is_counted_from_its_first_message(ros_nodes):
