@@ -8,7 +8,9 @@ cd "$(dirname "$0")/.."
 VENV=${VENV:-.venv}
 HEADERS_DIR=${DRUMS_HEADERS_DIR:-/var/cache/drums/kernel-headers}
 APT_PACKAGES=(python3-bpfcc python3-venv libbpf1 bpftool iproute2)
-[ "${DRUMS_SETUP_TEST:-0}" = 1 ] && APT_PACKAGES+=(prometheus iperf3 tcpdump)
+# For the tests: Prometheus and VictoriaMetrics run the mixin, Graphviz draws the graph, Chromium
+# loads the agent's page, tmux runs `drums top` in a terminal.
+[ "${DRUMS_SETUP_TEST:-0}" = 1 ] && APT_PACKAGES+=(prometheus victoria-metrics iperf3 tcpdump graphviz chromium tmux)
 
 log() { echo "setup: $*" >&2; }
 
