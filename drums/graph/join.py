@@ -57,6 +57,9 @@ EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
                           "TCP segments retransmitted on the connection's socket", EDGE)
 EDGE_RTT = Metric("drums_edge_tcp_rtt_seconds", GAUGE, "Smoothed RTT of the connection's TCP socket", EDGE,
                   additive=False)
+TOPIC_DEADLINE = Metric("drums_topic_deadline_seconds", GAUGE,
+                        "The Deadline QoS the node's publisher on the topic offers (ROS 2): the longest it "
+                        "promises to go without publishing; only publishers with a deadline", TOPIC, additive=False)
 UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
                       "Per-process topic and edge counts of this scrape that no one node of the graph could be named for "
                       "(summed under node \"unknown\"): a process the graph does not know yet, or several of its "
@@ -64,8 +67,9 @@ UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
 UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
            TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
-           EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, UNATTRIBUTED)
+           EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
+INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
 GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
 
 
@@ -112,6 +116,9 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
         if pid is not None:
             members[(pid, e.kind, e.topic)].append(e.node)
         by_gid[e.id[:GID_HEX]] = e
+        deadline = e.qos.get("deadline_ns", 0)
+        if e.kind == "publisher" and 0 < deadline < INFINITE_NS:
+            out.add(TOPIC_DEADLINE, (e.topic, e.node), deadline / 1e9)
     unknown: dict[str, int] = defaultdict(int)
 
     def owner(pid: str, kind: str, topic: str, gid: str = "") -> str:

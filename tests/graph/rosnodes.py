@@ -48,10 +48,18 @@ def publishes(pub, msg):
     return tick
 
 
+def qos():
+    """Depth 10, and the Deadline QoS $DRUMS_TEST_DEADLINE_MS if set."""
+    from rclpy.duration import Duration
+    from rclpy.qos import QoSProfile
+    deadline = int(os.environ.get("DRUMS_TEST_DEADLINE_MS", "0"))
+    return QoSProfile(depth=10, deadline=Duration(nanoseconds=deadline * 1_000_000)) if deadline else 10
+
+
 def make(role: str, name: str) -> Node:
     node = Node(name)
     if role == "talker":
-        node.create_timer(0.1, publishes(node.create_publisher(String, "chatter", 10), String(data="hello")))
+        node.create_timer(0.1, publishes(node.create_publisher(String, "chatter", qos()), String(data="hello")))
     elif role == "listener":
         node.create_subscription(String, "chatter", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
     elif role == "producer":

@@ -126,3 +126,14 @@ def test_two_nodes_of_one_process_on_one_topic_keep_their_own_counts(agent, scra
     text = scrape(agent)
     assert samples(text, "drums_topic_unattributed_rows") == {(("kind", "publisher"),): 0,
                                                               (("kind", "subscriber"),): 0}
+
+
+def test_a_publishers_deadline_qos_is_exported_beside_its_counts(agent, ros_nodes):
+    ros_nodes("talker", "deadline_talker", env={"DRUMS_TEST_DEADLINE_MS": "100"})
+    ros_nodes("talker", "eager_talker")  # no deadline: no series
+
+    def check():
+        deadlines = {dict(k)["node"]: v for k, v in samples(scrape(agent), "drums_topic_deadline_seconds").items()
+                     if dict(k)["topic"] == "/chatter"}
+        assert deadlines == {"/deadline_talker": 0.1}
+    eventually(check, timeout=10)
