@@ -135,6 +135,34 @@ def test_host_job_and_info(api):
         "/monitor/socket/{protocol}/{direction}/{port}"}
 
 
+def test_a_job_whose_lease_is_not_renewed_ends_by_itself(api):
+    import time
+    code, job = call("POST", f"{api}/monitor/host", {"interval": 0.5, "lease": 2})
+    assert code == 201 and job["lease"] == 2 and 1.9 <= job["expires_in"] <= 2
+    time.sleep(1.2)
+    code, job = call("POST", f"{api}/monitor/host", {"interval": 0.5, "lease": 2})  # renewed: 2 s again
+    assert code == 200 and job["expires_in"] >= 1.9
+    time.sleep(1.2)
+    assert [j["id"] for j in call("GET", f"{api}/jobs")[1]["jobs"]] == ["host"]  # 2.4 s old, renewed at 1.2
+
+    def ended():
+        assert call("GET", f"{api}/jobs") == (200, {"jobs": []})
+    began = time.monotonic()
+    eventually(ended, timeout=3)
+    assert time.monotonic() - began < 1.5  # it ran out 2 s after its renewal, not later
+
+
+def test_a_process_job_ends_with_its_process(api):
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    assert call("POST", f"{api}/monitor/pid/{proc.pid}", {"interval": 0.2})[0] == 201
+    proc.stdin.close()
+    proc.wait()
+
+    def ended():
+        assert call("GET", f"{api}/jobs") == (200, {"jobs": []})
+    eventually(ended, timeout=2)
+
+
 @pytest.mark.parametrize("method, path, body, code, error", [
     ("POST", "monitor/pid/abc", None, 400, "pid 'abc': a process ID is a whole number from 1 to 4194303"),
     ("POST", "monitor/pid/0", None, 400, "pid '0': a process ID is a whole number from 1 to 4194303"),
@@ -147,7 +175,9 @@ def test_host_job_and_info(api):
     ("POST", "monitor/host", [1], 400, "the body is a JSON object, not list"),
     ("POST", "monitor/host", {"interval": "x"}, 400, "interval: a number of seconds, not 'x'"),
     ("POST", "monitor/host", {"interval": 0}, 400, "interval: 0 s is outside 0.1-3600 s"),
-    ("POST", "monitor/host", {"every": 1}, 400, "unknown field 'every': a host job takes interval"),
+    ("POST", "monitor/host", {"every": 1}, 400, "unknown field 'every': a host job takes interval, lease"),
+    ("POST", "monitor/host", {"lease": 0.5}, 400, "lease: 0.5 s is outside 1-3600 s"),
+    ("POST", "monitor/host", {"lease": True}, 400, "lease: a number of seconds, not True"),
     ("POST", "monitor/host", b"x" * (65 << 10), 413, "a body over 64 KiB"),
     ("POST", "monitor/cpu", None, 404, "no such path /drums/v1/monitor/cpu"),
     ("DELETE", "monitor/host", None, 404, "no job host"),

@@ -2,6 +2,11 @@
 host, the sockets on a port, or the round-trip time to another host; the agent samples each job at
 its interval, keeps the latest sample for GET and publishes each on the stream.
 
+A job with a lease ends by itself when its client stops asking for it: each POST to the job
+renews it, and a lease that runs out without one deletes the job, so a client that dies leaves no
+job sampling forever. A process job ends when its process does (a PID is the process that had it
+when the job began: its start time tells a later process that got the PID).
+
 A sample is the job's rows of one agent snapshot, taken before the cardinality budget folds
 anything: a job names its entity, so the entity always has its own rows. Each row is
 {"name", "labels", "value"}, histograms as {"count", "sum"}: the same names and labels as on
@@ -10,7 +15,6 @@ anything: a job names its entity, so the entity always has its own rows. Each ro
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -25,6 +29,8 @@ log = logging.getLogger("drums")
 PROTOCOLS = ("tcp", "udp")
 DIRECTIONS = ("src", "dst", "any")  # the socket's local port, its peer's port, either
 MIN_INTERVAL, MAX_INTERVAL = 0.1, 3600.0
+MIN_LEASE, MAX_LEASE = 1.0, 3600.0
+NEVER = float("inf")  # when a job without a lease expires
 MAX_JOBS = 1000  # each costs a pass over the snapshot per sample
 # The probes whose rows each kind of job picks: a sample reads those and no others.
 PROBES_OF = {"host": {"host"}, "latency": {"latency"}, "socket": {"sockets", "tcp"},
@@ -60,6 +66,9 @@ class Job:
     sample: dict | None = None
     due: float = 0.0  # time.monotonic() of the next sample
     mesh: bool = False  # started by the agent for a host of the graph, not by a client
+    lease: float | None = None  # seconds the job lives after each POST; None: until deleted
+    expires: float = NEVER  # time.monotonic() when the lease runs out
+    started: int | None = None  # a process job's process start time (clock ticks after boot)
 
     @property
     def id(self) -> str:
@@ -67,8 +76,10 @@ class Job:
 
     def view(self, host: str) -> dict:
         # The stream's address depends on where the client reached the agent: the HTTP server adds it.
+        lease = {} if self.lease is None else {
+            "lease": self.lease, "expires_in": round(max(0.0, self.expires - time.monotonic()), 3)}
         return {"id": self.id, "kind": self.kind, "target": self.target, "interval": self.interval,
-                **self.settings, "created": self.created, "mesh": self.mesh,
+                **self.settings, **lease, "created": self.created, "mesh": self.mesh,
                 "stream": {"key": self.key(host)}, "sample": self.sample}
 
     def key(self, host: str) -> str:
@@ -110,27 +121,44 @@ class Job:
         return rows
 
 
-def parse_body(kind: str, body: object) -> tuple[float, dict]:
-    """(interval, settings) from a request body: {"interval": seconds} and, for a latency job, its
-    settings; anything else is a UsageError saying why."""
+def _seconds(body: dict, name: str, default: float | None, low: float, high: float) -> float | None:
+    value = body.get(name, default)
+    if value is None and name not in body:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+        raise UsageError(f"{name}: a number of seconds, not {value!r}")
+    if not low <= value <= high:
+        raise UsageError(f"{name}: {value:g} s is outside {low:g}-{high:g} s")
+    return float(value)
+
+
+def parse_body(kind: str, body: object) -> tuple[float, dict, float | None]:
+    """(interval, settings, lease) from a request body: {"interval": seconds, "lease": seconds}
+    and, for a latency job, its settings; anything else is a UsageError saying why."""
     if not isinstance(body, dict):
         raise UsageError(f"the body is a JSON object, not {'null' if body is None else type(body).__name__}")
-    allowed = {"interval", *(LATENCY_SETTINGS if kind == "latency" else ())}
+    allowed = {"interval", "lease", *(LATENCY_SETTINGS if kind == "latency" else ())}
     unknown = sorted(set(body) - allowed)
     if unknown:
         raise UsageError(f"unknown field {unknown[0]!r}: a {kind} job takes {', '.join(sorted(allowed))}")
-    interval = body.get("interval", 1.0)
-    if isinstance(interval, bool) or not isinstance(interval, (int, float)) or interval != interval:
-        raise UsageError(f"interval: a number of seconds, not {interval!r}")
-    if not MIN_INTERVAL <= interval <= MAX_INTERVAL:
-        raise UsageError(f"interval: {interval:g} s is outside {MIN_INTERVAL:g}-{MAX_INTERVAL:g} s")
+    interval = _seconds(body, "interval", 1.0, MIN_INTERVAL, MAX_INTERVAL)
+    lease = _seconds(body, "lease", None, MIN_LEASE, MAX_LEASE)
     settings = {}
     if kind == "latency":
         for name, (default, ok, wanted) in LATENCY_SETTINGS.items():
             settings[name] = body.get(name, default)
             if not ok(settings[name]):
                 raise UsageError(f"{name}: {wanted}, not {settings[name]!r}")
-    return float(interval), settings
+    return interval, settings, lease
+
+
+def process_start(pid: str) -> int | None:
+    """When the process with this PID started (clock ticks after boot); None if there is none."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return int(f.read().rsplit(b")", 1)[1].split()[19])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def job_id(kind: str, target: str) -> str:
@@ -202,10 +230,12 @@ class Jobs:
             self._thread.join(timeout=5)
 
     def add(self, kind: str, target: str, interval: float, settings: dict | None = None,
-            mesh: bool = False) -> tuple[dict, bool]:
-        """(the job, whether it is new). Asking again for a job that exists changes its settings."""
+            lease: float | None = None, mesh: bool = False) -> tuple[dict, bool]:
+        """(the job, whether it is new). Asking again for a job that exists changes its settings
+        and renews its lease."""
         settings = settings or {}
-        if kind == "pid" and not os.path.exists(f"/proc/{target}"):
+        started = process_start(target) if kind == "pid" else None
+        if kind == "pid" and started is None:
             raise NotFound(f"no process {target}")
         if kind == "latency":
             if self.latency is None:
@@ -218,9 +248,12 @@ class Jobs:
             if created:
                 if len(self._jobs) >= MAX_JOBS:
                     raise UsageError(f"already {MAX_JOBS} jobs: delete some first")
-                job = self._jobs[job_id(kind, target)] = Job(kind, target, interval, settings, mesh=mesh)
+                job = self._jobs[job_id(kind, target)] = Job(kind, target, interval, settings, mesh=mesh,
+                                                             started=started)
             else:
                 job.interval, job.settings, job.due, job.mesh = interval, settings, 0.0, job.mesh and mesh
+            job.lease = lease
+            job.expires = NEVER if lease is None else time.monotonic() + lease
             view = job.view(self.host)
         if kind == "latency":
             self.latency.watch(target, interval, **settings)
@@ -243,6 +276,23 @@ class Jobs:
         if job.kind == "latency":
             self.latency.unwatch(job.target)
 
+    def _end_stale(self) -> float | None:
+        """Delete the jobs whose lease ran out or whose process ended; seconds until the next lease
+        runs out."""
+        now = time.monotonic()
+        with self._lock:
+            ended = [(j.id, "its lease ran out") for j in self._jobs.values() if j.expires <= now]
+            ended += [(j.id, "its process ended") for j in self._jobs.values()
+                      if j.kind == "pid" and j.expires > now and process_start(j.target) != j.started]
+            nearest = min((j.expires - now for j in self._jobs.values() if now < j.expires < NEVER), default=None)
+        for job, why in ended:
+            try:
+                self.remove(job)
+                log.info("job %s ended: %s", job, why)
+            except NotFound:
+                pass  # its client deleted it meanwhile
+        return nearest
+
     def list(self) -> list[dict]:
         with self._lock:
             return [j.view(self.host) for j in self._jobs.values()]
@@ -257,6 +307,7 @@ class Jobs:
             if self.mesh is not None and time.monotonic() >= next_mesh:
                 self._follow_mesh()
                 next_mesh = time.monotonic() + MESH_PERIOD
+            lease_ends = self._end_stale()
             with self._lock:
                 gone, self._gone = self._gone, []
                 now = time.monotonic()
@@ -266,6 +317,8 @@ class Jobs:
                     job.due = (now // job.interval + 1) * job.interval
                 if self.mesh is not None:
                     wait = min(wait or MESH_PERIOD, max(0.0, next_mesh - now))
+                if lease_ends is not None:
+                    wait = lease_ends if wait is None else min(wait, lease_ends)
             for key in gone if self.stream is not None else ():
                 self.stream.forget(key)
             if due:
