@@ -133,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     graph.add_argument("--format", choices=FORMATS, default="text", help="output format (default text)")
     graph.add_argument("--output", default="-", help="file to write (default standard output)")
     graph.add_argument("--watch", action="store_true", help="after the graph, print each change as it happens")
+    graph.add_argument("--all", action="store_true",
+                       help="dot and svg: also draw /rosout, /parameter_events and Drums' own nodes")
     graph.add_argument("--agent", metavar="URL", default="",
                        help="ask the agent at URL (e.g. http://localhost:9969) for its graph, with the "
                             "metrics of its nodes, topics and edges, instead of discovering it here")
@@ -174,6 +176,7 @@ def run_agent(args) -> int:
     from drums.exporters.stream import Stream
     from drums.graph import registry
     from drums.graph.adapter import Follower
+    from drums.graph.draw import Rates
     from drums.graph.export import document
     from drums.graph.model import Graph
     from drums.kernel.features import Features
@@ -218,8 +221,10 @@ def run_agent(args) -> int:
         return {"host": host, "api": "v1", "graph": adapter_name, "token_required": bool(token),
                 "probes": {p.name: {"attached": p.status.attached, "attach_type": p.status.attach_type,
                                     "reason": p.status.reason} for p in agent.probes}}
+    rates = Rates()  # the counters of the last picture of the graph, for the rates on the next
     pages = {"/metrics": lambda _query: (prometheus.render(agent.collect()), prometheus.CONTENT_TYPE),
-             "/graph": lambda query: document(graph, agent.collect(), query.get("format", "json"))}
+             "/graph": lambda query: document(graph, agent.collect(), query.get("format", "json"),
+                                              query.get("all") == "1", rates)}
     server = HttpServer(args.address, args.port, pages, jobs, info, token,
                         {"port": stream.port, "curve_public_key": stream.public_key})
     try:
@@ -323,14 +328,14 @@ def run_graph(args) -> int:
     if args.agent:
         if args.watch or args.graph or args.graph_file:
             raise UsageError("--agent takes the agent's graph as it is: not with --watch, --graph or --graph-file")
-        _write(args.output, _agent_graph(args.agent, args.format))
+        _write(args.output, _agent_graph(args.agent, args.format, args.all))
         return 0
 
     from drums.graph.export import render
 
     graph, follower = _settled(args)
     try:
-        _write(args.output, render(graph.snapshot(), args.format, stale=graph.error))
+        _write(args.output, render(graph.snapshot(), args.format, stale=graph.error, everything=args.all))
         if args.watch:
             _, cursor = graph.changes_since(0)
             while True:
@@ -395,12 +400,12 @@ def _write(output: str, text: str) -> None:
         raise UsageError(f"--output {output}: {e.strerror}") from None
 
 
-def _agent_graph(url: str, fmt: str) -> str:
+def _agent_graph(url: str, fmt: str, everything: bool = False) -> str:
     """The graph an agent serves, with its metrics on it."""
     from drums.client import Agent, AgentError
 
     try:
-        return Agent(url, timeout=30).page(f"/graph?format={fmt}")
+        return Agent(url, timeout=30).page(f"/graph?format={fmt}" + ("&all=1" if everything else ""))
     except AgentError as e:
         raise UsageError(f"--agent {e}") from None
 

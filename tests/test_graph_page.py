@@ -52,9 +52,11 @@ def test_graph_page_carries_node_metrics(tmp_path):
                                   text=True, timeout=30).stdout
             assert "node /burner (mapped by static) " in text and f"cpu_seconds_total={found['cpu_seconds_total']}" in text
 
+            svg = scrape(base + "/graph?format=svg")  # drawn by Graphviz in the agent
+            assert svg.startswith("<?xml") and ">/burner</text>" in svg and ">/t</text>" in svg
             with pytest.raises(urllib.error.HTTPError) as e:
-                urllib.request.urlopen(base + "/graph?format=svg", timeout=5)
-            assert (e.value.code, e.value.read()) == (400, b"format 'svg': one of text, json, dot, graphml\n")
+                urllib.request.urlopen(base + "/graph?format=png", timeout=5)
+            assert (e.value.code, e.value.read()) == (400, b"format 'png': one of text, json, dot, svg, graphml\n")
             assert "drums_node_cpu_seconds_total" in scrape(url)
         finally:
             child.kill()

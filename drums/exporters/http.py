@@ -30,6 +30,7 @@ GZIP_LEVEL = 6
 JSON = "application/json"
 TEXT = "text/plain; charset=utf-8"
 OPENAPI = os.path.join(os.path.dirname(__file__), "openapi.yaml")
+HOME = os.path.join(os.path.dirname(__file__), "home.html")  # the live graph, for a browser
 READ_ONLY = (["info"], ["openapi.json"], ["jobs"])  # API paths that take only GET
 
 # A page: query parameters -> (body, content type); raises UsageError for a bad query (400).
@@ -85,6 +86,9 @@ def _status(error: Exception) -> tuple[int, dict]:
 
 
 def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token: str, stream: dict):
+    with open(HOME, "rb") as f:
+        home = f.read()
+    pages = {"/": lambda _query: (home, "text/html; charset=utf-8"), **pages}
     links = sorted(pages) + [f"{API}/openapi.json"]
     document = openapi_document()
 
@@ -133,10 +137,6 @@ def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token
                     return
                 if method != "GET":
                     raise HttpError(405, f"{method} {url.path}: only GET", {"Allow": "GET"})
-                if url.path == "/":
-                    body = "".join(f'<a href="{p}">{p}</a> ' for p in links)
-                    self._reply(200, f"<html><body>{body}</body></html>\n".encode(), "text/html; charset=utf-8")
-                    return
                 page = pages.get(url.path)
                 if page is None:
                     raise NotFound(f"not found: Drums serves {', '.join(links)}")

@@ -1,7 +1,8 @@
-"""The graph as text for people and files: a readable listing, JSON, DOT and GraphML.
+"""The graph as text for people and files: a readable listing, JSON and GraphML, and as a
+picture (DOT and SVG, drums.graph.draw).
 
 Vertex and edge attributes are the entity's fields and, where given, the joined metrics of an
-agent's snapshot; formats that take only scalars (DOT, GraphML) get nested values as JSON strings.
+agent's snapshot; GraphML takes only scalars, so it gets nested values as JSON strings.
 """
 from __future__ import annotations
 
@@ -12,19 +13,25 @@ from dataclasses import asdict
 import networkx as nx
 
 from drums.errors import UsageError
-from drums.graph import join
+from drums.graph import draw, join
 from drums.graph.model import Graph
 from drums.metrics import INFO, Histogram, Snapshot
 
-FORMATS = ("text", "json", "dot", "graphml")
+FORMATS = ("text", "json", "dot", "svg", "graphml")
+PICTURES = ("dot", "svg")
 CONTENT_TYPES = {"text": "text/plain; charset=utf-8", "json": "application/json",
-                 "dot": "text/vnd.graphviz", "graphml": "application/graphml+xml"}
+                 "dot": "text/vnd.graphviz", "svg": "image/svg+xml", "graphml": "application/graphml+xml"}
 
 
-def document(graph: Graph, snap: Snapshot, fmt: str) -> tuple[bytes, str]:
-    """The live graph with an agent's snapshot on it, as (body, content type): the agent's /graph."""
+def document(graph: Graph, snap: Snapshot, fmt: str, everything: bool = False,
+             rates: draw.Rates | None = None) -> tuple[bytes, str]:
+    """The live graph with an agent's snapshot on it, as (body, content type): the agent's /graph.
+    `rates` remembers the counters of the last picture, to label its arrows with rates."""
     if fmt not in FORMATS:
         raise UsageError(f"format {fmt!r}: one of {', '.join(FORMATS)}")
+    if fmt in PICTURES:
+        text = draw.dot(graph.snapshot(), snap, rates.update(snap) if rates else {}, everything)
+        return (draw.svg(text) if fmt == "svg" else text).encode(), CONTENT_TYPES[fmt]
     return render(graph.snapshot(), fmt, graph_metrics(snap), stale=graph.error).encode(), CONTENT_TYPES[fmt]
 
 
@@ -76,21 +83,19 @@ def plain(g: nx.MultiDiGraph, metrics: dict | None = None, flat: bool = False) -
     return out
 
 
-def render(g: nx.MultiDiGraph, fmt: str, metrics: dict | None = None, stale: str = "") -> str:
+def render(g: nx.MultiDiGraph, fmt: str, metrics: dict | None = None, stale: str = "",
+           everything: bool = False) -> str:
+    """The graph in a format; `metrics` from graph_metrics(); pictures leave out the topics and
+    nodes of the plumbing unless `everything`."""
+    if fmt in PICTURES:
+        text = draw.dot(g, everything=everything)
+        return draw.svg(text) if fmt == "svg" else text
     if fmt == "json":
         data = nx.node_link_data(plain(g, metrics), edges="edges")
         data["stale"] = stale
         return json.dumps(data, indent=1, sort_keys=True) + "\n"
     if fmt == "graphml":
         return "\n".join(nx.generate_graphml(plain(g, metrics, flat=True))) + "\n"
-    if fmt == "dot":
-        from networkx.drawing.nx_pydot import to_pydot
-        flat = plain(g, metrics, flat=True)
-        for _, data in flat.nodes(data=True):  # pydot takes `name` for itself; DOT shows `label`
-            if "name" in data:
-                data["label"] = data.pop("name")
-        # Quoted ids: pydot would read the colon in "node:/talker" as a port.
-        return to_pydot(nx.relabel_nodes(flat, json.dumps)).to_string()
     return _text(g, metrics or {}, stale)
 
 
