@@ -64,7 +64,12 @@ def drawn(state: GraphState, **kw) -> str:
     """The SVG Graphviz draws from the DOT of `state` (Graphviz must accept it)."""
     g = Graph()
     g.update(state)
-    text = draw.dot(g.snapshot(), **kw)
+    return drawn_graph(g, **kw)
+
+
+def drawn_graph(graph: Graph, **kw) -> str:
+    """The SVG Graphviz draws from the DOT of a live graph (Graphviz must accept it)."""
+    text = draw.dot(graph.snapshot(), **kw)
     done = subprocess.run(["dot", "-Tsvg"], input=text, capture_output=True, text=True, timeout=30)
     assert done.returncode == 0 and done.stderr == "", (done.stderr, text)
     return done.stdout

@@ -20,6 +20,7 @@ from drums.graph.model import Connection, Endpoint, Graph, Host, Node, Process, 
 from drums.graph.ros1 import Ros1Adapter, bus_info, connections, parse_info, system_state
 from tests.conftest import wait_until
 from tests.graph.ros1_wire import encode_header
+from tests.graph.test_draw import drawn_graph, texts
 
 WIRE = os.path.join(os.path.dirname(__file__), "ros1_wire.py")
 IMAGE, OBJECTS, STATUS = "/image:sensor_msgs/Image", "/objects:vision_msgs/Detection2DArray", "/status:std_msgs/String"
@@ -141,6 +142,7 @@ def test_the_graph_has_each_node_pid_topic_and_socket(wire):
     assert sorted(graph.connections(), key=str) == sorted((edge(pub, e) for pub, e in flows(nodes)), key=str)
     assert {(c.topic, c.publisher, c.subscriber) for c in graph.connections()} == {
         ("/image", "/camera", "/detector"), ("/objects", "/detector", "/planner"), ("/objects", "/detector", "/logger")}
+    assert set(nodes) | {"/image", "/objects"} <= texts(drawn_graph(graph))  # Graphviz draws it
 
     # The ground truth holds: the publisher's socket is in the kernel's table of its process, and the
     # subscriber read exactly what the publisher wrote (connection header and 3 messages).

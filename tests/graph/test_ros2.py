@@ -8,6 +8,7 @@ import time
 
 from drums.graph.model import Graph
 from tests.conftest import eventually, wait_until
+from tests.graph.test_draw import drawn_graph, texts
 
 DEFAULT_TOPICS = {"/rosout", "/parameter_events"}  # every rclpy node publishes on these
 
@@ -48,6 +49,9 @@ def test_pipeline_of_three_processes(ros2_graph, ros_nodes):
         assert {t.name for t in ros2_graph.entities("topic")} == {"/image", "/processed"} | DEFAULT_TOPICS
     eventually(complete, timeout=5)
     assert sink.count() > 0  # the data really flows through the pipeline
+    shown = texts(drawn_graph(ros2_graph))  # Graphviz draws it; the plumbing is left out
+    assert {"/producer", "/processor", "/sink", "/image", "/processed"} <= shown
+    assert not DEFAULT_TOPICS & shown
 
 
 def test_two_nodes_in_one_process_map_to_its_pid(ros2_graph, ros_nodes):

@@ -20,6 +20,7 @@ from drums.graph.auto import AutoAdapter
 from drums.graph.model import Graph, Host
 from drums.graph.static import StaticAdapter, parse
 from tests.conftest import wait_until
+from tests.graph.test_draw import drawn_graph, texts
 
 SLEEPER = "import time, sys; time.sleep(60)"
 
@@ -56,6 +57,7 @@ def test_static_file_names_nodes_processes_and_edges(tmp_path, procs):
         "/planner": (planner.pid, "static"), "/driver": (driver.pid, "static"), "/camera": (None, "unmapped")}
     assert [(c.topic, c.publisher, c.subscriber) for c in graph.connections()] == [("/cmd_vel", "/planner", "/driver")]
     assert {p.pid for p in graph.entities("process")} == {planner.pid, driver.pid}
+    assert {"/planner", "/driver", "/camera", "/cmd_vel"} <= texts(drawn_graph(graph))  # Graphviz draws it
 
 
 @pytest.mark.parametrize("text, error", [
@@ -135,6 +137,7 @@ def test_auto_graph_has_an_edge_from_client_to_server(procs):
     assert (f"tcp:{port}", names[client.pid], names[server.pid]) in {
         (c.topic, c.publisher, c.subscriber) for c in graph.connections()}
     assert names[server.pid] == f"/python3/{server.pid}" or names[server.pid].endswith(f"/{server.pid}")
+    assert {names[client.pid], names[server.pid], f"tcp:{port}"} <= texts(drawn_graph(graph))  # Graphviz draws it
 
 
 class FakeReader(ChildAdapter):
