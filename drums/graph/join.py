@@ -24,8 +24,8 @@ TOPIC = ("topic", "node")
 EDGE = ("topic", "publisher", "subscriber")
 
 NODE_INFO = Metric("drums_node_info", INFO, "A middleware node: its process, how it was mapped to it "
-                   "(gid, cmdline, librcl, getPid, ...), and the other nodes in that process",
-                   ("node", "pid", "process", "mapped_by", "shares_process_with"))
+                   "(gid, cmdline, librcl, getPid, ...), and how many nodes that process holds (the nodes "
+                   "of one process share its pid label)", ("node", "pid", "process", "mapped_by", "nodes_in_process"))
 NODE_CPU = Metric("drums_node_cpu_seconds_total", COUNTER, "CPU time of the node's process", NODE)
 NODE_MEMORY = Metric("drums_node_resident_memory_bytes", GAUGE, "Resident memory of the node's process", NODE)
 NODE_SWITCHES = Metric("drums_node_context_switches_total", COUNTER,
@@ -99,8 +99,7 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     names = {pid: rows[0][0][1] for pid, rows in _by_pid(raw, process.RESIDENT_MEMORY).items()}
     for n in nodes:
         pid = pid_of.get(n.name, "")
-        others = ",".join(sorted(set(by_pid.get(pid, ())) - {n.name}))
-        out.add(NODE_INFO, (n.name, pid, names.get(pid, ""), n.mapped_by, others), 1)
+        out.add(NODE_INFO, (n.name, pid, names.get(pid, ""), n.mapped_by, str(len(by_pid.get(pid, ())))), 1)
     per_node(NODE_CPU, sched.PROCESS_CPU)
     per_node(NODE_MEMORY, process.RESIDENT_MEMORY)
     per_node(NODE_SWITCHES, sched.PROCESS_SWITCHES, 1)

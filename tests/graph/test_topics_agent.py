@@ -7,6 +7,7 @@ import contextlib
 import threading
 
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from std_msgs.msg import String
 
 from tests.agentproc import running_agent, samples, scrape
@@ -137,3 +138,22 @@ def test_a_publishers_deadline_qos_is_exported_beside_its_counts(agent, ros_node
                      if dict(k)["topic"] == "/chatter"}
         assert deadlines == {"/deadline_talker": 0.1}
     eventually(check, timeout=10)
+
+
+def test_a_process_of_thirty_nodes_keeps_every_label_short(agent, ros_nodes):
+    names = [f"crowd_{i:02d}_{'x' * 20}" for i in range(30)]
+    proc = ros_nodes("idle", *names)
+
+    def check():
+        text = scrape(agent)
+        info = {dict(k)["node"]: dict(k) for k in samples(text, "drums_node_info")}
+        assert {n: (v["pid"], v["nodes_in_process"]) for n, v in info.items() if n.startswith("/crowd_")} == \
+            {f"/{n}": (str(proc.pid), "30") for n in names}
+        # Each node's own /parameter_events count on its own series, never one series for them all.
+        published = {dict(k)["node"] for k in samples(text, "drums_topic_messages_published_total")
+                     if dict(k)["topic"] == "/parameter_events"}
+        assert {f"/{n}" for n in names} <= published
+        longest = max((len(v) for family in text_string_to_metric_families(text) for s in family.samples
+                       for v in s.labels.values()), default=0)
+        assert longest <= 64
+    eventually(check, timeout=30)
