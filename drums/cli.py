@@ -55,6 +55,14 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("drums")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "unknown"
+
+
 def _graph_flags(parser: argparse.ArgumentParser) -> None:
     from drums.graph.registry import ADAPTERS
     parser.add_argument("--graph", choices=ADAPTERS, default=None,
@@ -76,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     from drums.probes.registry import PROBES
 
     parser = _Parser(prog="drums", description="Middleware-aware monitoring for distributed robots.")
+    parser.add_argument("--version", action="version", version=f"drums {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     agent = sub.add_parser("agent", help="run the host agent and serve Prometheus metrics")
@@ -173,6 +182,7 @@ def run_agent(args) -> int:
     from drums.exporters.diagnostics import Diagnostics, load_config
     from drums.exporters.http import HttpServer
     from drums.exporters.jobs import Jobs
+    from drums.exporters import health
     from drums.exporters.stream import Stream
     from drums.graph import registry
     from drums.graph.adapter import Follower
@@ -224,7 +234,9 @@ def run_agent(args) -> int:
     rates = Rates()  # the counters of the last picture of the graph, for the rates on the next
     pages = {"/metrics": lambda _query: (prometheus.render(agent.collect()), prometheus.CONTENT_TYPE),
              "/graph": lambda query: document(graph, agent.collect(), query.get("format", "json"),
-                                              query.get("all") == "1", rates)}
+                                              query.get("all") == "1", rates),
+             "/healthz": lambda _query: health.healthz(agent.probes, graph, adapter_name),
+             "/readyz": lambda _query: health.readyz(graph, adapter_name)}
     server = HttpServer(args.address, args.port, pages, jobs, info, token,
                         {"port": stream.port, "curve_public_key": stream.public_key})
     try:

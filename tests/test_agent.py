@@ -1,5 +1,6 @@
 """The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
 import gzip
+import json
 import shutil
 import socket
 import struct
@@ -164,3 +165,38 @@ def test_without_ebpf_every_probe_runs_on_a_fallback(tmp_path):
     assert "Traceback" not in log
     for probe in ("sockets", "sched", "tcp"):
         assert f"probe {probe} uses" in log and "not root" in log, log
+
+
+def test_healthz_says_what_each_source_does_and_readyz_waits_for_the_graph(agent, monkeypatch):
+    base = agent.rsplit("/", 1)[0]
+
+    def ready():
+        try:
+            assert scrape(base + "/readyz") == "ready\n"
+        except urllib.error.HTTPError as e:
+            raise AssertionError(e.read()) from None
+    eventually(ready, timeout=20)
+    health = json.loads(scrape(base + "/healthz"))
+    assert (health["status"], health["degraded"]) == ("ok", [])
+    assert health["graph"] == {"adapter": "ros2", "read": True, "stale": False, "error": ""}
+    assert health["probes"]["rcl"] == {"attached": True, "attach_type": "uprobe", "reason": ""}
+
+    # A ROS 1 master that is not there: the agent serves, says it is degraded, and is not ready.
+    monkeypatch.setenv("ROS_MASTER_URI", f"http://127.0.0.1:{free_port()}/")
+    with running_agent("--graph", "ros1", "--probe", "host") as url:
+        base = url.rsplit("/", 1)[0]
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(base + "/readyz", timeout=5)
+        assert e.value.code == 503
+        assert e.value.read().decode().startswith("not ready: the ros1 graph has not been read yet")
+
+        def degraded():
+            health = json.loads(scrape(base + "/healthz"))
+            assert (health["status"], health["degraded"]) == ("degraded", ["graph ros1"])
+            assert health["graph"]["read"] is False and health["graph"]["stale"] is True
+        eventually(degraded, timeout=10)
+
+
+def test_version():
+    out = subprocess.run([sys.executable, "-m", "drums", "--version"], capture_output=True, text=True, timeout=30)
+    assert (out.returncode, out.stdout, out.stderr) == (0, "drums 0.1.0\n", "")
