@@ -1,6 +1,7 @@
 """The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
 import gzip
 import json
+import os
 import shutil
 import socket
 import struct
@@ -8,6 +9,7 @@ import subprocess
 import sys
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 
 import pytest
@@ -200,3 +202,26 @@ def test_healthz_says_what_each_source_does_and_readyz_waits_for_the_graph(agent
 def test_version():
     out = subprocess.run([sys.executable, "-m", "drums", "--version"], capture_output=True, text=True, timeout=30)
     assert (out.returncode, out.stdout, out.stderr) == (0, "drums 0.1.0\n", "")
+
+
+def test_the_systemd_unit_starts_the_agent_as_it_is_written(tmp_path):
+    """ExecStart of deploy/systemd/drums-agent.service, with this checkout's venv for /opt/drums and
+    a token file of the test's own (no systemd runs here to start the unit itself)."""
+    with open("deploy/systemd/drums-agent.service") as f:
+        (line,) = [line for line in f if line.startswith("ExecStart=")]
+    argv = line.split("=", 1)[1].split()
+    assert argv[:2] == ["/opt/drums/.venv/bin/drums", "agent"]
+    token = tmp_path / "token"
+    token.write_text("s3cret\n")
+    token.chmod(0o600)
+    argv = [str(token) if a == "/etc/drums/token" else a for a in argv[2:]]
+    with running_agent(*argv, address="127.0.0.1", bpf=False) as url:
+        assert "drums_probe_attached" in scrape(url)
+        request = urllib.request.Request(url.rsplit("/", 1)[0] + "/drums/v1/monitor/host", data=b"{}", method="POST")
+        with pytest.raises(urllib.error.HTTPError) as e:  # off loopback: the token is needed
+            urllib.request.urlopen(request, timeout=5)
+        assert e.value.code == 401
+    pins = f"/sys/fs/bpf/drums_agent_{urllib.parse.urlsplit(url).port}"
+    assert os.listdir(pins)  # --keep-loaded: the kernel goes on counting until the next start
+    out = subprocess.run([sys.executable, "-m", "drums", "unload", "--pin-dir", pins], capture_output=True, text=True)
+    assert out.returncode == 0 and not os.path.exists(pins), out.stderr
