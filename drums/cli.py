@@ -162,13 +162,20 @@ def build_parser() -> argparse.ArgumentParser:
                          "instead of discovering them here")
     sd.add_argument("--watch", action="store_true", help="keep running: write the file again when the hosts change")
 
-    top = sub.add_parser("top", help="every host and node of one or more agents, live")
+    from drums.top import VIEWS as TOP_VIEWS
+    top = sub.add_parser("top", help="the nodes, topics, edges, connections and hosts of one or more agents, live",
+                         description="Full screen, live: n t e c h switch views, < > sort, / filter, ? help, "
+                                     "q quit. --once and --json print one complete view for scripts.")
     top.add_argument("--agent", metavar="URL", action="append", default=None,
                      help=f"an agent to show (repeatable; default http://127.0.0.1:{DEFAULT_PORT})")
     top.add_argument("--token-file", default="",
                      help="file holding the agents' API token, for agents off loopback ($DRUMS_TOKEN also works)")
     top.add_argument("--interval", type=_seconds, default=1.0, help="seconds between updates (0.1-3600, default 1)")
-    top.add_argument("--once", action="store_true", help="print the first complete view and exit")
+    top.add_argument("--view", choices=TOP_VIEWS, default="nodes",
+                     help="the view to start with, or to print (default nodes)")
+    top.add_argument("--once", action="store_true", help="print the first complete view as text and exit")
+    top.add_argument("--json", action="store_true", help="print the first complete view as JSON and exit")
+    top.add_argument("--no-color", action="store_true", help="draw without colors (as $NO_COLOR does)")
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
@@ -442,8 +449,11 @@ def main(argv: list[str] | None = None) -> int:
             return run_graph(args)
         if args.command == "top":
             from drums.exporters.prometheus import DEFAULT_PORT
-            from drums.top import run
-            return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval, args.once)
+            from drums.top.main import run
+            if args.once and args.json:
+                raise UsageError("--once prints text and --json JSON: one of them")
+            return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval,
+                       args.view, args.once, args.json, color=not args.no_color)
         if args.command == "sd":
             return run_sd(args)
         if args.command == "doctor":

@@ -5,6 +5,7 @@ graphs merged into one graph of the whole system.
     with Client(["http://robot1:9969", "http://base:9969"], token="...") as c:
         c.start("host")                      # a host job on every agent
         c.start("pid", "4242", agent=c.agents[0])
+        c.keep("host", lease=10)              # used if running, else made; c.renew() within 10 s
         while True:
             for sample in c.poll(1.0):        # decoded stream messages as they arrive
                 print(sample.key, sample.missed, sample.series)
@@ -16,6 +17,7 @@ before it on the same key (sequence numbers), `late` that the subscriber joined 
 from __future__ import annotations
 
 import json
+import time
 import urllib.error
 import urllib.request
 from dataclasses import dataclass, field
@@ -29,6 +31,10 @@ from drums.errors import DrumsError, UsageError
 
 class AgentError(DrumsError):
     """An agent did not answer, or refused a request (its reason is in the message)."""
+
+    def __init__(self, message: str, status: int | None = None):
+        super().__init__(message)
+        self.status = status  # the HTTP status of a refusal; None if the agent was not reached
 
 
 @dataclass
@@ -88,7 +94,7 @@ class Agent:
                 reason = json.loads(body)["error"]
             except (ValueError, KeyError, TypeError):
                 reason = body or e.reason
-            raise AgentError(f"{self.url}: {what}{e.code} {reason}") from None
+            raise AgentError(f"{self.url}: {what}{e.code} {reason}", e.code) from None
         except (urllib.error.URLError, OSError, ValueError) as e:  # ValueError: not an http URL
             reason = getattr(e, "reason", e)
             raise AgentError(f"{self.url}: {getattr(reason, 'strerror', None) or reason}") from None
@@ -148,7 +154,9 @@ class Client:
         self._sockets: dict[str, zmq.Socket] = {}  # stream address -> SUB socket
         self._poller = zmq.Poller()
         self._keys: dict[str, _Key] = {}
-        self._created: list[tuple[Agent, str, str]] = []  # jobs this client made, for stop_all
+        # The jobs this client made, with the settings they were made with: renew() asks for them
+        # again (which renews their leases), stop_all() deletes them.
+        self._created: dict[tuple[Agent, str, str], dict] = {}
 
     def __enter__(self) -> "Client":
         return self
@@ -162,24 +170,69 @@ class Client:
         for a in [agent] if agent else self.agents:
             job, created = a.create(kind, target, **settings)
             if created:
-                self._created.append((a, kind, target))
+                self._created[a, kind, target] = settings
             self.subscribe(job["stream"])
             jobs.append(job)
         return jobs
 
+    def keep(self, kind: str, target: str = "", agent: Agent | None = None, **settings) -> dict:
+        """Have a job run on `agent` (default: the first) and subscribe to it. A job this client
+        made is asked for again, which renews its lease (and makes it again if it had ended); one
+        that someone else runs is used as it is, untouched, since its owner renews and ends it;
+        where there is none, this client makes one with `settings` (with a lease: keep or renew it
+        again within the lease)."""
+        agent = agent or self.agents[0]
+        made = self._created.get((agent, kind, target))
+        if made is None:
+            try:
+                job = agent.job(kind, target)
+                self.subscribe(job["stream"])
+                return job
+            except AgentError as e:
+                if e.status != 404:
+                    raise
+        settings = made if made is not None else settings
+        job, _ = agent.create(kind, target, **settings)
+        self._created[agent, kind, target] = settings
+        # An agent that restarted may stream from another port: subscribe where it says now.
+        self.subscribe(job["stream"])
+        return job
+
+    def renew(self) -> list[AgentError]:
+        """Ask again for every job this client made, which renews their leases; the errors of
+        agents that did not answer (their jobs are asked for again at the next renew)."""
+        errors = []
+        for agent, kind, target in list(self._created):
+            try:
+                self.keep(kind, target, agent)
+            except AgentError as e:
+                errors.append(e)
+        return errors
+
+    def release(self, kind: str, target: str = "", agent: Agent | None = None) -> None:
+        """No longer need a job: deleted if this client made it (an agent that does not answer
+        lets its lease end it), left alone if someone else runs it."""
+        agent = agent or self.agents[0]
+        if self._created.pop((agent, kind, target), None) is not None:
+            try:
+                agent.stop(kind, target)
+            except AgentError:
+                pass
+
     def stop(self, kind: str, target: str = "", agent: Agent | None = None) -> None:
         for a in [agent] if agent else self.agents:
             a.stop(kind, target)
+            self._created.pop((a, kind, target), None)
 
     def stop_all(self) -> None:
         """Delete the jobs this client created (not those it found running); an agent that has
-        gone away meanwhile is passed over."""
+        gone away meanwhile is passed over (their leases, if any, end them)."""
         for agent, kind, target in self._created:
             try:
                 agent.stop(kind, target)
             except AgentError:
                 pass
-        self._created = []
+        self._created = {}
 
     def subscribe(self, stream: dict) -> None:
         """Receive the messages of one stream key ({"address", "key", "curve_public_key"}, as a
@@ -206,6 +259,9 @@ class Client:
     def poll(self, timeout: float) -> list[Sample]:
         """The samples that arrive within `timeout` s (at least one wait; all that are queued)."""
         out = []
+        if not self._sockets:  # zmq would return at once: wait as asked, there is nothing to get
+            time.sleep(timeout)
+            return out
         ready = dict(self._poller.poll(timeout * 1000))
         while ready:
             for sock in ready:

@@ -1,0 +1,63 @@
+"""`drums top` from the command line: the live app, or one view printed for scripts."""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+
+from drums.client import AgentError
+from drums.errors import UsageError
+from drums.top.collector import Collector
+from drums.top.model import Frame
+from drums.top.screen import Views, document, text
+
+ONCE_INTERVALS, ONCE_SLACK = 10, 10.0  # how long --once waits for a complete view, at most
+
+
+def complete(frame: Frame) -> bool:
+    """Whether every agent is down or has given two polls and two host samples (or said why not):
+    every rate of the view is known."""
+    return all(a.failed or (a.before is not None and (a.jobs_error or frame.sample(f"{a.host}:host:")[0] is not None))
+               for a in frame.agents)
+
+
+def _print(collector: Collector, view: str, as_json: bool) -> int:
+    """One complete view (the first with every rate, or what is known after a while) for scripts."""
+    deadline = time.monotonic() + ONCE_INTERVALS * collector.interval + ONCE_SLACK
+    while not complete(collector.model.frame()) and time.monotonic() < deadline:
+        collector.stopping.wait(0.05)
+    frame = collector.model.frame()
+    if all(a.latest is None for a in frame.agents):
+        raise AgentError("; ".join(a.error or f"{a.url}: no answer" for a in frame.agents))
+    table = Views().table(frame, view)
+    sys.stdout.write((document if as_json else text)(frame, table, table.sort))
+    return 0
+
+
+def _leave(signum, _frame):
+    raise SystemExit(128 + signum)  # through the finally below: top's jobs are deleted
+
+
+def run(urls: list[str], token: str, interval: float, view: str = "nodes", once: bool = False,
+        as_json: bool = False, color: bool = True) -> int:
+    if not (once or as_json) and not (sys.stdin.isatty() and sys.stdout.isatty()):
+        raise UsageError("the live view needs a terminal: --once or --json print one view for scripts")
+    collector = Collector(urls, token, interval)
+    ends = (signal.SIGTERM, signal.SIGHUP)
+    try:
+        if once or as_json:
+            for sig in ends:
+                signal.signal(sig, _leave)
+            collector.start()
+            return _print(collector, view, as_json)
+        if not color:
+            os.environ["NO_COLOR"] = "1"  # Textual reads it when the app is made
+        from drums.top.app import TopApp
+        app = TopApp(collector, view)
+        app.run()
+        return app.return_code or 0
+    finally:
+        for sig in ends + (signal.SIGINT,):  # a second signal must not cut the deletion of the jobs short
+            signal.signal(sig, signal.SIG_IGN)
+        collector.close()
