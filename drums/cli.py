@@ -294,6 +294,10 @@ def _read_token(path: str) -> str:
         return os.environ.get("DRUMS_TOKEN", "")
     try:
         with open(path) as f:
+            mode = os.fstat(f.fileno()).st_mode
+            if mode & 0o077:  # as ssh refuses such keys: anyone who reads it may change the jobs
+                raise UsageError(f"--token-file {path}: readable by others (mode {mode & 0o777:o}); "
+                                 f"chmod 600 {path}")
             token = f.read().strip()
     except OSError as e:
         raise UsageError(f"--token-file {path}: {e.strerror}") from None

@@ -97,6 +97,8 @@ def test_clients_that_hang_up_before_the_answer_cost_no_traceback(agent):
     (["agent", "--process-name", "(["], "not a regular expression"),
     (["agent", "--no-probe", "nope"], "invalid choice: 'nope'"),
     (["frobnicate"], "invalid choice: 'frobnicate'"),
+    (["agent", "--graph", "auto", "--graph-file", "robot.yaml"], "--graph-file is read by --graph static only, not by --graph auto"),
+    (["graph", "--graph", "ros1", "--graph-file", "robot.yaml"], "--graph-file is read by --graph static only, not by --graph ros1"),
 ])
 def test_bad_input_is_one_line_and_exit_2(argv, message):
     out = subprocess.run([sys.executable, "-m", "drums", *argv], capture_output=True, text=True, timeout=30)

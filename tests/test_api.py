@@ -211,8 +211,15 @@ def test_off_loopback_the_agent_needs_a_token_and_mutations_carry_it(tmp_path):
     assert (out.returncode, out.stdout) == (2, "")
     assert out.stderr == ("drums: --address 0.0.0.0: off loopback the job API needs a token "
                           "(--token-file FILE or $DRUMS_TOKEN)\n")
-    (tmp_path / "token").write_text("s3cret-token\n")
-    with running_agent("--address", "0.0.0.0", "--token-file", str(tmp_path / "token"), "--probe", "host",
+    token_file = tmp_path / "token"
+    token_file.write_text("s3cret-token\n")
+    token_file.chmod(0o640)  # a token others may read is refused, as ssh refuses such keys
+    out = subprocess.run([sys.executable, "-m", "drums", "agent", "--address", "0.0.0.0", "--port", "0",
+                          "--token-file", str(token_file)], capture_output=True, text=True, timeout=30)
+    assert (out.returncode, out.stdout) == (2, "")
+    assert out.stderr == f"drums: --token-file {token_file}: readable by others (mode 640); chmod 600 {token_file}\n"
+    token_file.chmod(0o600)
+    with running_agent("--address", "0.0.0.0", "--token-file", str(token_file), "--probe", "host",
                        "--graph", "auto", bpf=False) as url:  # beside the module's agent: no pins of its own
         api = url.rsplit("/", 1)[0] + "/drums/v1"
         for token in ("", "s3cret-toke", "s3cret-token2"):

@@ -23,6 +23,8 @@ def default() -> str:
 def build(name: str, graph_file: str = "", announce: Host | None = None) -> Adapter:
     """`announce`: an agent's own host, address and URL, which the ros2 reader tells the other
     agents of its ROS domain (ROS 1 and static graphs name their hosts themselves)."""
+    if graph_file and name != "static":
+        raise UsageError(f"--graph-file is read by --graph static only, not by --graph {name}")
     if name == "ros2":
         from drums.graph.ros2 import Ros2Adapter
         return Ros2Adapter(announce=announce)

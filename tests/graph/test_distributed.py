@@ -79,6 +79,7 @@ def lab(network, tmp_path_factory):
     (IMAGE bytes at 10 Hz) on robot1, a listener and a viewer on robot2 and on robot3."""
     token = tmp_path_factory.mktemp("token") / "token"
     token.write_text(TOKEN)
+    token.chmod(0o600)
     env = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET",
            "ROS_STATIC_PEERS": ";".join(address(i) for i in HOSTS)}
     saved = dict(os.environ)
