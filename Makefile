@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 9969
 
-.PHONY: setup setup-test run test bench readme lock clean
+.PHONY: setup setup-test run test bench readme lock demo demo-stop clean
 
 setup:
 	@scripts/setup.sh
@@ -16,6 +16,14 @@ run: setup
 
 test: setup-test
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# A small robot on this machine, watched by Drums, Prometheus and drums top (demo/demo.sh);
+# FAULT=leak|flood|throttle injects one of the paper's faults. demo-stop ends all of it.
+demo: setup-test
+	@demo/demo.sh start $(FAULT)
+
+demo-stop:
+	@demo/demo.sh stop
 
 bench: setup-test
 	$(PY) bench/run_all.py

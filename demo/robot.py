@@ -1,0 +1,78 @@
+"""The demo robot's nodes, one per process: `python demo/robot.py ROLE`.
+
+camera      publishes /camera/image, about 1 MB at 30 Hz
+processor   /camera/image -> /detections (a small message per image)
+controller  /detections -> /cmd_vel, at the camera's pace
+logger      logs a line to /rosout for each second of detections
+
+$DRUMS_DEMO_FAULT injects one of the faults of the paper that started Drums, 20 s after start:
+leak (the processor keeps every image it gets: its memory grows by about 30 MB/s) and flood (the
+logger logs in a tight loop to /rosout). The third, throttle (a router that drops bandwidth), is
+made outside the nodes, on the camera computer's link (demo/demo.sh).
+"""
+import os
+import sys
+import time
+
+import rclpy
+from geometry_msgs.msg import Twist
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from std_msgs.msg import String, UInt8MultiArray
+
+IMAGE_BYTES = 1_000_000
+RATE = 30.0
+FAULT = os.environ.get("DRUMS_DEMO_FAULT", "")
+FAULT_AFTER = float(os.environ.get("DRUMS_DEMO_FAULT_AFTER", "20"))
+
+
+class Demo(Node):
+    def __init__(self, role: str):
+        super().__init__(role)
+        self.started = time.monotonic()
+        self.kept = []  # the leak
+        if role == "camera":
+            self.image = UInt8MultiArray(data=bytes(IMAGE_BYTES))
+            self.pub = self.create_publisher(UInt8MultiArray, "/camera/image", 5)
+            self.create_timer(1 / RATE, lambda: self.pub.publish(self.image))
+        elif role == "processor":
+            self.pub = self.create_publisher(String, "/detections", 10)
+            self.create_subscription(UInt8MultiArray, "/camera/image", self.on_image, 5)
+        elif role == "controller":
+            self.pub = self.create_publisher(Twist, "/cmd_vel", 10)
+            self.create_subscription(String, "/detections", lambda _: self.pub.publish(Twist()), 10)
+        elif role == "logger":
+            self.seen = 0
+            self.create_subscription(String, "/detections", self.on_detection, 10)
+            self.create_timer(1.0, self.report)
+        else:
+            raise SystemExit(f"unknown role {role}: camera, processor, controller or logger")
+
+    def faulty(self, fault: str) -> bool:
+        return FAULT == fault and time.monotonic() - self.started > FAULT_AFTER
+
+    def on_image(self, msg) -> None:
+        if self.faulty("leak"):
+            self.kept.append(bytes(msg.data))  # a copy that is never freed
+        self.pub.publish(String(data=f"objects in {len(msg.data)} bytes"))
+
+    def on_detection(self, _msg) -> None:
+        self.seen += 1
+
+    def report(self) -> None:
+        self.get_logger().info(f"{self.seen} detections so far")
+        while self.faulty("flood") and rclpy.ok():  # an emergency stop that logs in a tight loop
+            self.get_logger().warning("emergency stop: obstacle!")
+
+
+def main() -> None:
+    rclpy.init(args=sys.argv)
+    node = Demo(sys.argv[1])
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+
+
+if __name__ == "__main__":
+    main()

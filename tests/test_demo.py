@@ -1,0 +1,75 @@
+"""`make demo` and `make demo-stop` as a user runs them (without a terminal, so `drums top` is not
+started): Prometheus scrapes the demo's agent and has the demo robot's node series within 60 s;
+after the stop no process, BPF pin, namespace or listening port of the demo is left."""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import urllib.parse
+import urllib.request
+
+from tests.agentproc import free_port
+from tests.conftest import eventually
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def query(port: int, expr: str) -> list[dict]:
+    url = f"http://127.0.0.1:{port}/api/v1/query?" + urllib.parse.urlencode({"query": expr})
+    try:
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return json.loads(reply.read())["data"]["result"]
+    except OSError as e:
+        raise AssertionError(f"Prometheus does not answer: {e}") from None
+
+
+def demo_processes() -> list[str]:
+    out = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                cmdline = f.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "demo/robot.py" in cmdline or ".demo/prometheus" in cmdline or "drums-demo" in cmdline:
+            out.append(cmdline)
+    return out
+
+
+def free(port: int) -> bool:
+    try:
+        socket.create_server(("127.0.0.1", port)).close()
+        return True
+    except OSError:
+        return False
+
+
+def make(target: str, env: dict) -> subprocess.CompletedProcess:
+    return subprocess.run(["make", "-s", target], cwd=ROOT, env=env, stdin=subprocess.DEVNULL,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_make_demo_then_demo_stop_leaves_nothing_behind():
+    ports = {name: free_port() for name in ("AGENT", "STREAM", "PROMETHEUS")}
+    env = {**os.environ, **{f"DRUMS_DEMO_{name}_PORT": str(port) for name, port in ports.items()}}
+    try:
+        done = make("demo", env)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert f"http://127.0.0.1:{ports['PROMETHEUS']}/alerts" in done.stderr
+
+        def watched():
+            assert [r["value"][1] for r in query(ports["PROMETHEUS"], 'up{job="drums"}')] == ["1"]
+            cpu = query(ports["PROMETHEUS"], "drums_node_cpu_seconds_total")
+            assert {r["metric"]["node"] for r in cpu} == {"/processor", "/controller", "/logger"}
+            images = query(ports["PROMETHEUS"], 'drums_topic_messages_published_total{topic="/camera/image"} > 0')
+            assert [r["metric"]["node"] for r in images] == ["/camera"]
+        eventually(watched, timeout=60)
+    finally:
+        stopped = make("demo-stop", env)
+    assert (stopped.returncode, stopped.stderr) == (0, ""), stopped.stderr
+    assert demo_processes() == []
+    assert not os.path.exists("/sys/fs/bpf/drums-demo") and not os.path.exists(os.path.join(ROOT, ".demo"))
+    assert "drums-demo-camera" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert all(free(port) for port in ports.values())
