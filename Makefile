@@ -25,12 +25,16 @@ demo: setup-test
 demo-stop:
 	@demo/demo.sh stop
 
+# Every benchmark; their tables go to bench/results.json, and from there into the README.
 bench: setup-test
 	$(PY) bench/run_all.py
+	$(PY) bench/readme.py README.md
 
-# The README's metric table is generated from the probes' own declarations.
+# The README's metric table is generated from the probes' own declarations, its measured figures
+# from bench/results.json.
 readme: setup
 	$(PY) -m drums.docs README.md
+	$(PY) bench/readme.py README.md
 
 # Resolve the dependencies again at their newest versions and pin them, with their hashes, for every
 # platform and Python the project supports: requirements-test.lock for the tests (ROS 2 included),

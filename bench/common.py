@@ -98,9 +98,17 @@ def fmt(value: float, digits: int = 2) -> str:
 
 # --- output --------------------------------------------------------------------------------------
 
+TABLES = "DRUMS_BENCH_TABLES"  # a file each table is added to as a JSON line (bench/run_all.py reads it)
+
+
 def print_table(title: str, headers: list[str], rows: list[list], notes: list[str] = ()) -> None:
-    """A markdown table under a `### title` heading, then notes as a bullet list."""
+    """A markdown table under a `### title` heading, then notes as a bullet list; and the same
+    as a JSON line in $DRUMS_BENCH_TABLES, from which the README's tables are made."""
     cells = [[str(c) for c in row] for row in rows]
+    if os.environ.get(TABLES):
+        with open(os.environ[TABLES], "a") as f:
+            f.write(json.dumps({"title": title, "headers": [str(h) for h in headers], "rows": cells,
+                                "notes": list(notes)}) + "\n")
     widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(headers)]
 
     def line(values):
