@@ -433,5 +433,5 @@ def child() -> int:
 
 
 if __name__ == "__main__":
-    name_helper("diagnostics")
+    name_helper("diag")
     sys.exit(child())
