@@ -3,11 +3,13 @@
 Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), producer (a 1 MB
 image-like message on /image at 10 Hz; $DRUMS_TEST_IMAGE_BYTES sets another size), viewer
 (subscribes /image), processor (/image -> /processed), sink (subscribes /processed), idle (a node
-with no endpoints of its own). Several NAMEs put several nodes in one
-process; arguments after --ros-args go to ROS (remapping). Prints "ready <pid>" once its nodes
-exist, and on each line of input "count <n>" with the messages it published or received so far
-(a line "go" starts a burst instead: see DRUMS_TEST_BURST). With $DRUMS_TEST_IMPORT_DELAY=S it
-waits S seconds before it loads ROS 2, as a program that imports rclpy late does.
+with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory, default 100 kB,
+every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout). Several NAMEs
+put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
+"ready <pid>" once its nodes exist, and on each line of input "count <n>" with the messages it
+published or received so far (a line "go" starts a burst instead: see DRUMS_TEST_BURST). With
+$DRUMS_TEST_IMPORT_DELAY=S it waits S seconds before it loads ROS 2, as a program that imports
+rclpy late does.
 """
 import os
 import sys
@@ -73,6 +75,13 @@ def make(role: str, name: str) -> Node:
                                  lambda m: (pub.publish(m), counted.__setitem__(0, counted[0] + 1)), 10)
     elif role == "sink":
         node.create_subscription(UInt8MultiArray, "processed", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
+    elif role == "leaker":
+        leak_bytes = int(os.environ.get("DRUMS_TEST_LEAK_BYTES", 100_000))
+        kept = []
+        # b"x" * n writes every page, so the memory is resident at once
+        node.create_timer(0.1, lambda: kept.append(b"x" * leak_bytes))
+    elif role == "flooder":
+        node.create_timer(0.01, lambda: node.get_logger().info("flooding /rosout"))
     elif role != "idle":
         raise SystemExit(f"unknown role {role}")
     return node
