@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import resource
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+from drums import linear_re
 from drums.budget import Budget
 from drums.errors import DrumsError, UsageError
 from drums.graph.join import join
@@ -59,7 +59,7 @@ class Selection:
     """Which processes are monitored: all by default, else those matching any criterion."""
 
     pids: set[int] = field(default_factory=set)
-    name_patterns: list[re.Pattern] = field(default_factory=list)
+    name_patterns: list = field(default_factory=list)  # linear_re patterns
     cgroups: list[str] = field(default_factory=list)
 
     @classmethod
@@ -72,9 +72,9 @@ class Selection:
                 raise UsageError(f"--pid {p}: no such process")
         for n in names:
             try:
-                sel.name_patterns.append(re.compile(n))
-            except re.error as e:
-                raise UsageError(f"--process-name {n!r}: not a regular expression ({e})") from None
+                sel.name_patterns.append(linear_re.compile(n))
+            except ValueError as e:
+                raise UsageError(f"--process-name {n!r}: {e}") from None
         return sel
 
     @property

@@ -156,6 +156,8 @@ def test_levels_values_and_publisher_restarts(roles, tmp_path):
     ("host: {memory_percent: {warn: 99}}", "host.memory_percent: warn 99 is above error 95"),
     ("interval: 0", "interval: a number from 0.1 to 3600, not 0"),
     ("node: [", "not YAML"),
+    (f"node: {{cpu_percent: {{warn: {'9' * 400}}}}}", "node.cpu_percent.warn: a number from 0 up, not 99999999999999999999..."),
+    ("a: &x [1]\nb: *x", "not YAML (anchors and aliases are not taken (line 1))"),
 ])
 def test_bad_config_is_one_line_and_exit_2(tmp_path, text, says):
     config = tmp_path / "diagnostics.yaml"

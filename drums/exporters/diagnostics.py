@@ -44,6 +44,7 @@ from typing import Callable
 
 import psutil
 
+from drums import safeyaml
 from drums.errors import UsageError
 from drums.graph import join
 from drums.metrics import Snapshot
@@ -86,10 +87,15 @@ def _mapping(doc, allowed: list[str], where: str) -> dict:
 
 
 def _number(value, where: str, low: float, high: float = math.inf) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+    try:  # a YAML integer has any number of digits: one too big for a float is no threshold
+        number = math.nan if isinstance(value, bool) or not isinstance(value, (int, float)) else float(value)
+    except OverflowError:
+        number = math.nan
+    if not low <= number <= high:
         span = f"from {low:g} to {high:g}" if high < math.inf else f"from {low:g} up"
-        raise UsageError(f"{where}: a number {span}, not {value!r}")
-    return float(value)
+        shown = repr(value) if len(repr(value)) <= 24 else repr(value)[:20] + "..."
+        raise UsageError(f"{where}: a number {span}, not {shown}")
+    return number
 
 
 def load_config(path: str) -> Config:
@@ -102,8 +108,7 @@ def load_config(path: str) -> Config:
         return config
     where = f"--diagnostics-config {path}"
     try:
-        with open(path) as f:
-            doc = yaml.safe_load(f)
+        doc = safeyaml.load(safeyaml.read(path))
     except OSError as e:
         raise UsageError(f"{where}: {e.strerror}") from None
     except yaml.YAMLError as e:

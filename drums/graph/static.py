@@ -24,9 +24,11 @@ The file is read again when it changes; a file that does not parse keeps the las
 from __future__ import annotations
 
 import os
-import re
 import socket
 
+import yaml
+
+from drums import linear_re, safeyaml
 from drums.errors import GraphError
 from drums.graph.adapter import Adapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
@@ -72,13 +74,11 @@ def _hosts(doc: dict, path: str) -> list[Host]:
     return list(hosts.values())
 
 
-def parse(text: str, path: str = "graph") -> tuple[str, list[Host], dict[str, re.Pattern | None], list[dict]]:
+def parse(text: str, path: str = "graph") -> tuple[str, list[Host], dict, list[dict]]:
     """(host of the nodes, hosts listed, node -> process pattern, topics) from the YAML text; every
     mistake is a GraphError that names the file and the entry."""
-    import yaml
-
     try:
-        doc = yaml.safe_load(text) or {}
+        doc = safeyaml.load(text) or {}
     except yaml.YAMLError as e:
         raise GraphError(f"{path}: not YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(doc, dict):
@@ -88,15 +88,17 @@ def parse(text: str, path: str = "graph") -> tuple[str, list[Host], dict[str, re
         raise GraphError(f"{path}: unknown key {sorted(unknown)[0]!r} (host, hosts, nodes, topics)")
     host = doc.get("host") or socket.gethostname()
     hosts = _hosts(doc, path)
-    nodes: dict[str, re.Pattern | None] = {}
+    nodes: dict = {}  # name -> the pattern of its process's command line, or None
     for i, item in enumerate(_list(doc, "nodes", f"{path}: ")):
         where = f"{path}: nodes[{i}]"
         name = _name(item, where)
         pattern = item.get("process")
+        if pattern is not None and not isinstance(pattern, str):
+            raise GraphError(f"{where}: process is a regular expression, not {type(pattern).__name__}")
         try:
-            nodes[name] = re.compile(pattern) if pattern else None
-        except (re.error, TypeError) as e:
-            raise GraphError(f"{where}: process is not a regular expression ({e})") from None
+            nodes[name] = linear_re.compile(pattern) if pattern else None
+        except ValueError as e:
+            raise GraphError(f"{where}: process is {e}") from None
     topics = []
     for i, item in enumerate(_list(doc, "topics", f"{path}: ")):
         where = f"{path}: topics[{i}]"
@@ -104,7 +106,7 @@ def parse(text: str, path: str = "graph") -> tuple[str, list[Host], dict[str, re
                  "publishers": _list(item, "publishers", f"{where}."),
                  "subscribers": _list(item, "subscribers", f"{where}.")}
         for node in topic["publishers"] + topic["subscribers"]:
-            if node not in nodes:
+            if not isinstance(node, str) or node not in nodes:
                 raise GraphError(f"{where}: node {node!r} is not among the nodes")
         topics.append(topic)
     return str(host), hosts, nodes, topics
@@ -114,11 +116,14 @@ class StaticAdapter(Adapter):
     name = "static"
 
     def __init__(self, path: str, interval: float = 1.0, proc: str = "/proc"):
+        """Reads the file at once: a bad file is an error at start, not a graph that never comes.
+        Later, a file changed into a bad one leaves the last good graph (marked stale)."""
         self.path = path
         self.interval = interval
         self.scan = ProcScan(proc)
         self._parsed = None
         self._mtime = None
+        self._read()
 
     def start(self) -> None:
         self._read()
@@ -127,11 +132,11 @@ class StaticAdapter(Adapter):
         try:
             mtime = os.stat(self.path).st_mtime_ns
             if mtime != self._mtime:
-                with open(self.path) as f:
-                    text = f.read()
-                self._parsed, self._mtime = parse(text, self.path), mtime
+                self._parsed, self._mtime = parse(safeyaml.read(self.path), self.path), mtime
         except OSError as e:
             raise GraphError(f"{self.path}: {e.strerror}") from None
+        except yaml.YAMLError as e:  # too big to read
+            raise GraphError(f"{self.path}: not YAML ({e})") from None
 
     def poll(self) -> GraphState:
         self._read()

@@ -116,7 +116,7 @@ def test_drums_graph_with_a_bad_file_says_one_line(tmp_path, capsys):
     bad.write_text("nodes: [")
     assert main(["graph", "--graph", "static", "--graph-file", str(bad)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"drums: graph (static): {bad}: not YAML") and err.count("\n") == 1
+    assert err.startswith(f"drums: {bad}: not YAML") and err.count("\n") == 1
 
 
 def test_auto_graph_has_an_edge_from_client_to_server(procs):
