@@ -50,6 +50,8 @@ AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
 GRAPH_STALE = Metric("drums_graph_stale", GAUGE,
                      "1 while the graph adapter fails (the last good graph is kept), else 0", ("adapter",))
 GRAPH_ENTITIES = Metric("drums_graph_entities", GAUGE, "Entities in the graph, by kind", ("kind",))
+LOSS_SAID_EVERY = 60.0  # seconds: at most one line per probe about lost events or full maps
+NEARLY_FULL = 0.9  # a map this full is said to be, before it loses anything
 SELF_METRICS = (GRAPH_STALE, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
                 FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
@@ -132,6 +134,7 @@ class Agent:
         self._reasons: dict[str, str] = {}
         self._durations: dict[str, float] = {}
         self._success: dict[str, int] = {}
+        self._loss_said: dict[str, tuple[int, float]] = {}  # probe -> (its drops when last said, when)
         self.wanted_pids: Callable[[], set[int]] = set  # processes a client asked for (jobs): always read
 
     def start(self, strict: bool = False) -> None:
@@ -217,7 +220,23 @@ class Agent:
             if probe.status.reason != self._reasons.get(probe.name, probe.status.reason):
                 log.warning("probe %s: %s", probe.name, probe.status.reason or "recovered")
             self._reasons[probe.name] = probe.status.reason
+            self._say_losses(probe)
         return raw
+
+    def _say_losses(self, probe: Probe) -> None:
+        """One line, at most every LOSS_SAID_EVERY seconds, when the probe lost events to a full
+        map since it last said so, or a map of it is nearly full: loss is counted and never silent."""
+        st = probe.status
+        said, at = self._loss_said.get(probe.name, (0, -LOSS_SAID_EVERY))
+        now = time.monotonic()
+        full = sorted((m, f) for m, f in st.map_fill.items() if f >= NEARLY_FULL)
+        if now - at < LOSS_SAID_EVERY or (st.dropped <= said and not full):
+            return
+        parts = [f"{st.dropped - said} events lost to full BPF maps"] if st.dropped > said else []
+        parts += [f"map {m} {f:.0%} full" for m, f in full]
+        log.warning("probe %s: %s (drums_probe_dropped_events_total, drums_probe_map_fill_ratio)",
+                    probe.name, "; ".join(parts))
+        self._loss_said[probe.name] = (st.dropped, now)
 
     def _chosen(self) -> set[int]:
         pt = self.proctable
