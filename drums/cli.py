@@ -322,7 +322,8 @@ def _settled(args):
     from drums.graph.adapter import Follower
     from drums.graph.model import Graph
 
-    logging.basicConfig(level="WARNING", format="drums: %(message)s")
+    # Until the first graph, a failure is the one line main() prints; after it, each is logged.
+    logging.basicConfig(level="ERROR", format="drums: %(message)s")
     adapter = registry.build(args.graph or registry.default(), args.graph_file)
     graph = Graph()
     follower = Follower(adapter, graph)
@@ -333,6 +334,7 @@ def _settled(args):
             time.sleep(0.05)
         if not graph.updated_at:
             raise GraphError(graph.error or "no graph within the time allowed")
+        logging.getLogger().setLevel("WARNING")
         # Discovery goes on after the first answer: done once nothing changed for `settle` s.
         _, cursor = graph.changes_since(0)
         quiet_since, give_up = time.monotonic(), time.monotonic() + 4 * adapter.settle

@@ -227,3 +227,12 @@ def test_the_systemd_unit_starts_the_agent_as_it_is_written(tmp_path):
     assert os.listdir(pins)  # --keep-loaded: the kernel goes on counting until the next start
     out = subprocess.run([sys.executable, "-m", "drums", "unload", "--pin-dir", pins], capture_output=True, text=True)
     assert out.returncode == 0 and not os.path.exists(pins), out.stderr
+
+
+@pytest.mark.parametrize("command", [["graph", "--graph", "ros1"], ["sd", "--graph", "ros1", "--output", "targets.json"]])
+def test_a_graph_that_cannot_be_read_is_said_once(command, tmp_path):
+    uri = f"http://127.0.0.1:{free_port()}/"
+    out = subprocess.run([sys.executable, "-m", "drums", *command], capture_output=True, text=True, timeout=60,
+                         cwd=tmp_path, env={**os.environ, "ROS_MASTER_URI": uri})
+    assert (out.returncode, out.stdout) == (2, "")
+    assert out.stderr == f"drums: the ROS master at {uri} refused the connection\n"
