@@ -323,7 +323,8 @@ def _settled(args):
     from drums.graph.model import Graph
 
     # Until the first graph, a failure is the one line main() prints; after it, each is logged.
-    logging.basicConfig(level="ERROR", format="drums: %(message)s")
+    logging.basicConfig(format="drums: %(message)s")
+    logging.getLogger().setLevel("ERROR")
     adapter = registry.build(args.graph or registry.default(), args.graph_file)
     graph = Graph()
     follower = Follower(adapter, graph)
