@@ -36,13 +36,12 @@ class Scope:
 def variables(cfg: Config, *names: str) -> list:
     """The data source and, in order, the variables named (each one narrowed by those before it)."""
     out = [dashboard.DatasourceVariable("datasource").label("Data source").type("prometheus")]
-    sources = {"robot": ("up", cfg.robot_label), "host": ("up", cfg.host_label),
-               "node": ('drums_node_info{pid!=""}', "node"), "topic": ("drums_topic_messages_published_total", "topic")}
+    sources = {"robot": ("up", (), cfg.robot_label), "host": ("up", (), cfg.host_label),
+               "node": ("drums_node_info", ('pid!=""',), "node"),  # this host's nodes, not the graph's others
+               "topic": ("drums_topic_messages_published_total", (), "topic")}
     for i, name in enumerate(names):
-        metric, label = sources[name]
-        scope = Scope(cfg, *names[:i])
-        base, _, extra = metric.partition("{")
-        query = f"label_values({scope(base, *filter(None, [extra.rstrip('}')]))}, {label})"
+        metric, matchers, label = sources[name]
+        query = f"label_values({Scope(cfg, *names[:i])(metric, *matchers)}, {label})"
         many = name in ("robot", "host")  # a fleet compares robots and hosts, a node or topic page shows one
         variable = (dashboard.QueryVariable(name).label(name.capitalize()).datasource(DATASOURCE).query(query)
                     .refresh(model.VariableRefresh.ON_TIME_RANGE_CHANGED).sort(model.VariableSort.ALPHABETICAL_ASC)
