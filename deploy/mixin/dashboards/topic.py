@@ -29,7 +29,9 @@ def build(cfg: Config) -> dashboard.Dashboard:
                                      "publisher, beside the Deadline QoS it offers (DrumsTopicDeadlineMissed).", "s",
                                      query(f"1 / {s('drums:topic_messages_published:rate1m')}",
                                            legend("node") + " period"),
-                                     query(s("drums_topic_deadline_seconds"), legend("node") + " deadline")))
+                                     # every agent of the ROS domain reports every publisher's QoS
+                                     query(f"max by ({cfg.robot_label}, topic, node) "
+                                           f"({s('drums_topic_deadline_seconds')})", legend("node") + " deadline")))
         .with_panel(timeseries_panel("Lost", "Share of the topic's messages on the robot each subscriber did not "
                                      "take (DrumsTopicMessagesLost).", "percentunit",
                                      query(s("drums:topic_messages_lost:ratio_rate1m"), legend("node", host))))
