@@ -112,7 +112,8 @@ def live(prometheus):
                                      'ALERTS{alertname="DrumsTopicFlooding",node="/flooder"}',
                                      'ALERTS{alertname="DrumsNodeMemoryLeak",node="/leaker"}',
                                      "drums_latency_rtt_mean_seconds") if not instant(prometheus, expr)]
-        assert missing == [], f"alerts: {[a['metric'] for a in instant(prometheus, 'ALERTS')]}"
+        assert missing == [], (f"alerts: {[a['metric'] for a in instant(prometheus, 'ALERTS')]}; "
+                               f"nodes: {[n['metric'] for n in instant(prometheus, 'drums_node_info')]}")
     eventually(ready, timeout=60)
     return prometheus
 
