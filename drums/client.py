@@ -27,6 +27,7 @@ import networkx as nx
 import zmq
 
 from drums.errors import DrumsError, UsageError
+from drums.exporters.stream import layout_id
 
 
 class AgentError(DrumsError):
@@ -168,10 +169,10 @@ class Client:
         """Start a job on `agent` (default: every agent) and subscribe to its samples."""
         jobs = []
         for a in [agent] if agent else self.agents:
-            job, created = a.create(kind, target, **settings)
+            job, created = self._create(a, kind, target, settings)
             if created:
                 self._created[a, kind, target] = settings
-            self.subscribe(job["stream"])
+            self._follow(job)
             jobs.append(job)
         return jobs
 
@@ -186,17 +187,25 @@ class Client:
         if made is None:
             try:
                 job = agent.job(kind, target)
-                self.subscribe(job["stream"])
+                self._follow(job)
                 return job
             except AgentError as e:
                 if e.status != 404:
                     raise
         settings = made if made is not None else settings
-        job, _ = agent.create(kind, target, **settings)
+        job, _ = self._create(agent, kind, target, settings)
         self._created[agent, kind, target] = settings
-        # An agent that restarted may stream from another port: subscribe where it says now.
-        self.subscribe(job["stream"])
+        self._follow(job)  # an agent that restarted may stream from another port
         return job
+
+    def _create(self, agent: Agent, kind: str, target: str, settings: dict) -> tuple[dict, bool]:
+        """POST a job, subscribed to its key beforehand: its first sample, sent at once, is the one
+        that names its series, and a subscriber that misses it decodes nothing until the next
+        keyframe, ten samples later."""
+        info = agent.info()
+        if info.get("stream"):
+            self.subscribe({**info["stream"], "key": f"{info['host']}:{kind}:{target}"})
+        return agent.create(kind, target, **settings)
 
     def renew(self) -> list[AgentError]:
         """Ask again for every job this client made, which renews their leases; the errors of
@@ -251,6 +260,15 @@ class Client:
         # ZeroMQ filters by prefix; "h:pid:12" would also take "h:pid:123": poll() keeps exact keys.
         sock.setsockopt(zmq.SUBSCRIBE, stream["key"].encode())
         self._keys.setdefault(stream["key"], _Key())
+
+    def _follow(self, job: dict) -> None:
+        """Subscribe to a job's key, and learn the names of its series from its latest sample (the
+        API's rows are in the stream's order): its messages decode at once, not from the next
+        keyframe on."""
+        self.subscribe(job["stream"])
+        if job.get("sample"):
+            series = [[row["name"], row["labels"]] for row in job["sample"]["series"]]
+            self._keys[job["stream"]["key"]].layouts.setdefault(layout_id(series), series)
 
     def unsubscribe(self, stream: dict) -> None:
         """Stop receiving a key; what it sends meanwhile counts as missed when it is subscribed again."""

@@ -221,6 +221,7 @@ def topics(frame: Frame, losses: Losses) -> Table:
             ends[e["topic"]][e["kind"]].add(e["node"])
         for topic, pub, sub in agent.latest.edges:
             links[topic].add((pub, sub))
+    read = tuple(a.latest.graph_at for a in frame.live())  # a new poll of any agent: a new read
     rows = []
     for name, v in names.items():
         pubs = published.get(name, {})
@@ -229,7 +230,7 @@ def topics(frame: Frame, losses: Losses) -> Table:
             "publishers": len(ends[name]["publisher"]), "subscribers": len(ends[name]["subscriber"]),
             "rate_hz": total(rates(pubs).values()), "jitter_seconds": None,
             "bytes_per_second": total(rates(sent.get(name, {})).values()),
-            "lost": losses.lost(name, sorted(links[name]), {n: c[0] for n, c in pubs.items()},
+            "lost": losses.lost(name, read, sorted(links[name]), {n: c[0] for n, c in pubs.items()},
                                 {n: c[0] for n, c in taken.get(name, {}).items()})}))
     return Table("topics", TOPIC_COLUMNS, rows, sort="rate_hz", spark="rate_hz", note=JITTER_NOTE)
 
