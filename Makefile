@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 9969
 
-.PHONY: setup setup-test run test bench readme lock demo demo-stop clean
+.PHONY: setup setup-test run test bench readme lock mixin demo demo-stop clean
 
 setup:
 	@scripts/setup.sh
@@ -16,6 +16,11 @@ run: setup
 
 test: setup-test
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# The monitoring mixin: rules, alerts and dashboards rendered from deploy/mixin/config.yaml into
+# deploy/mixin/out (checked in; a test fails when they differ from what the code renders).
+mixin: setup-test
+	$(PY) -m deploy.mixin.build
 
 # A small robot on this machine, watched by Drums, Prometheus and drums top (demo/demo.sh);
 # FAULT=leak|flood|throttle injects one of the paper's faults. demo-stop ends all of it.

@@ -8,10 +8,15 @@
 # rules and alerts (http://127.0.0.1:19090/alerts), and `drums top` in front when there is a
 # terminal. Ports of their own, so that a Drums or Prometheus already running is left alone.
 #
-# FAULT injects one of the three faults of the paper that started Drums, 20 s after the start:
-#   leak      the processor keeps every image: its memory grows by about 30 MB/s
-#   flood     the logger logs to /rosout in a tight loop
-#   throttle  the camera computer's link drops to 4 Mbit/s (a faulty router): /camera/image collapses
+# FAULT injects one of the three faults of the paper that started Drums, 20 s after the start
+# (throttle after 60 s, once the camera's link has carried a minute of images to compare with):
+#   leak      the processor keeps one image in ten: its memory grows by about 3 MB/s, to 1 GiB
+#             (DrumsNodeMemoryLeak on /processor fires within a minute)
+#   flood     the logger logs to /rosout in a tight loop (DrumsTopicFlooding on /logger, /rosout;
+#             its subscription starves: DrumsTopicMessagesLost on /detections)
+#   throttle  the camera computer's link drops to 4 Mbit/s (a faulty router): /camera/image
+#             collapses and is repaired over and over (DrumsEdgeRetransmitsHigh on /camera ->
+#             /processor within two minutes; DrumsEdgeBandwidthCollapsed needs an hour of history)
 #
 # `make demo-stop` ends all of it and leaves nothing behind: processes, BPF pins, the namespace.
 set -euo pipefail
@@ -26,6 +31,7 @@ STREAM_PORT=${DRUMS_DEMO_STREAM_PORT:-19970}
 PROMETHEUS_PORT=${DRUMS_DEMO_PROMETHEUS_PORT:-19090}
 PY=.venv/bin/python
 FAULT_AFTER=20
+THROTTLE_AFTER=60
 export ROS_DOMAIN_ID=201 FASTDDS_BUILTIN_TRANSPORTS=UDPv4 ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET \
   ROS_STATIC_PEERS="10.77.0.1;10.77.0.2"
 
@@ -94,6 +100,13 @@ start() {
   ip -n "$NS" link set "${LINK}1" up
   ip -n "$NS" link set lo up
 
+  # The mixin's rules and alerts, with the demo's shorter waits (demo/mixin.yaml).
+  "$PY" -c 'import sys, yaml
+config = yaml.safe_load(open("deploy/mixin/config.yaml"))
+config.update(yaml.safe_load(open("demo/mixin.yaml")))
+yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
+  "$PY" -m deploy.mixin.build --config "$STATE/mixin.yaml" --out "$STATE/mixin" >/dev/null
+
   spawn agent .venv/bin/drums agent --port "$AGENT_PORT" --stream-port "$STREAM_PORT" --pin-dir "$PINS" --graph ros2
   sed -e "s/AGENT_PORT/$AGENT_PORT/" demo/prometheus.yml >"$STATE/prometheus.yml"
   spawn prometheus prometheus --config.file="$STATE/prometheus.yml" --storage.tsdb.path="$STATE/prometheus" \
@@ -106,11 +119,13 @@ start() {
     spawn "$role" "${env[@]}" "$PY" demo/robot.py "$role"
   done
   if [ "$fault" = throttle ]; then
-    spawn throttle sh -c "sleep $FAULT_AFTER && ip netns exec $NS tc qdisc add dev ${LINK}1 root tbf rate 4mbit burst 32kbit latency 400ms && sleep infinity"
+    spawn throttle sh -c "sleep $THROTTLE_AFTER && ip netns exec $NS tc qdisc add dev ${LINK}1 root tbf rate 4mbit burst 32kbit latency 400ms && sleep infinity"
   fi
   wait_for prometheus "http://127.0.0.1:$PROMETHEUS_PORT/-/ready"
 
-  say "running${fault:+, with the fault $fault from ${FAULT_AFTER} s on}: the agent's live graph at http://127.0.0.1:$AGENT_PORT/,"
+  local after=$FAULT_AFTER
+  [ "$fault" = throttle ] && after=$THROTTLE_AFTER
+  say "running${fault:+, with the fault $fault from $after s on}: the agent's live graph at http://127.0.0.1:$AGENT_PORT/,"
   say "Prometheus and its alerts at http://127.0.0.1:$PROMETHEUS_PORT/alerts; make demo-stop ends it all"
   if [ -t 0 ] && [ -t 1 ]; then
     .venv/bin/drums top --agent "http://127.0.0.1:$AGENT_PORT" || true

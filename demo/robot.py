@@ -6,8 +6,8 @@ controller  /detections -> /cmd_vel, at the camera's pace
 logger      logs a line to /rosout for each second of detections
 
 $DRUMS_DEMO_FAULT injects one of the faults of the paper that started Drums, 20 s after start:
-leak (the processor keeps every image it gets: its memory grows by about 30 MB/s) and flood (the
-logger logs in a tight loop to /rosout). The third, throttle (a router that drops bandwidth), is
+leak (the processor keeps one image in ten: its memory grows by about 3 MB/s, up to 1 GiB) and
+flood (the logger logs in a tight loop to /rosout). The third, throttle (a router that drops bandwidth), is
 made outside the nodes, on the camera computer's link (demo/demo.sh).
 """
 import os
@@ -24,6 +24,7 @@ IMAGE_BYTES = 1_000_000
 RATE = 30.0
 FAULT = os.environ.get("DRUMS_DEMO_FAULT", "")
 FAULT_AFTER = float(os.environ.get("DRUMS_DEMO_FAULT_AFTER", "20"))
+LEAK_IMAGES = (1 << 30) // IMAGE_BYTES  # the leak stops at 1 GiB: a demo must not take the machine down
 
 
 class Demo(Node):
@@ -31,6 +32,7 @@ class Demo(Node):
         super().__init__(role)
         self.started = time.monotonic()
         self.kept = []  # the leak
+        self.images = 0
         if role == "camera":
             self.image = UInt8MultiArray(data=bytes(IMAGE_BYTES))
             self.pub = self.create_publisher(UInt8MultiArray, "/camera/image", 5)
@@ -52,7 +54,8 @@ class Demo(Node):
         return FAULT == fault and time.monotonic() - self.started > FAULT_AFTER
 
     def on_image(self, msg) -> None:
-        if self.faulty("leak"):
+        self.images += 1
+        if self.faulty("leak") and self.images % 10 == 0 and len(self.kept) < LEAK_IMAGES:
             self.kept.append(bytes(msg.data))  # a copy that is never freed
         self.pub.publish(String(data=f"objects in {len(msg.data)} bytes"))
 
