@@ -51,9 +51,14 @@ def make(target: str, env: dict) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
-def test_make_demo_then_demo_stop_leaves_nothing_behind():
+def demo_env() -> tuple[dict, dict]:
+    """(ports, environment) of a demo on free ports of its own."""
     ports = {name: free_port() for name in ("AGENT", "STREAM", "PROMETHEUS")}
-    env = {**os.environ, **{f"DRUMS_DEMO_{name}_PORT": str(port) for name, port in ports.items()}}
+    return ports, {**os.environ, **{f"DRUMS_DEMO_{name}_PORT": str(port) for name, port in ports.items()}}
+
+
+def test_make_demo_then_demo_stop_leaves_nothing_behind():
+    ports, env = demo_env()
     try:
         done = make("demo", env)
         assert done.returncode == 0, done.stderr[-2000:]
@@ -73,3 +78,17 @@ def test_make_demo_then_demo_stop_leaves_nothing_behind():
     assert not os.path.exists("/sys/fs/bpf/drums-demo") and not os.path.exists(os.path.join(ROOT, ".demo"))
     assert "drums-demo-camera" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     assert all(free(port) for port in ports.values())
+
+
+def test_the_leak_of_make_demo_fires_its_alert_on_the_leaking_node():
+    ports, env = demo_env()
+    try:
+        done = make("demo", {**env, "FAULT": "leak"})
+        assert done.returncode == 0, done.stderr[-2000:]
+
+        def fired():
+            alerts = query(ports["PROMETHEUS"], 'ALERTS{alertstate="firing", alertname="DrumsNodeMemoryLeak"}')
+            assert [a["metric"]["node"] for a in alerts] == ["/processor"], alerts
+        eventually(fired, timeout=120)  # the leak starts 20 s in; the demo's alert waits 20 s more
+    finally:
+        assert make("demo-stop", env).returncode == 0
