@@ -83,8 +83,10 @@ class Selection:
     def everything(self) -> bool:
         return not (self.pids or self.name_patterns or self.cgroups)
 
-    def matches(self, pid: int, name: str) -> bool:
-        if pid in self.pids or any(p.search(name) for p in self.name_patterns):
+    def matches(self, pid: int, names: list[str]) -> bool:
+        """Whether the process is chosen; `names`: what a pattern may match (its name, its command
+        line, the middleware nodes it holds)."""
+        if pid in self.pids or any(p.search(n) for p in self.name_patterns for n in names):
             return True
         if self.cgroups:
             try:
@@ -242,7 +244,12 @@ class Agent:
         pt = self.proctable
         if self.selection.everything:
             return pt.pids()
-        return {pid for pid in pt.pids() if self.selection.matches(pid, pt.name(pid))}
+        nodes: dict[int, list[str]] = {}
+        if self.selection.name_patterns:  # an rclpy node's process is named "python": its nodes say more
+            for n in self.graph.entities("node") if self.graph else ():
+                nodes.setdefault(n.pid, []).append(n.name)
+        return {pid for pid in pt.pids() if self.selection.matches(
+            pid, [pt.name(pid), *(pt.cmdline(pid) if self.selection.name_patterns else ()), *nodes.get(pid, ())])}
 
     def _process_pids(self) -> list[int]:
         """Processes to read from /proc, which costs per process: the graph's nodes, those the

@@ -119,7 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     _pin_flag(agent)
     agent.add_argument("--pid", type=_positive, action="append", default=[], help="monitor this process")
     agent.add_argument("--process-name", action="append", default=[],
-                       help="monitor processes whose name matches this regular expression")
+                       help="monitor processes whose name, command line or ROS node names match this "
+                            "regular expression (RE2)")
     agent.add_argument("--cgroup", action="append", default=[],
                        help="monitor processes in this cgroup (path prefix, e.g. /system.slice)")
     agent.add_argument("--own-netns", action="store_true",

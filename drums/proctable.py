@@ -49,6 +49,7 @@ class ProcessTable:
         self.proc = proc
         self.netns = netns(proc, "self") if os.environ.get(OWN_NETNS) == "1" else None
         self._names: dict[int, str] = {}
+        self._cmdlines: dict[int, list[str]] = {}  # read when first asked for, kept while the PID lives
         self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
 
     def refresh(self) -> None:
@@ -58,6 +59,7 @@ class ProcessTable:
                 pid not in self._names and netns(self.proc, pid) != self.netns)}
             alive -= self._elsewhere
         self._names = {pid: self._names.get(pid) or comm(self.proc, pid) for pid in alive}
+        self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive}
 
     def alive(self, pid: int) -> bool:
         return pid in self._names
@@ -77,6 +79,17 @@ class ProcessTable:
 
     def name(self, pid: int) -> str:
         return self._names.get(pid, "")
+
+    def cmdline(self, pid: int) -> list[str]:
+        """The command line joined with spaces, as one string in a list ([] for a kernel thread)."""
+        if pid not in self._cmdlines:
+            try:
+                with open(f"{self.proc}/{pid}/cmdline", "rb") as f:
+                    raw = f.read(4096)
+            except OSError:
+                raw = b""
+            self._cmdlines[pid] = [raw.replace(b"\0", b" ").decode(errors="replace").strip()] if raw else []
+        return self._cmdlines[pid]
 
     def pids(self) -> set[int]:
         return set(self._names)

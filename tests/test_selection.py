@@ -44,6 +44,27 @@ def test_by_name_pattern(sched_probe, proctable, sleepers):
     assert all(proctable.name(pid) == "cat" for pid in got)
 
 
+def test_by_command_line_and_by_node_name(sched_probe, proctable, sleepers):
+    """A Python node's process is named "python": its command line and its nodes name it better."""
+    import sys
+
+    from drums.graph.model import Graph, GraphState, Node
+    marker = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()", "planner-5e1c"],
+                              stdin=subprocess.PIPE)
+    try:
+        graph = Graph()
+        graph.update(GraphState(nodes=[Node("/driver", "here", sleepers[1].pid, "static")]))
+
+        def chosen(*names):
+            agent = Agent([sched_probe], proctable, Selection.parse(names=names), Budget({"process": 1000}), graph)
+            return pids_with_series(agent.collect())
+        assert chosen("planner-5e1c") == {marker.pid}
+        assert chosen("^/driver$") == {sleepers[1].pid}
+    finally:
+        marker.kill()
+        marker.wait()
+
+
 def test_by_cgroup(sched_probe, proctable, sleepers, tmp_path):
     group = os.path.join(CGROUP_ROOT, f"drums-test-{os.getpid()}")
     os.mkdir(group)
