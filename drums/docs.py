@@ -31,14 +31,19 @@ def rewrite(text: str) -> str:
     return f"{head}{BEGIN}\n{metric_table()}\n{END}{tail}"
 
 
-def main(path: str) -> int:
+def update(path: str, rewrite_text) -> int:
+    """Rewrite the file at `path` with `rewrite_text(text)`, only if that changes it."""
     with open(path) as f:
         text = f.read()
-    new = rewrite(text)
+    new = rewrite_text(text)
     if new != text:
         with open(path, "w") as f:
             f.write(new)
     return 0
+
+
+def main(path: str) -> int:
+    return update(path, rewrite)
 
 
 if __name__ == "__main__":
