@@ -3,10 +3,6 @@ sparkline, the keys in the footer. It reads the model the collector's threads fi
 and draws again when something changed: it never waits on an agent."""
 from __future__ import annotations
 
-import asyncio
-import signal
-from functools import partial
-
 from rich.text import Text
 from textual.app import App
 from textual.binding import Binding
@@ -20,7 +16,6 @@ from drums.top.table import Table, arrange, cells, fit
 from drums.top.widgets import Help, RowTable
 
 DRAW_EVERY = 0.2  # seconds between looks at the model
-ENDS = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)  # a closed terminal sends SIGHUP
 
 
 class TopApp(App):
@@ -32,7 +27,8 @@ class TopApp(App):
         Binding("e", "view('edges')", "Edges"),
         Binding("c", "view('connections')", "Conns"),
         Binding("h", "view('hosts')", "Hosts"),
-        Binding("slash", "filter", "Filter"),
+        # Priority: the app takes it at once, so the keys typed right after it go to the filter.
+        Binding("slash", "filter", "Filter", priority=True),
         Binding("greater_than_sign", "sort(1)", "Sort"),
         Binding("less_than_sign", "sort(-1)", "Sort", show=False),
         Binding("r", "reverse", "Reverse", show=False),
@@ -59,17 +55,19 @@ class TopApp(App):
         yield RowTable(id="rows")
         yield Static(id="detail")
         yield Sparkline([], id="spark")
-        yield Input(placeholder="filter: part of a name (Enter keeps it, Escape clears it)", id="filter")
+        yield Input(placeholder="filter: part of a name (Enter keeps it, Escape clears it)", id="filter",
+                    select_on_focus=False)  # else the keys typed right after / would be selected, then replaced
         yield Footer()
 
     def on_mount(self) -> None:
-        loop = asyncio.get_running_loop()
-        for sig in ENDS:  # as the shell would report the signal
-            loop.add_signal_handler(sig, partial(self.exit, return_code=128 + sig))
         self.collector.start()
         self.query_one(RowTable).focus()
         self.set_interval(DRAW_EVERY, self.draw)
         self.set_interval(self.collector.interval, self.record)
+
+    def check_action(self, action: str, parameters: tuple) -> bool | None:
+        """While the filter is typed, / is a character of it."""
+        return not (action == "filter" and self.focused is self.query_one("#filter", Input))
 
     def sort(self, table: Table) -> tuple[str, bool]:
         return self.sorts.get(self.view, (table.sort, False))
@@ -159,7 +157,7 @@ class TopApp(App):
         field = self.query_one("#filter", Input)
         field.display = True
         field.value = self.match
-        field.focus()
+        self.screen.set_focus(field)  # now, not after the keys already typed (focus() waits its turn)
 
     def on_input_changed(self, event: Input.Changed) -> None:
         self.match = event.value

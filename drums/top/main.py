@@ -1,10 +1,13 @@
 """`drums top` from the command line: the live app, or one view printed for scripts."""
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import sys
 import time
+from functools import partial
+from urllib.parse import urlsplit
 
 from drums.client import AgentError
 from drums.errors import UsageError
@@ -13,6 +16,7 @@ from drums.top.model import Frame
 from drums.top.screen import Views, document, text
 
 ONCE_INTERVALS, ONCE_SLACK = 10, 10.0  # how long --once waits for a complete view, at most
+ENDS = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)  # a closed terminal sends SIGHUP
 
 
 def complete(frame: Frame) -> bool:
@@ -35,20 +39,37 @@ def _print(collector: Collector, view: str, as_json: bool) -> int:
     return 0
 
 
-def _leave(signum, _frame):
-    raise SystemExit(128 + signum)  # through the finally below: top's jobs are deleted
-
-
 def run(urls: list[str], token: str, interval: float, view: str = "nodes", once: bool = False,
         as_json: bool = False, color: bool = True) -> int:
+    for url in urls:
+        parts = urlsplit(url)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise UsageError(f"--agent {url}: an agent's URL is http://HOST:PORT")
     if not (once or as_json) and not (sys.stdin.isatty() and sys.stdout.isatty()):
         raise UsageError("the live view needs a terminal: --once or --json print one view for scripts")
     collector = Collector(urls, token, interval)
-    ends = (signal.SIGTERM, signal.SIGHUP)
+    app = None
+
+    def leave(signum, _frame):
+        """SIGTERM or SIGINT: the app ends as on `q`, the terminal given back; outside the app top
+        ends at once, through the finally below, which deletes top's jobs. SIGHUP: the terminal
+        is gone, and Textual, which would give it back, busy-reads the dead one and may never end:
+        top deletes its jobs and ends here."""
+        if signum == signal.SIGHUP and app is not None:
+            ignore()
+            collector.close()
+            os._exit(128 + signum)
+        if app is None or not app.is_running:
+            raise SystemExit(128 + signum)
+        asyncio.get_running_loop().call_soon_threadsafe(partial(app.exit, return_code=128 + signum))
+
+    def ignore():  # a second signal must not cut the deletion of the jobs short
+        for sig in ENDS:
+            signal.signal(sig, signal.SIG_IGN)
+    for sig in ENDS:  # before anything is made on the agents
+        signal.signal(sig, leave)
     try:
         if once or as_json:
-            for sig in ends:
-                signal.signal(sig, _leave)
             collector.start()
             return _print(collector, view, as_json)
         if not color:
@@ -58,6 +79,5 @@ def run(urls: list[str], token: str, interval: float, view: str = "nodes", once:
         app.run()
         return app.return_code or 0
     finally:
-        for sig in ends + (signal.SIGINT,):  # a second signal must not cut the deletion of the jobs short
-            signal.signal(sig, signal.SIG_IGN)
+        ignore()
         collector.close()

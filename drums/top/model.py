@@ -88,7 +88,11 @@ class Model:
 
     def sampled(self, sample: Sample) -> None:
         with self._lock:
-            before = self.samples.get(sample.key, (None, None))[1]
+            before, latest = self.samples.get(sample.key, (None, None))
+            # A sample soon after another (a renewed job samples at once) measures too short a time:
+            # rates are taken from the one before it.
+            if latest is None or sample.time - latest.time >= self.interval / 2:
+                before = latest
             if before is not None and sample.time <= before.time:
                 before = None
             self.samples[sample.key] = (before, sample)

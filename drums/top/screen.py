@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from drums.top import VIEWS, hosts, views
+from drums.top import hosts, views
 from drums.top.losses import Losses
 from drums.top.model import Frame
 from drums.top.table import Row, Table, arrange, cells, fit, line

@@ -103,7 +103,8 @@ def test_each_view_shows_what_the_nodes_count(agent, ros_nodes):
             close(number(out["TX"]), sent, "sender's socket")
             close(number(into["RX"]), sent, "receiver's socket")
             host = seen["hosts"][0]
-            assert host["STATE"] == "up" and 0 <= (number(host["CPU"]) or -1) <= 100, seen["hosts"]
+            cpu = number(host["CPU"])
+            assert host["STATE"] == "up" and cpu is not None and 0 <= cpu <= 100, seen["hosts"]
             loopback, = [r for r in seen["hosts"] if r["IFACE"] == "lo"]
             assert number(loopback["RX"]) >= 0.9 * sent, (loopback, sent)  # the flow, and the agent's answers
         run([agent], 2.0, scenario)
