@@ -49,25 +49,25 @@ class TopApp(App):
         self.match = ""
         self.table: Table | None = None
         self._drawn = (-1, "")  # (model version, what else the screen depends on)
+        # Kept at hand: the help screen may be on top when they are needed.
+        self.heading, self.rows, self.detail = Static(id="title"), RowTable(id="rows"), Static(id="detail")
+        self.spark = Sparkline([], id="spark")
+        self.field = Input(placeholder="filter: part of a name (Enter keeps it, Escape clears it)", id="filter",
+                           select_on_focus=False)  # else the keys typed right after / would be selected, then replaced
 
     def compose(self):
-        yield Static(id="title")
-        yield RowTable(id="rows")
-        yield Static(id="detail")
-        yield Sparkline([], id="spark")
-        yield Input(placeholder="filter: part of a name (Enter keeps it, Escape clears it)", id="filter",
-                    select_on_focus=False)  # else the keys typed right after / would be selected, then replaced
+        yield from (self.heading, self.rows, self.detail, self.spark, self.field)
         yield Footer()
 
     def on_mount(self) -> None:
         self.collector.start()
-        self.query_one(RowTable).focus()
+        self.rows.focus()
         self.set_interval(DRAW_EVERY, self.draw)
         self.set_interval(self.collector.interval, self.record)
 
     def check_action(self, action: str, parameters: tuple) -> bool | None:
-        """While the filter is typed, / is a character of it."""
-        return not (action == "filter" and self.focused is self.query_one("#filter", Input))
+        """While the filter is typed, / is a character of it; over the help, nothing."""
+        return action != "filter" or (self.focused is not self.field and len(self.screen_stack) == 1)
 
     def sort(self, table: Table) -> tuple[str, bool]:
         return self.sorts.get(self.view, (table.sort, False))
@@ -79,8 +79,7 @@ class TopApp(App):
             self.history.record(self.views.table(frame, view))
 
     def draw(self, force: bool = False) -> None:
-        rows_widget = self.query_one(RowTable)
-        state = (self.collector.model.version, f"{self.view}|{self.sorts}|{self.match}|{rows_widget.size}")
+        state = (self.collector.model.version, f"{self.view}|{self.sorts}|{self.match}|{self.rows.size}")
         if state != self._drawn or force:
             self._drawn = state
             frame = self.collector.model.frame()
@@ -89,21 +88,21 @@ class TopApp(App):
             rows = arrange(table, sort, reverse, self.match)
             titles = headers(table, sort, reverse)
             texts = [cells(table, r) for r in rows]
-            widths = fit(table.columns, titles, texts, max(1, rows_widget.scrollable_content_region.width))
-            rows_widget.show(table.columns, titles, widths, rows, texts)
+            widths = fit(table.columns, titles, texts, max(1, self.rows.scrollable_content_region.width))
+            self.rows.show(table.columns, titles, widths, rows, texts)
             heading = title(frame, table, sum(1 for r in rows if not r.group))
             if self.match:
                 heading += f"  filter: {self.match}"
-            self.query_one("#title", Static).update(Text(heading, no_wrap=True, overflow="ellipsis"))
+            self.heading.update(Text(heading, no_wrap=True, overflow="ellipsis"))
         self.show_selected()
 
     def show_selected(self) -> None:
         """The selected row's sort column (or its view's main number) over the last minutes."""
-        table, key = self.table, self.query_one(RowTable).selected()
+        table, key = self.table, self.rows.selected()
         row = next((r for r in table.rows if r.key == key), None) if table else None
         if row is None:
-            self.query_one("#detail", Static).update("")
-            self.query_one(Sparkline).data = []
+            self.detail.update("")
+            self.spark.data = []
             return
         sort, _ = self.sort(table)
         column = table.column(sort if not table.column(sort).name else table.spark)
@@ -117,8 +116,8 @@ class TopApp(App):
             line += f"  ({row.values['error']})"
         elif table.note:
             line += f"  ({table.note})"
-        self.query_one("#detail", Static).update(Text(line, no_wrap=True, overflow="ellipsis"))
-        self.query_one(Sparkline).data = values
+        self.detail.update(Text(line, no_wrap=True, overflow="ellipsis"))
+        self.spark.data = values
 
     def on_data_table_row_highlighted(self, _event: DataTable.RowHighlighted) -> None:
         if self.table is not None:
@@ -137,7 +136,7 @@ class TopApp(App):
 
     def action_sort(self, step: int) -> None:
         """Sort by the next column shown to the left or right."""
-        shown = self.query_one(RowTable).shown()
+        shown = self.rows.shown()
         if shown:
             sort, _ = self.sort(self.table)
             at = shown.index(sort) if sort in shown else 0
@@ -154,22 +153,25 @@ class TopApp(App):
         self.draw(force=True)
 
     def action_filter(self) -> None:
-        field = self.query_one("#filter", Input)
-        field.display = True
-        field.value = self.match
-        self.screen.set_focus(field)  # now, not after the keys already typed (focus() waits its turn)
+        self.field.display = True
+        self.field.value = self.match
+        self.screen.set_focus(self.field)  # now, not after the keys already typed (focus() waits its turn)
 
     def on_input_changed(self, event: Input.Changed) -> None:
         self.match = event.value
         self.draw()
 
     def on_input_submitted(self, _event: Input.Submitted) -> None:
-        self.query_one("#filter", Input).display = False
-        self.query_one(RowTable).focus()
+        self.close_filter()
+
+    def close_filter(self) -> None:
+        """The filter's field goes; what it holds goes on filtering."""
+        self.field.display = False
+        self.rows.focus()
 
     def action_clear_filter(self) -> None:
         self.match = ""
-        self.on_input_submitted(None)
+        self.close_filter()
         self.draw()
 
     def action_help(self) -> None:

@@ -21,6 +21,7 @@ LEASE_INTERVALS, MIN_LEASE = 5, 10.0  # a lease outlives a renewal that a busy a
 RENEWALS_PER_LEASE = 3
 STREAM_WAIT = 0.2  # seconds the jobs thread waits for samples before it looks at its jobs again
 LATENCY_INTERVAL = 1.0  # at least: a round of probes takes its time
+CLOSE_REQUESTS = 3  # how many requests' time top waits for its jobs to be deleted when it ends
 
 
 def timeout(interval: float) -> float:
@@ -48,10 +49,13 @@ class Collector:
             t.start()
 
     def close(self) -> None:
-        """Stop the threads; the jobs thread deletes the jobs top made on its way out."""
+        """Stop the threads; the jobs thread deletes the jobs top made on its way out. Not for
+        longer than a few requests' time: jobs on an agent that does not answer end with their
+        lease."""
         self.stopping.set()
+        until = time.monotonic() + CLOSE_REQUESTS * timeout(self.interval)
         for t in self._threads:
-            t.join(timeout=timeout(self.interval) * (2 + len(self._latency) + len(self.client.agents)))
+            t.join(timeout=max(0.0, until - time.monotonic()))
 
     def _follow(self, index: int) -> None:
         agent, host = self.client.agents[index], ""

@@ -79,7 +79,8 @@ def test_each_view_shows_what_the_nodes_count(agent, ros_nodes):
             await until(pilot, flowing, timeout=30)
             began, counts = time.monotonic(), (talker.count(), listener.count(), arrived())
             await pilot.pause(5)
-            seen = {"talker": row(app, NAME="/top_talker"), "listener": row(app, NAME="/top_listener")}
+            seen = {"talker": row(app, NAME="/top_talker"), "listener": row(app, NAME="/top_listener"),
+                    "sender": row(app, PID=str(sender))}  # a process without a node
             for key, view in (("t", "topics"), ("e", "edges"), ("c", "connections"), ("h", "hosts")):
                 await pilot.press(key)
                 await pilot.pause(0.3)
@@ -90,6 +91,8 @@ def test_each_view_shows_what_the_nodes_count(agent, ros_nodes):
             close(number(seen["talker"]["TX"]), published * size, "node bytes sent")
             close(number(seen["listener"]["TAKE"]), taken, "node taken")
             close(number(seen["listener"]["RX"]), taken * size, "node bytes received")
+            assert seen["sender"]["NAME"] == "python" and seen["sender"]["PUB"] == "-", seen["sender"]
+            close(number(seen["sender"]["TX"]), sent, "process bytes sent")
             chatter, = [r for r in seen["topics"] if r["TOPIC"] == "/chatter"]
             assert (chatter["PUBS"], chatter["SUBS"], chatter["JITTER"], chatter["LOST"]) == ("1", "1", "-", "0")
             close(number(chatter["RATE"]), published, "topic rate")

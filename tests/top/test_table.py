@@ -1,13 +1,16 @@
-"""The pure parts of `drums top`: reading /metrics back, rates and percentiles, messages lost, and
-tables sorted, filtered and fitted to a width."""
+"""The pure parts of `drums top`: reading /metrics back, rates and percentiles, messages lost, an
+agent's state, and tables sorted, filtered and fitted to a width."""
 from __future__ import annotations
 
 import math
 
-from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
+from drums.client import Sample
 from drums.exporters import prometheus
+from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
 from drums.top.exposition import parse
 from drums.top.losses import Losses
+from drums.top.model import CONNECTING, DOWN, STALE, UP, Model
+from drums.top.poll import Poll
 from drums.top.rates import quantile, rate
 from drums.top.table import ELLIPSIS, Column, Row, Table, arrange, cut, fit, line
 
@@ -105,3 +108,29 @@ def test_a_cut_name_keeps_its_start_and_its_end():
     assert cut("/namespace/node_name", 20) == "/namespace/node_name"
     assert cut("/namespace/node_name", 10) == "/na…e_name"
     assert len(cut("x" * 40, 7)) == 7 and cut("abc", 1) == ELLIPSIS and cut("abc", 0) == ""
+
+
+def test_an_agent_is_up_stale_or_down_by_its_last_answers():
+    model = Model(["http://a:9969"], interval=1.0)
+    agent = model.agents[0]
+    assert agent.state(0, 1.0) == CONNECTING
+    model.polled(0, "arm", Poll(100.0, 100.0))
+    now = agent.last_ok
+    assert agent.state(now + 2, 1.0) == UP
+    assert agent.state(now + 4, 1.0) == STALE  # no fresh answer for three intervals: a slow agent
+    model.polled(0, "arm", Poll(101.0, 101.0, stale="the ros2 reader did not answer"))
+    assert agent.state(now, 1.0) == STALE and agent.before.graph_at == 100.0
+    model.failed(0, "http://a:9969: Connection refused")
+    assert agent.state(now, 1.0) == DOWN
+    model.polled(0, "arm", Poll(105.0, 105.0))
+    assert agent.state(now, 1.0) == UP and agent.before is None  # back: rates start again
+
+
+def test_a_sample_right_after_another_does_not_make_a_rate():
+    model = Model(["http://a:9969"], interval=1.0)
+
+    def sample(at: float) -> Sample:
+        model.sampled(Sample("arm:host:", 1, at, {}))
+        before, latest = model.samples["arm:host:"]
+        return before and before.time
+    assert [sample(t) for t in (10.0, 11.0, 11.01, 12.0, 12.0)] == [None, 10.0, 10.0, 11.01, 11.01]
