@@ -251,7 +251,11 @@ class Jobs:
                 job = self._jobs[job_id(kind, target)] = Job(kind, target, interval, settings, mesh=mesh,
                                                              started=started)
             else:
-                job.interval, job.settings, job.due, job.mesh = interval, settings, 0.0, job.mesh and mesh
+                # New settings sample at once; a renewal of the same ones keeps its grid (an extra
+                # sample milliseconds after the last would make every rate of it look like zero).
+                if (interval, settings) != (job.interval, job.settings):
+                    job.due = 0.0
+                job.interval, job.settings, job.mesh = interval, settings, job.mesh and mesh
             job.lease = lease
             job.expires = NEVER if lease is None else time.monotonic() + lease
             view = job.view(self.host)
