@@ -1,4 +1,6 @@
 """The text exposition, the cardinality budget and the README table, without the kernel."""
+import sys
+
 from prometheus_client.parser import text_string_to_metric_families
 
 from drums import docs
@@ -70,6 +72,19 @@ def test_readme_metric_table_is_current():
     with open("README.md") as f:
         text = f.read()
     assert docs.rewrite(text) == text, "run `make readme`"
+
+
+def test_readme_figures_are_those_of_the_last_bench_run():
+    """Every figure in the README's "Measured" section comes from bench/results.json, which
+    `make bench` writes: a figure no run printed cannot stand there."""
+    sys.path.insert(0, "bench")
+    try:
+        import readme
+    finally:
+        sys.path.remove("bench")
+    with open("README.md") as f:
+        text = f.read()
+    assert readme.rewrite(text, readme.load()) == text, "run `make readme` (or `make bench`)"
 
 
 def test_non_additive_gauges_have_no_other_series():
