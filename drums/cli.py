@@ -323,20 +323,23 @@ def _settled(args):
     from drums.graph.adapter import Follower
     from drums.graph.model import Graph
 
-    # Until the first graph, a failure is the one line main() prints; after it, each is logged.
-    logging.basicConfig(format="drums: %(message)s")
-    logging.getLogger().setLevel("ERROR")
+    logging.basicConfig(level="WARNING", format="drums: %(message)s")
     adapter = registry.build(args.graph or registry.default(), args.graph_file)
     graph = Graph()
     follower = Follower(adapter, graph)
+    drums_log = logging.getLogger("drums")
     try:
-        follower.start(wait=True)
-        deadline = time.monotonic() + 2 * adapter.interval + 5
-        while not graph.updated_at and time.monotonic() < deadline:
-            time.sleep(0.05)
+        # Until the first graph, a failure is the one line main() prints; after it, each is logged.
+        level, drums_log.level = drums_log.level, logging.ERROR
+        try:
+            follower.start(wait=True)
+            deadline = time.monotonic() + 2 * adapter.interval + 5
+            while not graph.updated_at and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            drums_log.setLevel(level)
         if not graph.updated_at:
             raise GraphError(graph.error or "no graph within the time allowed")
-        logging.getLogger().setLevel("WARNING")
         # Discovery goes on after the first answer: done once nothing changed for `settle` s.
         _, cursor = graph.changes_since(0)
         quiet_since, give_up = time.monotonic(), time.monotonic() + 4 * adapter.settle

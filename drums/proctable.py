@@ -88,7 +88,9 @@ class ProcessTable:
                     raw = f.read(4096)
             except OSError:
                 raw = b""
-            self._cmdlines[pid] = [raw.replace(b"\0", b" ").decode(errors="replace").strip()] if raw else []
+            if not raw:  # a kernel thread, or a process caught between fork and exec: ask again later
+                return []
+            self._cmdlines[pid] = [raw.replace(b"\0", b" ").decode(errors="replace").strip()]
         return self._cmdlines[pid]
 
     def pids(self) -> set[int]:

@@ -78,6 +78,7 @@ def clear_jobs(api: str) -> None:
 
 def test_the_api_survives_a_schema_driven_fuzzer(tmp_path):
     (tmp_path / "token").write_text(TOKEN)
+    (tmp_path / "token").chmod(0o600)
     # With a token even on loopback: the run that carries it reaches every mutation, the run that
     # does not gets the 401s.
     with running_agent(*PROBES, "--token-file", str(tmp_path / "token")) as url:

@@ -7,7 +7,7 @@ import pytest
 from drums.agent import Agent, Selection
 from drums.budget import Budget
 from drums.errors import UsageError
-from tests.conftest import series
+from tests.conftest import eventually, series
 
 # A hierarchy to make a test group in: v1's pids controller here, else the cgroup2 root. The
 # selection matches a process's path in any hierarchy it is in.
@@ -55,11 +55,14 @@ def test_by_command_line_and_by_node_name(sched_probe, proctable, sleepers):
         graph = Graph()
         graph.update(GraphState(nodes=[Node("/driver", "here", sleepers[1].pid, "static")]))
 
-        def chosen(*names):
-            agent = Agent([sched_probe], proctable, Selection.parse(names=names), Budget({"process": 1000}), graph)
-            return pids_with_series(agent.collect())
-        assert chosen("planner-5e1c") == {marker.pid}
-        assert chosen("^/driver$") == {sleepers[1].pid}
+        def chosen(names, pids):
+            def check():  # a process just started may not have run yet: no CPU row until it has
+                agent = Agent([sched_probe], proctable, Selection.parse(names=names),
+                              Budget({"process": 1000, "thread": 1000}), graph)
+                assert pids_with_series(agent.collect()) == pids
+            eventually(check, timeout=5)
+        chosen(["planner-5e1c"], {marker.pid})
+        chosen(["^/driver$"], {sleepers[1].pid})
     finally:
         marker.kill()
         marker.wait()

@@ -27,8 +27,9 @@ THREAD_RUNQ_WAITS = "drums_thread_runqueue_waits_total"
 THREAD_SWITCHES = "drums_thread_context_switches_total"
 
 # sched_process_free runs from an RCU callback, and this kernel (CONFIG_RCU_LAZY) may hold such
-# callbacks back for up to 10 s when the CPU is otherwise quiet: wait for a freed entry that long.
-FREED_WITHIN = 12
+# callbacks back for up to 10 s when the CPU is otherwise quiet, and a grace period takes longer on
+# a machine busy with the whole suite: 12 s was once too short for 12 of 200 children there.
+FREED_WITHIN = 25
 
 MS_BOUND = next(b for b in RUNQ_BUCKETS if b >= 1e-3)  # 1.024 ms
 FOUR_MS_BOUND = next(b for b in RUNQ_BUCKETS if b >= 4e-3)  # 4.096 ms
