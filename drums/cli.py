@@ -330,7 +330,8 @@ def _settled(args):
     drums_log = logging.getLogger("drums")
     try:
         # Until the first graph, a failure is the one line main() prints; after it, each is logged.
-        level, drums_log.level = drums_log.level, logging.ERROR
+        level = drums_log.level
+        drums_log.setLevel(logging.ERROR)
         try:
             follower.start(wait=True)
             deadline = time.monotonic() + 2 * adapter.interval + 5
