@@ -111,6 +111,11 @@ class SchedProbe(BpfProbe):
         for (tgid,), (start, *s) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
             if pt.alive(tgid):
                 totals.add_exited(tgid, start, s)
+            elif not pt.belongs(tgid):
+                # sched_process_free of the leader deletes the entry, but on a busy machine the free
+                # of one of its threads may come after it and fold into a new one: the process is
+                # gone, so is its entry.
+                self.opened["exited_sched"].delete(_U32.pack(tgid))
         keys, values, _ = self.read("thread_sched")
         running = self._running()  # read after the threads: a slice that ended meanwhile is in neither
         for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
