@@ -35,6 +35,16 @@ def name_helper(role: str) -> None:
     ctypes.CDLL(None).prctl(_PR_SET_NAME, (HELPER + role).encode()[:15], 0, 0, 0)
 
 
+def process_start(proc: str, pid: int | str) -> int | None:
+    """When the process with this PID started (clock ticks after boot): with the PID, what tells it
+    from a later process that got the PID. None if there is none."""
+    try:
+        with open(f"{proc}/{pid}/stat", "rb") as f:
+            return int(f.read().rsplit(b")", 1)[1].split()[19])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def comm(proc: str, pid: int) -> str:
     """A process's name as the kernel keeps it ("" if it is gone)."""
     try:

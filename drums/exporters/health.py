@@ -10,11 +10,9 @@ from __future__ import annotations
 
 import json
 
-from drums.exporters.http import HttpError
+from drums.exporters.http import JSON, HttpError
 from drums.graph.model import Graph
 from drums.probes.base import Probe
-
-JSON = "application/json"
 
 
 def health(probes: list[Probe], graph: Graph | None, adapter: str) -> dict:

@@ -23,6 +23,7 @@ from typing import Callable
 from drums.errors import UsageError
 from drums.metrics import Histogram, Snapshot
 from drums.probes.latency import METHODS, LatencyProbe
+from drums.proctable import process_start
 
 log = logging.getLogger("drums")
 
@@ -30,7 +31,8 @@ PROTOCOLS = ("tcp", "udp")
 DIRECTIONS = ("src", "dst", "any")  # the socket's local port, its peer's port, either
 MIN_INTERVAL, MAX_INTERVAL = 0.1, 3600.0
 MIN_LEASE, MAX_LEASE = 1.0, 3600.0
-NEVER = float("inf")  # when a job without a lease expires
+NEVER = float("inf")
+PROC = "/proc"  # when a job without a lease expires
 MAX_JOBS = 1000  # each costs a pass over the snapshot per sample
 # The probes whose rows each kind of job picks: a sample reads those and no others.
 PROBES_OF = {"host": {"host"}, "latency": {"latency"}, "socket": {"sockets", "tcp"},
@@ -152,15 +154,6 @@ def parse_body(kind: str, body: object) -> tuple[float, dict, float | None]:
     return interval, settings, lease
 
 
-def process_start(pid: str) -> int | None:
-    """When the process with this PID started (clock ticks after boot); None if there is none."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            return int(f.read().rsplit(b")", 1)[1].split()[19])
-    except (OSError, IndexError, ValueError):
-        return None
-
-
 def job_id(kind: str, target: str) -> str:
     """How a job is named in the API and in listings: "pid/1234", "host", "socket/tcp/src/80"."""
     return f"{kind}/{target}" if target else kind
@@ -234,7 +227,7 @@ class Jobs:
         """(the job, whether it is new). Asking again for a job that exists changes its settings
         and renews its lease."""
         settings = settings or {}
-        started = process_start(target) if kind == "pid" else None
+        started = process_start(PROC, target) if kind == "pid" else None
         if kind == "pid" and started is None:
             raise NotFound(f"no process {target}")
         if kind == "latency":
@@ -287,7 +280,7 @@ class Jobs:
         with self._lock:
             ended = [(j.id, "its lease ran out") for j in self._jobs.values() if j.expires <= now]
             ended += [(j.id, "its process ended") for j in self._jobs.values()
-                      if j.kind == "pid" and j.expires > now and process_start(j.target) != j.started]
+                      if j.kind == "pid" and j.expires > now and process_start(PROC, j.target) != j.started]
             nearest = min((j.expires - now for j in self._jobs.values() if now < j.expires < NEVER), default=None)
         for job, why in ended:
             try:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 
-from drums.proctable import ProcessTable, mapped_libraries
+from drums.proctable import ProcessTable, mapped_libraries, process_start
 
 FASTDDS_VENDOR = b"\x01\x0f"
 RCL_LIBRARY = "librcl.so"
@@ -37,8 +37,8 @@ class ProcScan:
     def __init__(self, proc: str = "/proc"):
         self.proc = proc
         self.table = ProcessTable(proc)  # the listing and the names
-        self._rcl: dict[tuple[int, str], bool] = {}
-        self._cmdline: dict[tuple[int, str], list[str]] = {}
+        self._rcl: dict[tuple[int, int | None], bool] = {}
+        self._cmdline: dict[tuple[int, int | None], list[str]] = {}
 
     def refresh(self) -> None:
         self.table.refresh()
@@ -51,21 +51,14 @@ class ProcScan:
     def name(self, pid: int) -> str:
         return self.table.name(pid)
 
-    def _start(self, pid: int) -> str:
-        try:
-            with open(f"{self.proc}/{pid}/stat") as f:
-                return f.read().rsplit(")", 1)[1].split()[19]
-        except (OSError, IndexError):
-            return ""
-
     def has_rcl(self, pid: int) -> bool:
-        key = (pid, self._start(pid))
+        key = (pid, process_start(self.proc, pid))
         if key not in self._rcl:
             self._rcl[key] = bool(mapped_libraries(self.proc, pid, (RCL_LIBRARY,)))
         return self._rcl[key]
 
     def cmdline(self, pid: int) -> list[str]:
-        key = (pid, self._start(pid))
+        key = (pid, process_start(self.proc, pid))
         if key not in self._cmdline:
             try:
                 with open(f"{self.proc}/{pid}/cmdline", "rb") as f:
