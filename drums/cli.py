@@ -12,6 +12,9 @@ import time
 
 from drums.errors import DrumsError, GraphError, UsageError
 
+# A one-shot graph is complete once it has not changed for this long (and its adapter's settle).
+QUIET = 1.0
+
 log = logging.getLogger("drums")
 
 
@@ -341,14 +344,15 @@ def _settled(args):
             drums_log.setLevel(level)
         if not graph.updated_at:
             raise GraphError(graph.error or "no graph within the time allowed")
-        # Discovery goes on after the first answer: done once nothing changed for `settle` s.
+        # Discovery goes on after the first answer: done `settle` s later, once nothing changes.
         _, cursor = graph.changes_since(0)
-        quiet_since, give_up = time.monotonic(), time.monotonic() + 4 * adapter.settle
-        while time.monotonic() - quiet_since < adapter.settle and time.monotonic() < give_up:
+        first = changed = time.monotonic()
+        while time.monotonic() < first + 4 * adapter.settle and (
+                time.monotonic() < first + adapter.settle or time.monotonic() < changed + QUIET):
             time.sleep(0.05)
             changes, cursor = graph.changes_since(cursor)
             if changes:
-                quiet_since = time.monotonic()
+                changed = time.monotonic()
     except BaseException:
         follower.stop()
         raise

@@ -23,7 +23,9 @@ log = logging.getLogger("drums")
 class Adapter:
     name = ""
     interval = 1.0  # seconds between polls
-    settle = 0.0  # seconds without a change after which a one-shot reader takes the graph as complete
+    # A one-shot reader takes the graph as complete `settle` s after its first answer, once nothing
+    # has changed for a second (drums.cli.QUIET).
+    settle = 0.0
 
     def start(self) -> None:
         """Raise GraphError if the adapter cannot run at all (e.g. rclpy missing)."""

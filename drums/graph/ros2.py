@@ -165,7 +165,10 @@ class Ros2Adapter(ChildAdapter):
     name = "ros2"
     module = "drums.graph.ros2"
     env = {"FASTDDS_DEFAULT_PROFILES_FILE": os.path.join(os.path.dirname(__file__), "fastdds_reader.xml")}
-    settle = 3.0  # every DDS participant announces itself every 3 s (Fast DDS's default)
+    # Every DDS participant announces itself every 3 s (Fast DDS's default), and a busy one may not
+    # answer the reader's first announcements: it is seen at its next one, up to 3 s later and
+    # then its endpoints (measured: 3.5-3.9 s after the reader started, with both cores busy).
+    settle = 4.5
 
     def __init__(self, interval: float = 0.5, timeout: float = 5.0, announce: Host | None = None):
         """`announce`: the host this reader's agent runs on, to tell the other agents."""
