@@ -38,6 +38,10 @@ class Histogram:
         return Histogram([a + b for a, b in zip(self.cumulative, other.cumulative)], self.sum + other.sum,
                          self.count + other.count)
 
+    def __sub__(self, other: "Histogram") -> "Histogram":
+        return Histogram([a - b for a, b in zip(self.cumulative, other.cumulative)], self.sum - other.sum,
+                         self.count - other.count)
+
 
 class Snapshot:
     """What the agent knows at one instant: metric -> [(label values, value)].
