@@ -21,7 +21,7 @@ import time
 
 from common import (Agent, BenchError, cpu_seconds, drums_unload, fetch, fmt, main_wrapper, median,
                     memory, percentile, print_table, progress, ratio, require_root, samples, series_count,
-                    terminate, uss_bytes)
+                    terminate, tree, uss_bytes)
 
 GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 20}
 HOLDERS = 4  # processes that hold the sockets
@@ -110,7 +110,8 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
             fetch(agent.url, timeout=30)
             time.sleep(interval)
         latencies, collect, outside, sizes, per_probe = [], [], [], [], {}
-        cpu0, t0 = cpu_seconds(agent.proc.pid), time.monotonic()
+        processes = tree(agent.proc.pid)  # the whole tree: the agent and any helper it started
+        cpu0, t0 = sum(map(cpu_seconds, processes)), time.monotonic()
         next_at = t0
         while time.monotonic() - t0 < seconds:
             start = time.perf_counter()
@@ -126,9 +127,9 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
             sizes.append((len(body), series_count(body)))
             next_at += interval
             time.sleep(max(0.0, next_at - time.monotonic()))
-        cpu1, t1 = cpu_seconds(agent.proc.pid), time.monotonic()
-        mem = memory(agent.proc.pid)
-        return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": uss_bytes(agent.proc.pid), "rss": mem.get("Rss", 0),
+        cpu1, t1 = sum(map(cpu_seconds, processes)), time.monotonic()
+        return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": sum(map(uss_bytes, processes)),
+                "rss": sum(memory(p).get("Rss", 0) for p in processes), "processes": len(processes),
                 "latencies": latencies, "collect": collect, "outside": outside, "sizes": sizes[-1],
                 "per_probe": {k: median(v) for k, v in per_probe.items()},
                 "sockets": len(samples(body, "drums_socket_sent_bytes_total"))}
@@ -226,6 +227,7 @@ def run(args) -> None:
         f"{args.processes:,} processes ({HOLDERS} of them hold {args.sockets:,} loopback TCP sockets, each "
         f"of which sent a few bytes), {args.seconds} s window after 2 unmeasured cycles, one cycle per "
         f"{args.interval:g} s; the agent runs all probes"
+        + f" (its whole process tree measured: {ours['processes']} process{'es' if ours['processes'] > 1 else ''})"
         + (f" with {args.agent_args}" if args.agent_args else " with its default budget") + ".",
         "a Drums cycle is one /metrics request timed by the client (collect + render + HTTP); a psutil "
         "cycle is one poll of every process and of net_connections(), with nothing rendered or sent.",

@@ -141,6 +141,18 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / _CLK_TCK  # fields 14 and 15 of proc(5)
 
 
+def tree(pid: int) -> list[int]:
+    """The process and its children (the agent's helpers), as they run now."""
+    pids = [pid]
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                pids += [int(p) for p in f.read().split()]
+        except OSError:
+            pass
+    return pids
+
+
 def memory(pid: int) -> dict[str, int]:
     """Rss, Pss, Private_Clean, Private_Dirty, ... of a process in bytes (smaps_rollup)."""
     out = {}

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import os
-import resource
 import threading
 import time
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from drums.graph.model import ENTITIES, Graph
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.probes.base import Probe
 from drums.proctable import ProcessTable
+from drums.selfcost import TreeCost
 
 log = logging.getLogger("drums")
 
@@ -43,10 +43,14 @@ FOLDED = Metric("drums_budget_folded_entities", GAUGE,
                 "Entities over the cardinality budget, summed into the series labelled other", ("kind",))
 AGENT_COLLECT = Metric("drums_agent_collect_duration_seconds", GAUGE,
                        "How long this snapshot took to collect: every probe, selection and budget")
-AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER, "CPU time used by the agent process")
-AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE, "Resident memory of the agent process")
+# role: agent (the agent process), graph (its ROS 2 graph reader), diagnostics (its /diagnostics publisher).
+AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER,
+                   "CPU time used by the agent's processes: the agent and each helper it started, by role", ("role",))
+AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE,
+                   "Resident memory of the agent's processes, by role", ("role",))
 AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
-                   "Memory only the agent process uses (private pages: what stopping it would free)")
+                   "Memory only the agent's processes use, by role (private pages: what stopping them would free)",
+                   ("role",))
 GRAPH_STALE = Metric("drums_graph_stale", GAUGE,
                      "1 while the graph adapter fails (the last good graph is kept), else 0", ("adapter",))
 GRAPH_ENTITIES = Metric("drums_graph_entities", GAUGE, "Entities in the graph, by kind", ("kind",))
@@ -98,22 +102,6 @@ class Selection:
         return False
 
 
-def _memory() -> tuple[int, int]:
-    """(RSS, USS) of this process in bytes, from smaps_rollup."""
-    rss = uss = 0
-    try:
-        with open("/proc/self/smaps_rollup") as f:
-            for line in f:
-                key, _, rest = line.partition(":")
-                if key == "Rss":
-                    rss = int(rest.split()[0]) * 1024
-                elif key in ("Private_Clean", "Private_Dirty"):
-                    uss += int(rest.split()[0]) * 1024
-    except OSError:
-        pass
-    return rss, uss
-
-
 def _of_chosen(metric: Metric, rows: list, chosen: set[str]) -> list:
     """The rows of the chosen processes; metrics not about a process pass whole."""
     if "pid" not in metric.labels:
@@ -136,6 +124,7 @@ class Agent:
         self._reasons: dict[str, str] = {}
         self._durations: dict[str, float] = {}
         self._success: dict[str, int] = {}
+        self._tree = TreeCost()
         self._loss_said: dict[str, tuple[int, float]] = {}  # probe -> (its drops when last said, when)
         self.wanted_pids: Callable[[], set[int]] = set  # processes a client asked for (jobs): always read
 
@@ -186,6 +175,7 @@ class Agent:
     def _collect(self) -> Snapshot:
         """The snapshot to export: every probe, joined onto the graph, selected and budgeted."""
         began = time.perf_counter()
+        self._want_rtt()
         raw = self._read({p.name for p in self.probes})
         joined = Snapshot()
         if self.graph is not None:
@@ -198,6 +188,15 @@ class Agent:
         self._self_metrics(snap)
         snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
         return snap
+
+    def _want_rtt(self) -> None:
+        """RTT is read for the connections that have series of their own, and the graph's edges."""
+        pairs = self.budget.kept("connection")
+        if self.graph is not None:
+            pairs |= {(c.local, c.remote) for c in self.graph.connections() if c.local and c.remote}
+        for probe in self.probes:
+            if hasattr(probe, "want_rtt"):
+                probe.want_rtt(pairs)
 
     def _read(self, names: set[str]) -> Snapshot:
         """The rows of the probes called `names`."""
@@ -291,8 +290,7 @@ class Agent:
             snap.add(FOLDED, (kind,), count)
         for kind, count in self.budget.folded_total().items():
             snap.add(FOLDED_TOTAL, (kind,), count)
-        usage = resource.getrusage(resource.RUSAGE_SELF)
-        snap.add(AGENT_CPU, (), usage.ru_utime + usage.ru_stime)
-        rss, uss = _memory()
-        snap.add(AGENT_RSS, (), rss)
-        snap.add(AGENT_USS, (), uss)
+        for role, (cpu, rss, uss) in sorted(self._tree.sample().items()):
+            snap.add(AGENT_CPU, (role,), cpu)
+            snap.add(AGENT_RSS, (role,), rss)
+            snap.add(AGENT_USS, (role,), uss)

@@ -59,8 +59,10 @@ class _Group:
     """What the budget remembers of one group of metrics (metrics sharing their labels) between
     collects, so that each collect does per-row work only for the rows that changed."""
 
-    def __init__(self, metrics: tuple[Metric, ...], kind: str):
+    def __init__(self, metrics: tuple[Metric, ...], kind: str, single: bool):
+        """`single`: the rows of one metric added alone, which carry a value, not a tuple of them."""
         ident, rank_names = KINDS[kind]
+        self.single = single
         labels = metrics[0].labels
         self.metrics = metrics
         self.entity_of = itemgetter(*[labels.index(label) for label in ident])
@@ -89,10 +91,12 @@ class _Group:
         What each entity's ranking counters grew by is added to grew[metric name][entity]."""
         now, last, entity_of = dict(rows), self.last, self.entity_of
         changed = [(labels, values) for labels, values in now.items() if last.get(labels) != values]
+        if self.single:
+            changed = [(labels, (value,)) for labels, value in changed]
         for i, name in self.rank:
             into = grew.setdefault(name, {})
             for labels, values in changed:
-                old = last.get(labels)
+                old = self.values(labels, last)
                 d = values[i] - (old[i] if old is not None else 0)
                 if d > 0:
                     entity = entity_of(labels)
@@ -109,6 +113,17 @@ class _Group:
                 rows_of.setdefault(entity_of(labels), set()).add(labels)
         self.last = now
         return changed, gone
+
+    def values(self, labels: tuple, rows: dict | None = None) -> tuple | None:
+        """The values of a row at the last collect (or in `rows`), as a tuple."""
+        values = (self.last if rows is None else rows).get(labels)
+        return (values,) if self.single and values is not None else values
+
+    def emit(self, out: Snapshot, entities) -> None:
+        """The rows of these entities, as they came."""
+        own = out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)
+        for entity in entities:
+            own.extend((labels, self.last[labels]) for labels in self.rows_of.get(entity, ()))
 
 
 @dataclass
@@ -150,13 +165,13 @@ class Budget:
             if kind is None:
                 out.rows(metric).extend(rows)
             else:  # a metric alone is a group of one
-                by_kind[kind][(metric,)] = [(labels, (v,)) for labels, v in rows]
+                by_kind[kind][(metric,)] = (rows, True)
         for metrics, rows in snap.groups.items():
             kind = kind_of(metrics[0])
             if kind is None:
                 out.group_rows(metrics).extend(rows)
             else:
-                by_kind[kind][metrics] = rows
+                by_kind[kind][metrics] = (rows, False)
         for kind, groups in by_kind.items():
             self._apply_kind(self.kinds[kind], kind, groups, out)
         return out
@@ -167,8 +182,9 @@ class Budget:
         seen = []  # (group, changed rows, labels gone)
         grew: dict[str, dict] = {}
         for metrics in groups.keys() | st.groups.keys():  # a group absent this time lost all its rows
-            g = st.groups.get(metrics) or st.groups.setdefault(metrics, _Group(metrics, kind))
-            changed, gone = g.update(groups.get(metrics, []), grew)
+            rows, single = groups.get(metrics, ([], False))
+            g = st.groups.get(metrics) or st.groups.setdefault(metrics, _Group(metrics, kind, single))
+            changed, gone = g.update(rows, grew)
             seen.append((g, changed, gone))
         entities = set().union(*[g.rows_of.keys() for g in st.groups.values()])
         activity: dict = {}
@@ -181,16 +197,18 @@ class Budget:
         kept = st.kept
         promoted, demoted = kept - was_kept, was_kept - kept
         for g, changed, gone in seen:
-            own = out.group_rows(g.metrics)
-            for entity in kept:
-                own.extend((labels, g.last[labels]) for labels in g.rows_of.get(entity, ()))
+            g.emit(out, kept)
             if g.additive:
                 self._fold(st, g, changed, gone, promoted, demoted)
         folded_set = entities - kept
         st.folded_total += len(folded_set - st.folded_set)
         st.folded_set = folded_set
         for key, values in st.totals.items():
-            out.group_rows(key[0]).append((key[1], tuple(values)))
+            metrics, labels = key
+            if len(metrics) == 1:
+                out.rows(metrics[0]).append((labels, values[0]))
+            else:
+                out.group_rows(metrics).append((labels, tuple(values)))
 
     @staticmethod
     def _fold(st: _KindState, g: _Group, changed: list, gone: set, promoted: set, demoted: set) -> None:
@@ -210,7 +228,7 @@ class Budget:
         kept, entity_of = st.kept, g.entity_of
         entering = {labels: values for labels, values in changed if entity_of(labels) not in kept}
         for e in demoted:
-            entering.update((labels, g.last[labels]) for labels in g.rows_of.get(e, ()))
+            entering.update((labels, g.values(labels)) for labels in g.rows_of.get(e, ()))
         for labels, values in entering.items():
             old = g.folded.get(labels)
             key = g.other_key(labels)

@@ -68,6 +68,16 @@ class Snapshot:
         """The rows added one metric at a time, groups left out."""
         return self._series
 
+    def of(self, metric: Metric) -> list[tuple[tuple[str, ...], object]]:
+        """The metric's rows, without spreading out the groups of other metrics (as `series` does)."""
+        if metric in self._series:
+            return self._series[metric]
+        for metrics, rows in self.groups.items():
+            if metric in metrics:
+                i = metrics.index(metric)
+                return [(labels, values[i]) for labels, values in rows]
+        return []
+
     def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
         self._series.setdefault(metric, []).append((labels, value))
 

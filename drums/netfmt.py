@@ -23,6 +23,16 @@ def endpoint(family: int, raw: bytes, port: int) -> str:
     return ""
 
 
+def parse_endpoint(text: str) -> tuple[int, bytes, int] | None:
+    """(family, address in network order, port) of what endpoint() wrote, None for anything else."""
+    host, _, port = text.rpartition(":")
+    family = AF_INET6 if host.startswith("[") else AF_INET
+    try:
+        return family, socket.inet_pton(family, host.strip("[]")), int(port)
+    except (OSError, ValueError):
+        return None
+
+
 def hostport(host: str, port: int) -> str:
     """host:port, with an IPv6 address in brackets as URLs and Prometheus targets want it."""
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"

@@ -12,6 +12,7 @@ import urllib.error
 import urllib.parse
 import urllib.request
 
+import psutil
 import pytest
 
 from tests.agentproc import free_port, running_agent, samples, scrape
@@ -236,3 +237,25 @@ def test_a_graph_that_cannot_be_read_is_said_once(command, tmp_path):
                          cwd=tmp_path, env={**os.environ, "ROS_MASTER_URI": uri})
     assert (out.returncode, out.stdout) == (2, "")
     assert out.stderr == f"drums: the ROS master at {uri} refused the connection\n"
+
+
+def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
+    """The agent and each helper it started (here the ROS 2 graph reader), by role; CPU as the
+    kernel counts it for each process, read before and after the scrape."""
+    port = str(urllib.parse.urlsplit(agent).port)
+    (proc,) = [p for p in psutil.process_iter(["cmdline"])
+               if p.info["cmdline"] and "agent" in p.info["cmdline"] and port in p.info["cmdline"]]
+    processes = {"agent": proc} | {c.name().removeprefix("drums-"): c for c in proc.children()}
+    assert "graph" in processes, processes
+    before = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}
+    text = scrape(agent)
+    after = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}
+    cpu = {dict(k)["role"]: v for k, v in samples(text, "drums_agent_cpu_seconds_total").items()}
+    assert set(cpu) == set(processes)
+    for role in processes:
+        assert before[role] <= cpu[role] <= after[role] + 0.01, (role, before[role], cpu[role], after[role])
+    rss = {dict(k)["role"]: v for k, v in samples(text, "drums_agent_resident_memory_bytes").items()}
+    uss = {dict(k)["role"]: v for k, v in samples(text, "drums_agent_unique_memory_bytes").items()}
+    for role, p in processes.items():
+        assert 10 * 2 ** 20 < uss[role] <= rss[role], (role, uss[role], rss[role])
+        assert abs(rss[role] - p.memory_info().rss) < 0.2 * rss[role], (role, rss[role], p.memory_info().rss)

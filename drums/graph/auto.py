@@ -7,6 +7,7 @@ process. UDP and unix sockets carry no direction, so they are not edges here.
 from __future__ import annotations
 
 import socket
+import time
 
 from drums.errors import GraphError, KernelError
 from drums.graph.adapter import Adapter
@@ -16,6 +17,7 @@ from drums.kernel import sockdiag
 from drums.proctable import ProcessTable
 
 ESTABLISHED, LISTEN = 1, 10
+OWNERS_REREAD = 60.0
 
 
 def _endpoint(address: str, port: int) -> str:
@@ -33,14 +35,34 @@ class AutoAdapter(Adapter):
 
     def __init__(self, proc: str = "/proc"):
         self.scan = ProcScan(proc)
+        self._owners: dict[int, int] = {}  # socket inode -> PID, from the last reading of open files
+        self._unowned: set[int] = set()  # inodes no process held at that reading
+        self._read_at = float("-inf")
+
+    def _owners_of(self, conns: list) -> dict[int, int]:
+        """Socket inode -> PID for these connections. Every process's open files are read when a
+        connection's socket is new since the last reading, and at least every OWNERS_REREAD
+        seconds (a socket handed to another process keeps its inode): on a host whose
+        connections stay, rarely."""
+        owners = {inode: pid for inode, pid in self._owners.items() if self.scan.table.alive(pid)}
+        inodes = {c.inode for c in conns if c.inode}
+        now = time.monotonic()
+        if inodes - owners.keys() - self._unowned or now - self._read_at >= OWNERS_REREAD:
+            owners = _socket_owners(self.scan.table)
+            self._unowned = inodes - owners.keys()
+            self._read_at = now
+        else:
+            self._unowned &= inodes
+        self._owners = owners
+        return owners
 
     def poll(self) -> GraphState:
         try:
-            conns = sockdiag.dump_tcp((1 << ESTABLISHED) | (1 << LISTEN))
+            conns = sockdiag.dump_tcp((1 << ESTABLISHED) | (1 << LISTEN), info=False)
         except KernelError as e:
             raise GraphError(str(e)) from None
         self.scan.refresh()
-        owners = _socket_owners(self.scan.table)
+        owners = self._owners_of(conns)
         host = socket.gethostname()
         listeners = {}  # port -> pid (any address)
         for c in conns:

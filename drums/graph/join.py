@@ -76,7 +76,7 @@ GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs be
 def _by_pid(raw: Snapshot, metric: Metric) -> dict[str, list[tuple[tuple[str, ...], object]]]:
     """The metric's rows by their pid label (the first label of every per-process metric)."""
     out = defaultdict(list)
-    for labels, value in raw.series.get(metric, ()):
+    for labels, value in raw.of(metric):
         out[labels[0]].append((labels, value))
     return out
 
@@ -135,17 +135,17 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     sums: dict[Metric, dict[tuple[str, ...], int]] = defaultdict(lambda: defaultdict(int))
     for metric, source, kind in ((TOPIC_PUBLISHED, rcl.PUBLISHED, "publisher"),
                                  (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
-        for (pid, _, topic, gid), value in raw.series.get(source, ()):
+        for (pid, _, topic, gid), value in raw.of(source):
             sums[metric][topic, owner(pid, kind, topic, gid)] += value
     for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES),
                            (TOPIC_SENT_WIRE_BYTES, rtps.SENT_WIRE_BYTES)):
-        for (_, _, writer), value in raw.series.get(source, ()):
+        for (_, _, writer), value in raw.of(source):
             e = by_gid.get(writer)
             if e is not None and e.kind == "publisher":
                 sums[metric][e.topic, e.node] += value
     for metric, source in ((EDGE_SAMPLES, rtps.SAMPLES_RECEIVED), (EDGE_RECEIVED_BYTES, rtps.RECEIVED_BYTES),
                            (EDGE_RECEIVED_WIRE_BYTES, rtps.RECEIVED_WIRE_BYTES)):
-        for (pid, _, writer), value in raw.series.get(source, ()):
+        for (pid, _, writer), value in raw.of(source):
             e = by_gid.get(writer)
             if e is not None and e.kind == "publisher":
                 sums[metric][e.topic, e.node, owner(pid, "subscriber", e.topic)] += value
@@ -163,12 +163,12 @@ def _socket_edges(connections: list[Connection], raw: Snapshot, out: Snapshot) -
         return
     for metric, source, reverse in ((EDGE_SENT_BYTES, sockets.SOCKET["sent_bytes"], False),
                                     (EDGE_RECEIVED_BYTES, sockets.SOCKET["received_bytes"], True)):
-        for (_, _, _, local, remote, _, _), value in raw.series.get(source, ()):
+        for (_, _, _, local, remote, _, _), value in raw.of(source):
             edge = edges.get((remote, local) if reverse else (local, remote))
             if edge is not None:
                 out.add(metric, edge, value)
     for metric, source in ((EDGE_RETRANSMITS, tcp.CONN_RETRANSMITS), (EDGE_RTT, tcp.CONN_RTT)):
-        for labels, value in raw.series.get(source, ()):
+        for labels, value in raw.of(source):
             edge = edges.get((labels[0], labels[1]))
             if edge is not None:
                 out.add(metric, edge, value)

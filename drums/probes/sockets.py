@@ -168,6 +168,7 @@ class SocketsProbe(BpfProbe):
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
         self._decode = SocketDecoder()
+        self._rows: dict[int, tuple] = {}  # sk -> (socket, process name, local, row) at the last collect
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -191,12 +192,22 @@ class SocketsProbe(BpfProbe):
                 [(_U64.pack(s.sk), raw) for s, raw in sockets if s.sk in stale])
         paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s, _ in sockets) else {}
         rows = snap.group_rows(SOCKET_GROUP)
+        # An idle socket's row is the very one of the last collect, and a busy one's labels are:
+        # what the budget compares them with next is found at once.
+        made, self._rows = self._rows, {}
         for s, _ in sockets:
             if s.sk in stale:
                 continue
             local = paths.get(s.inode, "") if s.protocol == "unix" else s.local
-            rows.append(((str(s.pid), pt.name(s.pid), s.protocol, local, s.remote, str(s.netns), str(s.inode)),
-                         s.counts))
+            name = pt.name(s.pid)
+            last = made.get(s.sk)
+            if last is not None and last[1] == name and last[2] == local and last[0].inode == s.inode \
+                    and last[0].pid == s.pid and last[0].remote == s.remote:
+                row = last[3] if last[0] is s else (last[3][0], s.counts)
+            else:
+                row = ((str(s.pid), name, s.protocol, local, s.remote, str(s.netns), str(s.inode)), s.counts)
+            self._rows[s.sk] = (s, name, local, row)
+            rows.append(row)
 
         totals = ProcessTotals()
         keys, values, _ = self.read("exited_traffic")

@@ -15,7 +15,7 @@ from drums.kernel import sockdiag
 from drums.kernel.bpffs import sum_percpu
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
-from drums.netfmt import endpoint
+from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
 
@@ -42,9 +42,9 @@ STATE_ENTERED = Metric("drums_tcp_state_transitions_total", COUNTER,
                        "TCP connections entering each state", ("state",))
 
 _CONN_VALUE = struct.Struct("<IHHHH16s16s4x4Q")
-TCP_CLOSE = 7
-# Dumping every established connection costs about 17 ms per 1,000 of them, so RTT is sampled at
-# this interval (seconds) rather than at every scrape.
+ESTABLISHED, TCP_CLOSE = 1, 7
+# Reading tcp_info costs a netlink round trip per connection (a dump of every established one,
+# about 17 ms per 1,000), so RTT is sampled at this interval (seconds) rather than at every scrape.
 RTT_INTERVAL = 5.0
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
@@ -71,6 +71,15 @@ class TcpProbe(BpfProbe):
         self._rtt: list = []
         self._rtt_at = float("-inf")
         self._decoded: dict[bytes, tuple] = {}  # map value -> (labels, counts, state)
+        self._wanted: set[tuple[str, str]] | None = None
+
+    def want_rtt(self, connections: set[tuple[str, str]]) -> None:
+        """Read RTT for these (local, remote) connections only (the agent's: those with series of
+        their own, and the graph's edges), not for every established one. One not read yet is
+        read at the next collect, not after the interval."""
+        if self._wanted is None or not connections <= self._wanted:
+            self._rtt_at = float("-inf")
+        self._wanted = connections
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = {"RETRANSMIT_HAS_ERR": 1} if len(btf.tracepoint_args("tcp_retransmit_skb") or ()) >= 3 else {}
@@ -107,7 +116,7 @@ class TcpProbe(BpfProbe):
         now = time.monotonic()
         if now - self._rtt_at >= self.rtt_interval:
             try:
-                self._rtt = [((local, remote), c.srtt_us / 1e6) for c, local, remote in established()]
+                self._rtt = self._read_rtt()
                 self.status.reason = ""
             except KernelError as e:
                 self._rtt = []
@@ -116,6 +125,15 @@ class TcpProbe(BpfProbe):
         for labels, rtt in self._rtt:
             snap.add(CONN_RTT, labels, rtt)
         self.read_dropped()
+
+    def _read_rtt(self) -> list[tuple[tuple[str, str], float]]:
+        if self._wanted is None:
+            return [((local, remote), c.srtt_us / 1e6) for c, local, remote in established()]
+        wanted = [(pair, parse_endpoint(pair[0]), parse_endpoint(pair[1])) for pair in self._wanted]
+        wanted = [(pair, local, remote) for pair, local, remote in wanted if local and remote]
+        found = sockdiag.lookup_tcp([(local, remote) for _, local, remote in wanted])
+        return [(pair, c.srtt_us / 1e6) for (pair, _, _), c in zip(wanted, found)
+                if c is not None and c.state == ESTABLISHED]
 
 
 

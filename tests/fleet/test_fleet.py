@@ -163,7 +163,7 @@ def fleet(network, tmp_path_factory):
 
 def timestamps(robot: str, start: float, end: float) -> list[float]:
     """When the centre holds samples of the robot's agent's CPU counter, in seconds."""
-    text = vm("/api/v1/export", **{"match[]": f'drums_agent_cpu_seconds_total{{robot="{robot}"}}',
+    text = vm("/api/v1/export", **{"match[]": f'drums_agent_cpu_seconds_total{{robot="{robot}", role="agent"}}',
                                      "start": f"{start:.3f}", "end": f"{end:.3f}"})
     (line,) = text.splitlines()
     return [t / 1000 for t in json.loads(line)["timestamps"]]

@@ -195,20 +195,30 @@ def test_one_connection_walks_the_state_machine(tcp_probe, collect):
 
 # ---- RTT ----------------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("asked", [False, True], ids=["every-connection", "asked-for"])
 @pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
-def test_smoothed_rtt_of_a_loopback_connection(tcp_probe, collect, family, monkeypatch):
+def test_smoothed_rtt_of_a_loopback_connection(tcp_probe, collect, family, asked, monkeypatch):
+    """Read for every established connection (from a dump), or for those the agent asks for (one
+    lookup each: those with series of their own, and the graph's edges)."""
     monkeypatch.setattr(tcp_probe, "rtt_interval", 0)  # sample RTT at this collect
+    monkeypatch.setattr(tcp_probe, "_wanted", None)
     with tcp_listener(family) as lst, socket.create_connection(lst.getsockname()[:2]) as client, \
-            lst.accept()[0] as server:
+            lst.accept()[0] as server, socket.create_connection(lst.getsockname()[:2]) as unasked, \
+            lst.accept()[0]:
         for _ in range(5):  # round trips give both ends RTT samples
             client.sendall(b"ping")
             assert server.recv(4) == b"ping"
             server.sendall(b"pong")
             assert client.recv(4) == b"pong"
+        if asked:
+            tcp_probe.want_rtt({(name(end.getsockname()), name(end.getpeername())) for end in (client, server)})
         for end in (client, server):
             rtt, kernel_us = settled(tcp_probe, collect, end, "srtt_us", "drums_tcp_connection_smoothed_rtt_seconds")
             assert rtt == kernel_us / 1e6
             assert 0 < rtt < 0.010
+        rtts = series(collect(tcp_probe), "drums_tcp_connection_smoothed_rtt_seconds",
+                      local=name(unasked.getsockname()))
+        assert len(rtts) == (0 if asked else 1)
 
 
 # ---- retransmissions ----------------------------------------------------------------------------

@@ -44,11 +44,13 @@ def build(cfg: Config) -> dashboard.Dashboard:
                                      "be named for (node unknown).", "none",
                                      query(s("drums_topic_unattributed_rows"), legend(host, "kind"))))
         .with_row(dashboard.Row("Cost"))
-        .with_panel(timeseries_panel("Agent CPU", "CPU cores the agent process keeps busy.", "none",
-                                     query(f"rate({s('drums_agent_cpu_seconds_total')}{RATE})", legend(host))))
-        .with_panel(timeseries_panel("Agent memory", "Resident memory of the agent, and what only it uses.", "bytes",
-                                     query(s("drums_agent_resident_memory_bytes"), legend(host) + " resident"),
-                                     query(s("drums_agent_unique_memory_bytes"), legend(host) + " unique")))
+        .with_panel(timeseries_panel("Agent CPU", "CPU cores the agent keeps busy: the agent process and each "
+                                     "helper it started (role graph: the ROS 2 graph reader; diagnostics).", "none",
+                                     query(f"rate({s('drums_agent_cpu_seconds_total')}{RATE})", legend(host, "role"))))
+        .with_panel(timeseries_panel("Agent memory", "Resident memory of the agent's processes, and what only they "
+                                     "use, by role.", "bytes",
+                                     query(s("drums_agent_resident_memory_bytes"), legend(host, "role") + " resident"),
+                                     query(s("drums_agent_unique_memory_bytes"), legend(host, "role") + " unique")))
         .with_panel(timeseries_panel("Scrapes", "How long Prometheus takes to scrape the agent, and the samples it "
                                      "gets.", "s",
                                      query(s("scrape_duration_seconds"), legend(host) + " duration"),

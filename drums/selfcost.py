@@ -1,0 +1,83 @@
+"""What the agent's own process tree costs: CPU and memory of the agent and of each helper process
+it started (the ROS 2 graph reader, the /diagnostics publisher), by role."""
+from __future__ import annotations
+
+import os
+
+from drums.proctable import HELPER
+
+AGENT = "agent"
+_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def memory(pid: int | str = "self") -> tuple[int, int]:
+    """(RSS, USS) of a process in bytes, from smaps_rollup; zeros if it is gone."""
+    rss = uss = 0
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                key, _, rest = line.partition(":")
+                if key == "Rss":
+                    rss = int(rest.split()[0]) * 1024
+                elif key in ("Private_Clean", "Private_Dirty"):
+                    uss += int(rest.split()[0]) * 1024
+    except (OSError, ValueError):
+        pass
+    return rss, uss
+
+
+def _cpu_and_role(pid: int) -> tuple[float, str] | None:
+    """(CPU seconds, role) of a child, None if it is gone. A helper names itself drums-<role>."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return None
+    comm = stat[stat.index(b"(") + 1:stat.rindex(b")")].decode(errors="replace")
+    fields = stat.rsplit(b")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / _TICKS, comm.removeprefix(HELPER)
+
+
+def _children() -> list[int]:
+    pids = []
+    for task in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{task}/children") as f:
+                pids += [int(p) for p in f.read().split()]
+        except (OSError, ValueError):
+            pass
+    return pids
+
+
+class TreeCost:
+    """CPU seconds (a counter per role that never goes backwards: a helper that is restarted adds
+    to what the one before it used), resident and unique memory of the agent and its children."""
+
+    def __init__(self):
+        self._last: dict[int, tuple[str, float]] = {}  # child pid -> (role, CPU seconds) when last seen
+        self._ended: dict[str, float] = {}  # role -> CPU seconds of its children that ended
+
+    def sample(self) -> dict[str, tuple[float, int, int]]:
+        """role -> (CPU seconds, RSS, USS)."""
+        times = os.times()
+        rss, uss = memory()
+        out = {AGENT: [times.user + times.system, rss, uss]}
+        seen = {}
+        for pid in _children():
+            got = _cpu_and_role(pid)
+            if got is None:
+                continue
+            cpu, role = got
+            seen[pid] = (role, cpu)
+            rss, uss = memory(pid)
+            row = out.setdefault(role, [0.0, 0, 0])
+            row[0] += cpu
+            row[1] += rss
+            row[2] += uss
+        for pid in self._last.keys() - seen.keys():
+            role, cpu = self._last[pid]
+            self._ended[role] = self._ended.get(role, 0.0) + cpu
+        self._last = seen
+        for role, cpu in self._ended.items():
+            out.setdefault(role, [0.0, 0, 0])[0] += cpu
+        return {role: tuple(row) for role, row in out.items()}
