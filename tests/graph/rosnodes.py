@@ -30,9 +30,11 @@ def payload(msg) -> int:
     """Bytes of the serialized message as an RTPS DATA submessage carries it: padded to 4."""
     return -(-len(serialize_message(msg)) // 4) * 4
 counted = [0]
-# With DRUMS_TEST_BURST=N each publisher waits for a line "go" and for a subscriber, publishes
-# exactly N messages, and stops.
+# With DRUMS_TEST_BURST=N each publisher waits for a line "go" and for its subscribers
+# ($DRUMS_TEST_BURST_SUBSCRIBERS, default 1: a subscriber matched late misses what came before),
+# publishes exactly N messages, and stops.
 burst = int(os.environ.get("DRUMS_TEST_BURST", "0"))
+burst_subscribers = int(os.environ.get("DRUMS_TEST_BURST_SUBSCRIBERS", "1"))
 bursts = []  # per publisher: messages still to publish; -1: no limit
 
 
@@ -42,7 +44,7 @@ def publishes(pub, msg):
     bursts.append(left)
 
     def tick():
-        if left[0] == 0 or (burst and pub.get_subscription_count() == 0):
+        if left[0] == 0 or (burst and pub.get_subscription_count() < burst_subscribers):
             return
         left[0] -= 1
         pub.publish(msg)
