@@ -174,6 +174,7 @@ def test_a_process_job_ends_with_its_process(api):
     ("POST", "monitor/host", b"{bad", 400, "the body is not JSON (Expecting property name enclosed in double quotes: line 1 column 2 (char 1))"),
     ("POST", "monitor/host", [1], 400, "the body is a JSON object, not list"),
     ("POST", "monitor/host", b"\x0b", 400, "the body is not JSON (Expecting value: line 1 column 1 (char 0))"),
+    ("POST", "monitor/host", b"\t", 400, "the body is not JSON (Expecting value: line 1 column 2 (char 1))"),
     ("POST", "monitor/host", {"interval": "x"}, 400, "interval: a number of seconds, not 'x'"),
     ("POST", "monitor/host", {"interval": 0}, 400, "interval: 0 s is outside 0.1-3600 s"),
     ("POST", "monitor/host", {"every": 1}, 400, "unknown field 'every': a host job takes interval, lease"),

@@ -114,8 +114,9 @@ def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token
             jobs.remove(job_id(kind, target))
             return 204, None
         try:
-            # No body (JSON whitespace only): the defaults; a JSON null is no object; \v is no whitespace in JSON.
-            value = json.loads(body) if body.strip(b" \t\r\n") else {}
+            # No body at all: the defaults. Anything else is JSON text, which whitespace alone is not;
+            # a JSON null is no object.
+            value = json.loads(body) if body else {}
         except (ValueError, UnicodeDecodeError) as e:
             raise UsageError(f"the body is not JSON ({e})") from None
         job, created = jobs.add(kind, target, *parse_body(kind, value))
