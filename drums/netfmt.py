@@ -8,7 +8,7 @@ import socket
 from functools import lru_cache
 
 AF_INET, AF_INET6 = 2, 10
-_V4_MAPPED = b"\0" * 10 + b"\xff\xff"
+V4_MAPPED = b"\0" * 10 + b"\xff\xff"  # the prefix of an IPv4 address mapped into IPv6
 
 
 @lru_cache(maxsize=65536)  # the same few addresses come back at every collect
@@ -17,7 +17,7 @@ def endpoint(family: int, raw: bytes, port: int) -> str:
     if family == AF_INET:
         return f"{socket.inet_ntop(socket.AF_INET, raw[:4])}:{port}"
     if family == AF_INET6:
-        if raw[:12] == _V4_MAPPED:
+        if raw[:12] == V4_MAPPED:
             return f"{socket.inet_ntop(socket.AF_INET, raw[12:16])}:{port}"
         return f"[{socket.inet_ntop(socket.AF_INET6, raw[:16])}]:{port}"
     return ""

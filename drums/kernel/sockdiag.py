@@ -11,6 +11,7 @@ import struct
 from dataclasses import dataclass
 
 from drums.errors import KernelError
+from drums.netfmt import V4_MAPPED
 
 # include/net/tcp_states.h. Request sockets are reported as SYN_RECV, never as NEW_SYN_RECV.
 TCP_STATES = {
@@ -45,7 +46,6 @@ _DIAG_MSG = struct.Struct("=BBxx2s2s16s16s4xII12xII")
 # The same request naming one socket: its ports, addresses (16 bytes each), interface and cookie.
 _REQUEST_ONE = struct.Struct("=BBBxI2s2s16s16sI8s")
 _NO_COOKIE = b"\xff" * 8  # INET_DIAG_NOCOOKIE in both halves: any socket with these endpoints
-_V4_MAPPED = b"\0" * 10 + b"\xff\xff"
 _ADDRESS_SIZE = {socket.AF_INET: 4, socket.AF_INET6: 16}
 
 # (TcpConnection field, offset in struct tcp_info, format) per include/uapi/linux/tcp.h. The kernel
@@ -129,7 +129,7 @@ def lookup_tcp(connections: list[tuple[tuple[int, bytes, int], tuple[int, bytes,
         for (family, local, lport), (_, remote, rport) in connections:
             tries = [(family, local, remote)]
             if family == socket.AF_INET:
-                tries.append((socket.AF_INET6, _V4_MAPPED + local, _V4_MAPPED + remote))
+                tries.append((socket.AF_INET6, V4_MAPPED + local, V4_MAPPED + remote))
             for fam, src, dst in tries:
                 connection = _lookup(sock, fam, src, lport, dst, rport)
                 if connection is not None:
