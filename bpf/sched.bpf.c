@@ -13,6 +13,7 @@
 
 #define DROP_THREAD 0
 #define DROP_PROCESS 1
+#define DROP_RENAMED 2
 
 struct sched_t {
     u64 oncpu_ns;
@@ -52,15 +53,27 @@ struct oncpu_t {
 };
 BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 
+// Processes whose leader was renamed, exec'd or exited since the agent last looked, each with when
+// that last happened: the agent reads their names and command lines again (and a PID that came
+// back is a new process), instead of every process's on every scrape.
+BPF_HASH(renamed, u32, u64, 16384);
+
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
 // main file, so each program declares this map and its helper itself.)
-BPF_ARRAY(dropped, u64, 2);
+BPF_ARRAY(dropped, u64, 3);
 
 static __always_inline void count_drop(int which)
 {
     u64 *d = dropped.lookup(&which);
     if (d)
         __sync_fetch_and_add(d, 1);
+}
+
+static __always_inline void mark_renamed(u32 tgid)
+{
+    u64 now = bpf_ktime_get_ns();
+    if (renamed.update(&tgid, &now) != 0)
+        count_drop(DROP_RENAMED);  // the agent then reads every name again
 }
 
 static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task)
@@ -205,7 +218,10 @@ int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
 // process entry lasts.
 int on_exit(struct bpf_raw_tracepoint_args *ctx)
 {
-    u32 tid = (u32)bpf_get_current_pid_tgid();
+    u64 id = bpf_get_current_pid_tgid();
+    u32 tid = (u32)id;
+    if (tid == (u32)(id >> 32))
+        mark_renamed(tid);  // its PID may come back as another process
     struct thread_sched_t *t = thread_sched.lookup(&tid);
     if (t)
         thread_died(tid, t, true);
@@ -218,6 +234,7 @@ int on_exec(struct bpf_raw_tracepoint_args *ctx)
 {
     u32 old_tid = (u32)ctx->args[1];
     u32 tid = (u32)bpf_get_current_pid_tgid();
+    mark_renamed(tid);  // a new command line, whether or not its name changed
     if (old_tid == tid)
         return 0;
     struct thread_sched_t *t = thread_sched.lookup(&old_tid);
@@ -230,8 +247,11 @@ int on_exec(struct bpf_raw_tracepoint_args *ctx)
 int on_rename(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 task = ctx->args[0];
-    u32 tid = 0;
+    u32 tid = 0, tgid = 0;
     bpf_probe_read_kernel(&tid, 4, (void *)(task + TASK_PID_OFF));
+    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
+    if (tid == tgid)
+        mark_renamed(tgid);  // the process's name is its leader's
     struct thread_sched_t *t = thread_sched.lookup(&tid);
     if (t)
         bpf_probe_read_kernel_str(t->comm, sizeof(t->comm), (void *)ctx->args[1]);

@@ -84,7 +84,15 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
         tot->entered[newstate]++;
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c && c->state == TCP_CLOSE && newstate != TCP_CLOSE) {
-        tcp_conns.delete(&sk);  // the struct sock now holds a new connection
+        // The struct sock now holds a new connection (the kernel reuses them at once): the closed
+        // one moves to the key sk | 1 (a struct sock is aligned) until the agent has exported it.
+        // Its sk | 1 of an earlier reuse, not yet exported, is overwritten: that is a drop.
+        u64 moved = sk | 1;
+        struct tcp_conn_t closed = *c;
+        if (tcp_conns.lookup(&moved))
+            count_drop(0);
+        tcp_conns.update(&moved, &closed);
+        tcp_conns.delete(&sk);
         c = 0;
     }
     if (!c) {

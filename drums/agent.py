@@ -200,7 +200,7 @@ class Agent:
 
     def _read(self, names: set[str]) -> Snapshot:
         """The rows of the probes called `names`."""
-        self.proctable.refresh()
+        self.proctable.refresh(self._renamed())
         pids = self._process_pids()
         for probe in self.probes:
             if hasattr(probe, "set_pids"):
@@ -223,6 +223,17 @@ class Agent:
             self._reasons[probe.name] = probe.status.reason
             self._say_losses(probe)
         return raw
+
+    def _renamed(self) -> set[int] | None:
+        """The processes whose names may have changed since the last collect, as the sched probe
+        saw them; None (read every name) without it, or when it lost some."""
+        for probe in self.probes:
+            if probe.status.attached and hasattr(probe, "renamed"):
+                try:
+                    return probe.renamed()
+                except Exception as e:  # noqa: BLE001 - as a failed collect: the names are read anew
+                    log.warning("probe %s: renamed processes unread: %s", probe.name, e)
+        return None
 
     def _say_losses(self, probe: Probe) -> None:
         """One line, at most every LOSS_SAID_EVERY seconds, when the probe lost events to a full

@@ -234,7 +234,7 @@ def run_agent(args) -> int:
 
     def latency_targets() -> set[str]:  # the graph's hosts by name or address, and the operator's
         return {t for h in graph.entities("host") for t in (h.name, h.address) if t} | set(args.latency_target)
-    stream = Stream(args.address, args.stream_port, curve=not _loopback(args.address))
+    stream = Stream(args.address, args.stream_port, curve=not _loopback(args.address), token=token)
     jobs = Jobs(agent.collect_raw, host, stream, latency, latency_targets, mesh if args.latency_mesh else None)
     agent.wanted_pids = jobs.pids
 
@@ -243,12 +243,12 @@ def run_agent(args) -> int:
                 "probes": {p.name: {"attached": p.status.attached, "attach_type": p.status.attach_type,
                                     "reason": p.status.reason} for p in agent.probes}}
     rates = Rates()  # the counters of the last picture of the graph, for the rates on the next
-    pages = {"/metrics": lambda _query: (prometheus.render(agent.collect()), prometheus.CONTENT_TYPE),
-             "/graph": lambda query: document(graph, agent.collect(), query.get("format", "json"),
-                                              query.get("all") == "1", rates),
-             "/healthz": lambda _query: health.healthz(agent.probes, graph, adapter_name),
+    pictures = {"/metrics": lambda snap, _query: (prometheus.render(snap), prometheus.CONTENT_TYPE),
+                "/graph": lambda snap, query: document(graph, snap, query.get("format", "json"),
+                                                       query.get("all") == "1", rates)}
+    pages = {"/healthz": lambda _query: health.healthz(agent.probes, graph, adapter_name),
              "/readyz": lambda _query: health.readyz(graph, adapter_name)}
-    server = HttpServer(args.address, args.port, pages, jobs, info, token,
+    server = HttpServer(args.address, args.port, pages, pictures, agent.collect, jobs, info, token,
                         {"port": stream.port, "curve_public_key": stream.public_key})
     try:
         start = time.perf_counter()

@@ -27,7 +27,7 @@ import networkx as nx
 import zmq
 
 from drums.errors import DrumsError, UsageError
-from drums.exporters.stream import layout_id
+from drums.exporters.stream import client_keys, layout_id
 
 
 class AgentError(DrumsError):
@@ -149,6 +149,7 @@ class Client:
         if not urls:
             raise UsageError("a client needs at least one agent URL")
         self.agents = [Agent(u, token) for u in urls]
+        self.token = token  # which also opens the agents' streams off loopback
         self.view: dict[str, Sample] = {}  # key -> its latest sample
         self.undecodable = 0  # messages that came before their layout (a late subscriber's first few)
         self._context = zmq.Context()
@@ -251,8 +252,7 @@ class Client:
             sock = self._context.socket(zmq.SUB)
             sock.linger = 0
             if stream.get("curve_public_key"):
-                public, secret = zmq.curve_keypair()
-                sock.curve_publickey, sock.curve_secretkey = public, secret
+                sock.curve_publickey, sock.curve_secretkey = client_keys(self.token)
                 sock.curve_serverkey = stream["curve_public_key"].encode()
             sock.connect(stream["address"])
             self._sockets[stream["address"]] = sock

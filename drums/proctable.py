@@ -12,7 +12,7 @@ from __future__ import annotations
 import ctypes
 import os
 import threading
-from typing import Callable
+from typing import Callable, Iterable
 
 OWN_NETNS = "DRUMS_OWN_NETNS"
 _PR_SET_NAME = 15
@@ -62,14 +62,25 @@ class ProcessTable:
         self._cmdlines: dict[int, list[str]] = {}  # read when first asked for, kept while the PID lives
         self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
 
-    def refresh(self) -> None:
+    def refresh(self, renamed: Iterable[int] | None = ()) -> None:
+        """List the processes. A name is read when its PID first appears, and again when the PID is
+        in `renamed` (its process exec'd or was renamed, or exited: a PID that comes back is another
+        process); its command line is then read anew when next asked for. `renamed` None: any may
+        have been, so every name is read."""
         alive = set(self.listing())
+        known = {} if renamed is None else self._names
+        if renamed:
+            known = dict(known)
+            for pid in renamed:
+                known.pop(pid, None)
+                self._cmdlines.pop(pid, None)
+                self._elsewhere.discard(pid)
         if self.netns is not None:  # each PID is checked when it first appears, as its name is read
             self._elsewhere = {pid for pid in alive if pid in self._elsewhere or (
-                pid not in self._names and netns(self.proc, pid) != self.netns)}
+                pid not in known and netns(self.proc, pid) != self.netns)}
             alive -= self._elsewhere
-        self._names = {pid: self._names.get(pid) or comm(self.proc, pid) for pid in alive}
-        self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive}
+        self._names = {pid: known.get(pid) or comm(self.proc, pid) for pid in alive}
+        self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive and pid in known}
 
     def alive(self, pid: int) -> bool:
         return pid in self._names

@@ -245,8 +245,19 @@ def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
     port = str(urllib.parse.urlsplit(agent).port)
     (proc,) = [p for p in psutil.process_iter(["cmdline"])
                if p.info["cmdline"] and "agent" in p.info["cmdline"] and port in p.info["cmdline"]]
-    processes = {"agent": proc} | {c.name().removeprefix("drums-"): c for c in proc.children()}
-    assert "graph" in processes, processes
+
+    def named() -> dict:  # the reader names itself once Python has started in it
+        processes = {"agent": proc} | {c.name().removeprefix("drums-"): c for c in proc.children()}
+        assert "graph" in processes, processes
+        return processes
+    processes = eventually(named, timeout=10)
+    # Once the graph has been read the reader has done its imports: its memory holds still.
+    def ready() -> None:
+        try:
+            urllib.request.urlopen(agent.replace("/metrics", "/readyz"), timeout=5)
+        except urllib.error.HTTPError as e:
+            raise AssertionError(e.read()) from None
+    eventually(ready, timeout=20)
     before = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}
     text = scrape(agent)
     after = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}

@@ -4,37 +4,80 @@
 Reads are open to anyone who can reach the port. With a token, every request that changes
 something (POST, DELETE) must carry `Authorization: Bearer <token>`, compared in constant time;
 the CLI refuses to bind off loopback without one.
+
+It holds against clients that are slow, many or gone (aiohttp on one event loop, so a connection
+costs a few kilobytes and no thread):
+- a connection that has not sent a whole request within IDLE seconds is closed, and so is one
+  idle that long between requests; a body must arrive within BODY_TIMEOUT, an answer must be
+  taken within SEND_TIMEOUT;
+- at most `limit` connections are open (below the open-file limit): one more closes the oldest
+  connection that is waiting for a request, so a flood of slow or idle connections cannot lock
+  Prometheus out;
+- request lines, headers and bodies have size limits;
+- scrapes and /graph reads share snapshots: a request is answered from a snapshot collected after
+  it arrived, and every request that arrives while one is being collected shares the next, drawn
+  once per page and query. A client that hangs up leaves the others' work running and adds none.
 """
 from __future__ import annotations
 
+import asyncio
 import gzip
 import hmac
 import json
 import logging
 import os
-import sys
+import resource
+import socket
 import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 from urllib.parse import parse_qs, urlsplit
 
+from aiohttp import web
+
 from drums.errors import DrumsError, UsageError
-from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body, whole
+from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body
+from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 
 log = logging.getLogger("drums")
 
 API = "/drums/v1"
 MAX_BODY = 64 << 10  # a job's body is a few bytes
+MAX_LINE = 8 << 10  # request line and each header
+MAX_HEADERS = 64
+IDLE = 10.0  # seconds a connection may take to send a whole request head, or stay idle between requests
+BODY_TIMEOUT = 10.0
+SEND_TIMEOUT = 30.0  # a scrape of a large host is a few MB: 30 s is a slow link, not a stalled reader
+BACKLOG = 1024  # connections the kernel queues for us
+ACCEPT_BATCH = 64  # connections asyncio accepts at a time, before any is counted against the limit
+MAX_CONNECTIONS = 512
+FD_RESERVE = 256  # open files kept for the probes, jobs and /proc reads
+WORKERS = 2  # threads drawing pages and answering the API (the GIL makes more useless)
+DRAWN_PER_SNAPSHOT = 8  # distinct page and query pairs whose drawings a snapshot keeps
 GZIP_FROM = 1400  # bytes: a smaller page fits in one packet as it is
 GZIP_LEVEL = 6
+CLOSED_SAID_EVERY = 60.0  # seconds: at most one line about connections closed over the limit
 JSON = "application/json"
 TEXT = "text/plain; charset=utf-8"
 OPENAPI = os.path.join(os.path.dirname(__file__), "openapi.yaml")
 HOME = os.path.join(os.path.dirname(__file__), "home.html")  # the live graph, for a browser
 READ_ONLY = (["info"], ["openapi.json"], ["jobs"])  # API paths that take only GET
 
+HTTP_CONNECTIONS = Metric("drums_http_connections", GAUGE, "Open connections to the agent's HTTP server")
+HTTP_CONNECTION_LIMIT = Metric("drums_http_connection_limit", GAUGE,
+                               "Connections the HTTP server holds at most (set from the open-file limit)")
+HTTP_CLOSED = Metric("drums_http_connections_closed_total", COUNTER,
+                     "Connections the HTTP server closed before they were done: over_limit (the oldest waiting "
+                     "one, when another came over the limit), slow_reader (an answer not taken in time), "
+                     "bad_request (a request the HTTP parser refused, with a 400 that says why)",
+                     ("reason",))
+METRICS = (HTTP_CONNECTIONS, HTTP_CONNECTION_LIMIT, HTTP_CLOSED)
+
 # A page: query parameters -> (body, content type); raises UsageError for a bad query (400).
 Page = Callable[[dict[str, str]], tuple[bytes, str]]
+# A picture: a page drawn from a snapshot of the agent, shared by the requests that arrive together.
+Picture = Callable[[Snapshot, dict[str, str]], tuple[bytes, str]]
 
 
 class HttpError(Exception):
@@ -49,33 +92,160 @@ def openapi_document() -> dict:
         return yaml.safe_load(f)
 
 
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True
-
-    def handle_error(self, request, client_address):
-        """One line, not socketserver's traceback (a request the handler could not even read)."""
-        log.warning("request from %s failed: %s", client_address[0], sys.exc_info()[1])
-
-
-class HttpServer:
-    def __init__(self, address: str, port: int, pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict],
-                 token: str = "", stream: dict | None = None):
-        """`stream`: the stream's {"port", "curve_public_key"}, named in every job."""
-        handler = _handler(pages, jobs, info, token, stream or {})
+def connection_limit() -> int:
+    """How many connections the server may hold: the open-file limit raised to its hard limit (as
+    Go does for node_exporter), less the files open now and a reserve, at most MAX_CONNECTIONS."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != hard:
         try:
-            self.httpd = _Server((address, port), handler)
-        except OSError as e:
-            raise DrumsError(f"cannot listen on {address}:{port}: {e.strerror}") from None
-        self.port = self.httpd.server_address[1]
-        self._thread = threading.Thread(target=self.httpd.serve_forever, name="http", daemon=True)
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+            soft = hard
+        except (ValueError, OSError):
+            pass
+    free = ((soft if soft != resource.RLIM_INFINITY else 1 << 20) - len(os.listdir("/proc/self/fd")) - FD_RESERVE
+            - ACCEPT_BATCH)
+    return max(16, min(MAX_CONNECTIONS, free))
 
-    def start(self) -> None:
-        self._thread.start()
 
-    def stop(self) -> None:
-        if self._thread.is_alive():
-            self.httpd.shutdown()
-        self.httpd.server_close()
+class _Connections(web.Server):
+    """aiohttp's server, holding at most `limit` connections. Over it, the oldest connection that is
+    waiting for a request (a slow or idle one) is closed; Prometheus's keep-alive connection, if it
+    was that one, simply reconnects."""
+
+    def __init__(self, handler, limit: int, **kwargs):
+        super().__init__(handler, logger=_ServerLog(self), **kwargs)
+        self.limit = limit
+        self.closed = {"over_limit": 0, "slow_reader": 0, "bad_request": 0}
+        self._waiting: dict[web.RequestHandler, None] = {}  # oldest first
+        self._said = 0.0
+
+    def connection_made(self, handler, transport) -> None:
+        super().connection_made(handler, transport)
+        self._waiting[handler] = None
+        if len(self._connections) > self.limit:
+            victim = next(iter(self._waiting))
+            del self._waiting[victim]
+            # After aiohttp has finished setting the connection up, not in the middle of it.
+            asyncio.get_running_loop().call_soon(victim.force_close)
+            self.count_closed("over_limit")
+
+    def connection_lost(self, handler, exc=None) -> None:
+        self._waiting.pop(handler, None)
+        super().connection_lost(handler, exc)
+
+    def busy(self, handler, busy: bool) -> None:
+        """A request is being answered on the connection (it may not be closed), or is done."""
+        if busy:
+            self._waiting.pop(handler, None)
+        elif handler.transport is not None:  # still open
+            self._waiting[handler] = None
+
+    def count_closed(self, reason: str, why: object = "") -> None:
+        self.closed[reason] += 1
+        now = time.monotonic()
+        if now - self._said >= CLOSED_SAID_EVERY:
+            self._said = now
+            last = f"; the last bad request: {' '.join(str(why).split())}" if why else ""
+            log.warning("http: connections closed since start: %s (at most %d are held)%s; said at most once a minute",
+                        ", ".join(f"{n} {r.replace('_', ' ')}" for r, n in self.closed.items()), self.limit, last)
+
+
+class _ServerLog:
+    """What aiohttp's connections log: a request its parser refuses is a client's mistake, not the
+    agent's, so it is counted and said in one line (at most once a minute), never as a traceback."""
+
+    def __init__(self, connections: _Connections):
+        self._connections = connections
+
+    def exception(self, msg, *args, exc_info=None, **_kw) -> None:
+        if not isinstance(exc_info, Exception) or getattr(exc_info, "code", 500) >= 500:
+            log.error("http: " + msg + ": %s", *args, exc_info)  # ours: one line too
+            return
+        self._connections.count_closed("bad_request", getattr(exc_info, "message", exc_info))
+
+    def debug(self, *_args, **_kw) -> None:  # clients that hang up, requests not finished: no news
+        pass
+
+    warning = error = info = debug
+
+
+class _Shared:
+    """Snapshots and their drawings, shared by concurrent requests. Each request is answered from a
+    snapshot collected after it arrived; those that arrive while one is being collected share the
+    next. Runs on the event loop; collecting and drawing run in threads."""
+
+    def __init__(self, collect: Callable[[], Snapshot], workers: ThreadPoolExecutor):
+        self._collect, self._workers = collect, workers
+        self._collector = ThreadPoolExecutor(1, thread_name_prefix="http-collect")
+        self._running: asyncio.Future | None = None
+        self._next: asyncio.Future | None = None
+        self._drawn: dict[tuple, asyncio.Future] = {}
+        self._drawn_of: Snapshot | None = None
+
+    async def snapshot(self) -> Snapshot:
+        if self._running is None:
+            self._running = self._start()
+            waited = self._running
+        else:
+            if self._next is None:
+                self._next = asyncio.get_running_loop().create_future()
+            waited = self._next
+        return await asyncio.shield(waited)  # a request that goes leaves the snapshot to the others
+
+    def _start(self) -> asyncio.Future:
+        running = asyncio.get_running_loop().run_in_executor(self._collector, self._collect)
+        running.add_done_callback(self._collected)
+        return running
+
+    def _collected(self, done: asyncio.Future) -> None:
+        self._running = None
+        if self._next is None:
+            return
+        waiting, self._next = self._next, None
+        self._running = self._start()
+        self._running.add_done_callback(lambda f: _settle(waiting, f))
+
+    async def draw(self, picture: Picture, snap: Snapshot, query: dict[str, str], gzipped: bool) -> tuple:
+        """(body, content type, headers) of `picture` of `snap`, drawn once for all who ask."""
+        if snap is not self._drawn_of:
+            self._drawn, self._drawn_of = {}, snap
+        key = (picture, tuple(sorted(query.items())), gzipped)
+        drawing = self._drawn.get(key)
+        if drawing is None:
+            drawing = asyncio.get_running_loop().run_in_executor(self._workers, _drawn, picture, snap, query, gzipped)
+            if len(self._drawn) < DRAWN_PER_SNAPSHOT:  # a stream of distinct queries is drawn, not kept
+                self._drawn[key] = drawing
+        return await asyncio.shield(drawing)
+
+    def close(self) -> None:
+        self._collector.shutdown(wait=False, cancel_futures=True)
+
+
+def _settle(waiting: asyncio.Future, done: asyncio.Future) -> None:
+    if waiting.done():
+        return
+    if done.cancelled():
+        waiting.cancel()
+    elif done.exception() is not None:
+        waiting.set_exception(done.exception())
+    else:
+        waiting.set_result(done.result())
+
+
+def _drawn(page: Callable, *args) -> tuple[bytes, str, dict]:
+    """(body, content type, headers) of a page or picture drawn with `args`, the last of which
+    says whether the client takes gzip."""
+    body, content_type = page(*args[:-1])
+    body, headers = _compressed(body, args[-1])
+    return body, content_type, headers
+
+
+def _compressed(body: bytes, gzipped: bool) -> tuple[bytes, dict]:
+    """The body gzipped if the client takes it (Prometheus does): a scrape is mostly repeated label
+    text, a fifth of its size compressed."""
+    if not gzipped or len(body) < GZIP_FROM:
+        return body, {}
+    return gzip.compress(body, compresslevel=GZIP_LEVEL), {"Content-Encoding": "gzip", "Vary": "Accept-Encoding"}
 
 
 def _status(error: Exception) -> tuple[int, dict]:
@@ -85,131 +255,226 @@ def _status(error: Exception) -> tuple[int, dict]:
     return (404 if isinstance(error, NotFound) else 403 if isinstance(error, Forbidden) else 400), {}
 
 
-def _handler(pages: dict[str, Page], jobs: Jobs, info: Callable[[], dict], token: str, stream: dict):
-    with open(HOME, "rb") as f:
-        home = f.read()
-    pages = {"/": lambda _query: (home, "text/html; charset=utf-8"), **pages}
-    links = sorted(pages) + [f"{API}/openapi.json"]
-    document = openapi_document()
+def _listen(address: str, port: int) -> socket.socket:
+    try:
+        family = socket.AF_INET6 if ":" in address else socket.AF_INET
+        return socket.create_server((address, port), family=family, backlog=BACKLOG)
+    except OSError as e:
+        raise DrumsError(f"cannot listen on {address}:{port}: {os.strerror(e.errno)}") from None
 
-    def api(method: str, parts: list[str], body: bytes, local: str) -> tuple[int, object]:
-        """(status, JSON value) of a request under /drums/v1 that reached the agent at `local`."""
+
+class HttpServer:
+    def __init__(self, address: str, port: int, pages: dict[str, Page], pictures: dict[str, Picture],
+                 collect: Callable[[], Snapshot], jobs: Jobs, info: Callable[[], dict], token: str = "",
+                 stream: dict | None = None):
+        """`pages` are drawn on each request, `pictures` from the shared snapshot `collect()` takes.
+        `stream`: the stream's {"port", "curve_public_key"}, named in every job."""
+        self._sock = _listen(address, port)
+        self.port = self._sock.getsockname()[1]
+        with open(HOME, "rb") as f:
+            home = f.read()
+        self._pages = {"/": lambda _query: (home, "text/html; charset=utf-8"), **pages}
+        self._pictures = pictures
+        self._links = sorted([*self._pages, *pictures, f"{API}/openapi.json"])
+        self._document = openapi_document()
+        self._jobs, self._info, self._token, self._stream = jobs, info, token, stream or {}
+        self._workers = ThreadPoolExecutor(WORKERS, thread_name_prefix="http")
+        self._shared = _Shared(lambda: self._counted(collect()), self._workers)
+        self._server: _Connections | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopping: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._failed: BaseException | None = None
+        self._loop_said = 0.0
+        self._thread = threading.Thread(target=self._run, name="http", daemon=True)
+
+    def start(self) -> None:
+        self._limit = connection_limit()  # after the probes have opened their files
+        self._thread.start()
+        self._ready.wait()
+        if self._failed is not None:
+            raise DrumsError(f"cannot serve http: {self._failed}")
+
+    def stop(self) -> None:
+        if self._thread.is_alive() and self._loop is not None:
+            self._loop.call_soon_threadsafe(self._stopping.set)
+            self._thread.join(timeout=5)
+        self._shared.close()
+        self._workers.shutdown(wait=False, cancel_futures=True)
+        self._sock.close()
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._serve())
+        except BaseException as e:  # noqa: BLE001 - said by start(), which waits for it
+            self._failed = e
+            self._ready.set()
+
+    async def _serve(self) -> None:
+        self._loop, self._stopping = asyncio.get_running_loop(), asyncio.Event()
+        self._server = _Connections(self._handle, self._limit, handler_cancellation=True, keepalive_timeout=IDLE,
+                                    max_line_size=MAX_LINE, max_field_size=MAX_LINE, max_headers=MAX_HEADERS,
+                                    access_log=None)
+        runner = web.ServerRunner(self._server, handle_signals=False)
+        await runner.setup()
+        self._loop.set_exception_handler(self._loop_error)
+        # asyncio accepts as many connections at a time as the listen backlog it is given, each an open
+        # file before the limit sees it: it gets a small one, and the kernel's queue is set long again.
+        await web.SockSite(runner, self._sock, backlog=ACCEPT_BATCH).start()
+        self._sock.listen(BACKLOG)
+        self._ready.set()
+        await self._stopping.wait()
+        await runner.cleanup()
+
+    def _loop_error(self, _loop, context: dict) -> None:
+        """asyncio's complaints (accept failing when the open files run out) in one line a minute."""
+        now = time.monotonic()
+        if now - self._loop_said >= CLOSED_SAID_EVERY:
+            self._loop_said = now
+            log.warning("http: %s: %s (said at most once a minute)", context.get("message"), context.get("exception"))
+
+    def _counted(self, snap: Snapshot) -> Snapshot:
+        """The snapshot with the server's own metrics (read from the collecting thread: a few ints)."""
+        server = self._server
+        if server is not None:
+            snap.add(HTTP_CONNECTIONS, (), len(server.connections))
+            snap.add(HTTP_CONNECTION_LIMIT, (), server.limit)
+            for reason, count in server.closed.items():
+                snap.add(HTTP_CLOSED, (reason,), count)
+        return snap
+
+    async def _handle(self, request: web.BaseRequest) -> web.StreamResponse:
+        self._server.busy(request.protocol, True)
+        try:
+            code, body, content_type, headers = await self._answer(request)
+            return await self._send(request, code, body, content_type, headers)
+        finally:
+            self._server.busy(request.protocol, False)
+
+    async def _answer(self, request: web.BaseRequest) -> tuple[int, bytes, str, dict]:
+        url = urlsplit(request.raw_path)
+        method, in_api = request.method, url.path == API or url.path.startswith(API + "/")
+        try:
+            if in_api:
+                return await self._api(request, method, url.path)
+            if method not in ("GET", "HEAD"):
+                raise HttpError(405, f"{method} {url.path}: only GET", {"Allow": "GET"})
+            query = {k: v[-1] for k, v in parse_qs(url.query).items()}
+            gzipped = "gzip" in {e.split(";")[0].strip() for e in request.headers.get("Accept-Encoding", "").split(",")}
+            picture = self._pictures.get(url.path)
+            if picture is not None:
+                snap = await self._shared.snapshot()
+                return (200, *await self._shared.draw(picture, snap, query, gzipped))
+            page = self._pages.get(url.path)
+            if page is None:
+                raise NotFound(f"not found: Drums serves {', '.join(self._links)}")
+            return (200, *await self._in_thread(_drawn, page, query, gzipped))
+        except (HttpError, UsageError) as e:  # the API answers in JSON, pages in text
+            code, headers = _status(e)
+            if in_api:
+                return _json(code, {"error": str(e)}, headers)
+            return code, f"{e}\n".encode(), TEXT, headers
+        except Exception as e:  # a request must never take the agent down
+            log.error("%s %s failed: %s", method, url.path, e, exc_info=log.isEnabledFor(logging.DEBUG))
+            return 500, f"failed: {e}\n".encode(), TEXT, {}
+
+    async def _in_thread(self, call, *args):
+        return await asyncio.get_running_loop().run_in_executor(self._workers, call, *args)
+
+    async def _api(self, request: web.BaseRequest, method: str, path: str) -> tuple[int, bytes, str, dict]:
+        parts = [p for p in path[len(API):].split("/") if p]
+        if method not in ("GET", "POST", "DELETE"):
+            # Allow names what this resource takes (RFC 9110): the read-only ones take only GET.
+            allow = "GET" if parts in READ_ONLY else "GET, POST, DELETE"
+            raise HttpError(405, f"{method}: the API takes GET, POST and DELETE", {"Allow": allow})
+        if parts in READ_ONLY and method != "GET":  # before the token: no token makes it a method they take
+            raise HttpError(405, f"{method} {API}/{parts[0]}: only GET", {"Allow": "GET"})
+        authorized = not self._token or self._authorized(request)
+        if method != "GET" and not authorized:
+            raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
+                            {"WWW-Authenticate": "Bearer"})
+        body = await _body(request)
+        local = request.transport.get_extra_info("sockname")[0] if request.transport else "127.0.0.1"
+        return _json(*await self._in_thread(self._call, method, parts, body, local, authorized))
+
+    def _authorized(self, request: web.BaseRequest) -> bool:
+        scheme, _, value = request.headers.get("Authorization", "").partition(" ")
+        return scheme.lower() == "bearer" and hmac.compare_digest(value.strip().encode(), self._token.encode())
+
+    def _call(self, method: str, parts: list[str], body: bytes, local: str, authorized: bool) -> tuple[int, object]:
+        """(status, JSON value) of a request under /drums/v1 that reached the agent at `local`; the
+        stream's key goes only to a caller with the token (or to all, where there is none)."""
+        stream = self._stream
         where = {"address": f"tcp://{f'[{local}]' if ':' in local else local}:{stream['port']}",
-                 "curve_public_key": stream["curve_public_key"]} if stream else {}
+                 "curve_public_key": stream["curve_public_key"] if authorized else ""} if stream else {}
 
         def located(job: dict) -> dict:  # the stream as this client can reach it
             job["stream"].update(where)
             return job
         if parts in READ_ONLY:  # GET only (_api said 405 to anything else)
             if parts == ["info"]:
-                return 200, dict(info(), stream=where)
-            return 200, (document if parts == ["openapi.json"] else {"jobs": [located(j) for j in jobs.list()]})
+                return 200, dict(self._info(), stream=where)
+            if parts == ["openapi.json"]:
+                return 200, self._document
+            return 200, {"jobs": [located(j) for j in self._jobs.list()]}
         if len(parts) < 2 or parts[0] != "monitor" or parts[1] not in KINDS:
             raise NotFound(f"no such path {API}/{'/'.join(parts)}")
         kind = parts[1]
         target = job_target(kind, parts[2:])
         if method == "GET":
-            return 200, located(jobs.get(job_id(kind, target)))
+            return 200, located(self._jobs.get(job_id(kind, target)))
         if method == "DELETE":
-            jobs.remove(job_id(kind, target))
+            self._jobs.remove(job_id(kind, target))
             return 204, None
         try:
             # No body at all: the defaults. Anything else is JSON text, which whitespace alone is not;
             # a JSON null is no object.
             value = json.loads(body) if body else {}
-        except (ValueError, UnicodeDecodeError) as e:
-            raise UsageError(f"the body is not JSON ({e})") from None
-        job, created = jobs.add(kind, target, *parse_body(kind, value))
+        except (ValueError, UnicodeDecodeError, RecursionError) as e:
+            why = "nested too deep" if isinstance(e, RecursionError) else e
+            raise UsageError(f"the body is not JSON ({why})") from None
+        job, created = self._jobs.add(kind, target, *parse_body(kind, value))
         return (201 if created else 200), located(job)
 
-    class Handler(BaseHTTPRequestHandler):
-        def __getattr__(self, name: str):
-            # http.server calls do_<METHOD>: every method goes to _serve, which answers what it does
-            # not take (TRACE, OPTIONS, PUT ...) with a 405 that says what is served, not a 501 page.
-            if name.startswith("do_"):
-                return lambda: self._serve(name[3:])
-            raise AttributeError(name)
+    async def _send(self, request: web.BaseRequest, code: int, body: bytes, content_type: str,
+                    headers: dict) -> web.StreamResponse:
+        response = web.StreamResponse(status=code, headers={"Server": "drums", **headers})  # not our versions
+        if code != 204:
+            response.headers["Content-Type"] = content_type
+            response.content_length = len(body)
 
-        def _serve(self, method: str) -> None:
-            url = urlsplit(self.path)
-            in_api = url.path == API or url.path.startswith(API + "/")
-            try:
-                if in_api:
-                    self._api(method, url.path)
-                    return
-                if method != "GET":
-                    raise HttpError(405, f"{method} {url.path}: only GET", {"Allow": "GET"})
-                page = pages.get(url.path)
-                if page is None:
-                    raise NotFound(f"not found: Drums serves {', '.join(links)}")
-                query = {k: v[-1] for k, v in parse_qs(url.query).items()}
-                body, content_type = page(query)
-                body, headers = self._compressed(body)
-                self._reply(200, body, content_type, headers)
-            except (HttpError, UsageError) as e:  # the API answers in JSON, pages in text
-                code, headers = _status(e)
-                if in_api:
-                    self._json(code, {"error": str(e)}, headers)
-                else:
-                    self._reply(code, f"{e}\n".encode(), TEXT, headers)
-            except Exception as e:  # a request must never take the agent down
-                log.error("%s %s failed: %s", method, url.path, e, exc_info=log.isEnabledFor(logging.DEBUG))
-                self._reply(500, f"failed: {e}\n".encode(), TEXT)
+        async def send() -> None:
+            await response.prepare(request)
+            if code != 204 and request.method != "HEAD":  # an answer to HEAD has no body
+                await response.write(body)
+            await response.write_eof()
+        try:
+            await asyncio.wait_for(send(), SEND_TIMEOUT)
+        except asyncio.TimeoutError:
+            self._server.count_closed("slow_reader")
+            request.protocol.force_close()
+        except ConnectionError:
+            pass  # the client hung up before the answer: no news
+        return response
 
-        def _api(self, method: str, path: str) -> None:
-            parts = [p for p in path[len(API):].split("/") if p]
-            if method not in ("GET", "POST", "DELETE"):
-                # Allow names what this resource takes (RFC 9110): the read-only ones take only GET.
-                allow = "GET" if parts in READ_ONLY else "GET, POST, DELETE"
-                raise HttpError(405, f"{method}: the API takes GET, POST and DELETE", {"Allow": allow})
-            if parts in READ_ONLY and method != "GET":  # before the token: no token makes it a method they take
-                raise HttpError(405, f"{method} {API}/{parts[0]}: only GET", {"Allow": "GET"})
-            if method != "GET" and token and not self._authorized():
-                raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
-                                {"WWW-Authenticate": "Bearer"})
-            self._json(*api(method, parts, self._body(), self.connection.getsockname()[0]))
 
-        def _authorized(self) -> bool:
-            given = self.headers.get("Authorization", "")
-            scheme, _, value = given.partition(" ")
-            return scheme.lower() == "bearer" and hmac.compare_digest(value.strip().encode(), token.encode())
+def _json(code: int, value, headers: dict | None = None) -> tuple[int, bytes, str, dict]:
+    return code, b"" if code == 204 else json.dumps(value).encode() + b"\n", JSON, headers or {}
 
-        def _body(self) -> bytes:
-            given = self.headers.get("Content-Length", "0")
-            length = whole(given)
-            if length is None:
-                raise HttpError(400, f"Content-Length {given!r} is not a length")
-            if length > MAX_BODY:
-                raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
-            return self.rfile.read(length)
 
-        def _compressed(self, body: bytes) -> tuple[bytes, dict]:
-            """The body gzipped if the client takes it (Prometheus does): a scrape is mostly
-            repeated label text, a fifth of its size compressed."""
-            accepted = {e.split(";")[0].strip() for e in self.headers.get("Accept-Encoding", "").split(",")}
-            if "gzip" not in accepted or len(body) < GZIP_FROM:
-                return body, {}
-            return gzip.compress(body, compresslevel=GZIP_LEVEL), {"Content-Encoding": "gzip", "Vary": "Accept-Encoding"}
+async def _body(request: web.BaseRequest) -> bytes:
+    """The request's body (chunked or not), at most MAX_BODY bytes, within BODY_TIMEOUT."""
+    if (request.content_length or 0) > MAX_BODY:
+        raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
+    body = bytearray()
 
-        def _json(self, code: int, value, headers: dict | None = None) -> None:
-            body = b"" if code == 204 else json.dumps(value).encode() + b"\n"
-            self._reply(code, body, JSON, headers)
-
-        def _reply(self, code: int, body: bytes, content_type: str, headers: dict | None = None) -> None:
-            try:
-                self.send_response(code)
-                if code != 204:
-                    self.send_header("Content-Type", content_type)
-                    self.send_header("Content-Length", str(len(body)))
-                for name, value in (headers or {}).items():
-                    self.send_header(name, value)
-                self.end_headers()
-                if code != 204 and self.command != "HEAD":  # an answer to HEAD has no body
-                    self.wfile.write(body)
-            except (BrokenPipeError, ConnectionResetError):
-                pass  # the client hung up before the answer (a scrape can take a while): no news
-
-        def log_message(self, fmt, *args):  # scrapes are not news
-            pass
-
-    return Handler
+    async def read() -> None:
+        while len(body) <= MAX_BODY and (chunk := await request.content.read(MAX_BODY + 1 - len(body))):
+            body.extend(chunk)
+    try:
+        await asyncio.wait_for(read(), BODY_TIMEOUT)
+    except asyncio.TimeoutError:
+        raise HttpError(408, f"the body did not arrive within {BODY_TIMEOUT:g} s") from None
+    if len(body) > MAX_BODY:
+        raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
+    return bytes(body)

@@ -13,20 +13,37 @@ Each message is two frames: the key `<host>:<kind>:<target>` (a subscriber filte
 Labels are most of a sample's bytes and rarely change, so they travel only with a new layout and
 in a periodic keyframe for subscribers that joined late; the messages between carry numbers only.
 
-Off loopback the socket uses CURVE: the agent makes a key pair at start and gives the public key
-in /drums/v1/info and in every job, and subscribers encrypt to it.
+Off loopback the socket uses CURVE, and only subscribers that hold the API token get in: the agent
+makes a key pair at start and gives its public key to callers with the token (in /drums/v1/info and
+in every job); a subscriber encrypts to it with the client key pair derived from the token
+(`client_keys`), the one client key the agent allows. Without the token there is neither key.
 """
 from __future__ import annotations
 
 import hashlib
+import hmac
+import logging
+import time
 
 import msgpack
 import zmq
+from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils import z85
 
 from drums.errors import DrumsError
 
 DEFAULT_PORT = 9970
 KEYFRAME = 10  # a late subscriber decodes from at most this many messages on
+REFUSED_SAID_EVERY = 60.0  # seconds: at most one line about subscribers refused
+
+log = logging.getLogger("drums")
+
+
+def client_keys(token: str) -> tuple[bytes, bytes]:
+    """The stream's client CURVE key pair (public, secret; Z85) for an API token: whoever holds the
+    token can make it, nobody else can."""
+    secret = z85.encode(hashlib.sha256(b"drums stream client\0" + token.encode()).digest())
+    return zmq.curve_public(secret), secret
 
 
 def layout_id(series: list) -> int:
@@ -37,12 +54,18 @@ def layout_id(series: list) -> int:
 class Stream:
     """Owned by one thread (ZeroMQ sockets are not thread-safe): the jobs thread publishes."""
 
-    def __init__(self, address: str, port: int, curve: bool):
+    def __init__(self, address: str, port: int, curve: bool, token: str = ""):
+        """With `curve`, subscribers must hold `token` (see client_keys)."""
         self._context = zmq.Context()
         self.socket = self._context.socket(zmq.PUB)
         self.socket.linger = 0
         self.public_key = ""
+        self._auth = None
         if curve:
+            self._allowed, self._refused, self._said = client_keys(token)[0], 0, 0.0
+            self._auth = ThreadAuthenticator(self._context, log=logging.getLogger("drums.stream.zap"))
+            self._auth.start()
+            self._auth.configure_curve_callback("*", credentials_provider=self)
             public, secret = zmq.curve_keypair()
             self.socket.curve_server = True
             self.socket.curve_secretkey = secret
@@ -56,6 +79,18 @@ class Stream:
         self.port = int(self.socket.last_endpoint.decode().rsplit(":", 1)[1])
         self._seq: dict[str, int] = {}
         self._layout: dict[str, tuple[list, int]] = {}  # key -> (series, its id)
+
+    def callback(self, _domain: str, client_key: bytes) -> bool:
+        """ZeroMQ's authenticator asks whether a subscriber's key may in: only the token's."""
+        if hmac.compare_digest(client_key, self._allowed):
+            return True
+        self._refused += 1
+        now = time.monotonic()
+        if now - self._said >= REFUSED_SAID_EVERY:
+            self._said = now
+            log.warning("stream: refused %d subscriber(s) without the token's key since start (said at most "
+                        "once a minute)", self._refused)
+        return False
 
     def publish(self, key: str, time: float, rows: list[dict]) -> None:
         """Publish one sample of `key`: rows of {"name", "labels", "value"}."""
@@ -81,4 +116,6 @@ class Stream:
 
     def close(self) -> None:
         self.socket.close()
+        if self._auth is not None:
+            self._auth.stop()
         self._context.term()

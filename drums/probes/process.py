@@ -11,6 +11,7 @@ import psutil
 
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.probes.base import Probe, ProbeStatus
+from drums.proctable import ProcessTable
 
 LABELS = ("pid", "process")
 RESIDENT_MEMORY = Metric("drums_process_resident_memory_bytes", GAUGE, "Resident set size", LABELS)
@@ -33,14 +34,15 @@ class ProcessProbe(Probe):
     name = "process"
     metrics = (RESIDENT_MEMORY, UNIQUE_MEMORY, THREADS, OPEN_FDS, READ_BYTES, WRITTEN_BYTES, START_TIME)
 
-    def __init__(self, interval: float = 5.0):
+    def __init__(self, proctable: ProcessTable, interval: float = 5.0):
         super().__init__()
+        self.proctable = proctable  # names as every probe gives them: following renames and exec
         # Each process costs several /proc reads (smaps_rollup above all), and memory, threads and
         # open files change slowly: a process is read at most once per interval (seconds).
         self.interval = interval
         self._pids: frozenset[int] = frozenset()
         self._procs: dict[int, psutil.Process] = {}
-        self._read_at: dict[int, tuple[float, tuple, list]] = {}
+        self._read_at: dict[int, tuple[float, list]] = {}
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
@@ -57,19 +59,20 @@ class ProcessProbe(Probe):
         for pid in self._pids:
             cached = self._read_at.get(pid)
             if cached and now - cached[0] < self.interval and self._procs[pid].is_running():
-                _, labels, values = cached
+                values = cached[1]
             else:
                 try:
-                    labels, values = self._read(pid)
+                    values = self._read(pid)
                 except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
                     self._procs.pop(pid, None)
                     self._read_at.pop(pid, None)
                     continue
-                self._read_at[pid] = (now, labels, values)
+                self._read_at[pid] = (now, values)
+            labels = (str(pid), self.proctable.name(pid))
             for metric, value in values:
                 snap.add(metric, labels, value)
 
-    def _read(self, pid: int) -> tuple[tuple[str, str], list[tuple[Metric, float]]]:
+    def _read(self, pid: int) -> list[tuple[Metric, float]]:
         proc = self._procs.get(pid)
         if proc is None:
             proc = self._procs[pid] = psutil.Process(pid)
@@ -80,7 +83,6 @@ class ProcessProbe(Probe):
             # memory_full_info reads smaps_rollup for USS and includes RSS, so one call gives both.
             mem = proc.memory_full_info()
             io = proc.io_counters()
-            labels = (str(pid), proc.name())
             values = [
                 (RESIDENT_MEMORY, mem.rss),
                 (UNIQUE_MEMORY, mem.uss),
@@ -94,4 +96,4 @@ class ProcessProbe(Probe):
         # reads also catches a PID reused while they ran; the new owner gets a fresh object next time.
         if not proc.is_running():
             raise psutil.NoSuchProcess(pid)
-        return labels, values
+        return values

@@ -34,7 +34,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
         "sched": lambda: SchedProbe(features, proctable, pin_root=pin_root),
         "tcp": lambda: TcpProbe(features, pin_root=pin_root),
         "host": HostProbe,
-        "process": ProcessProbe,
+        "process": lambda: ProcessProbe(proctable),
         "rtps": lambda: RtpsProbe(features, proctable, dds, pin_root=pin_root),
         "rcl": lambda: RclProbe(features, proctable, dds, pin_root=pin_root),
         "loads": lambda: LoadsProbe(features, dds, pin_root=pin_root),
@@ -58,6 +58,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
 def all_metrics():
     """Every metric any probe or the agent declares, for the README table."""
     from drums.agent import SELF_METRICS
+    from drums.exporters import http
     from drums.graph import join
     from drums.probes.host import HostProbe
     from drums.probes.latency import LatencyProbe
@@ -72,4 +73,4 @@ def all_metrics():
     for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe, RtpsProbe, RclProbe, LatencyProbe):
         yield cls.name, cls.metrics
     yield "graph", join.METRICS
-    yield "agent", SELF_METRICS
+    yield "agent", SELF_METRICS + http.METRICS

@@ -40,6 +40,8 @@ _SCHED = "5Q24I"  # struct sched_t
 _THREAD_VALUE = struct.Struct("<IIQQ16s" + _SCHED)
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+DROP_RENAMED = 2  # the index of bpf/sched.bpf.c's count of marks lost to a full `renamed` map
 _ONCPU = struct.Struct("<QII")
 
 
@@ -56,7 +58,7 @@ def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
-    maps = ("thread_sched", "exited_sched", "oncpu", "dropped")
+    maps = ("thread_sched", "exited_sched", "oncpu", "renamed", "dropped")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
     paths = (
@@ -77,6 +79,7 @@ class SchedProbe(BpfProbe):
         super().__init__(features, **kw)
         self.proctable = proctable
         self._monotonic = Monotonic()
+        self._renames_lost = 0
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {
@@ -90,6 +93,19 @@ class SchedProbe(BpfProbe):
             state = "__state" if btf.has_field("task_struct", "__state") else "state"
             d.update(offset_defines(btf, {"TASK_STATE_OFF": ("task_struct", state)}))
         return d
+
+    def renamed(self) -> set[int] | None:
+        """The processes renamed, exec'd or exited since the last call (for the process table);
+        None if some of those notices were lost to a full map."""
+        keys, values, _ = self.read("renamed")
+        m = self.opened["renamed"]
+        m.delete_unchanged([(keys[i * 4:i * 4 + 4], values[i * 8:i * 8 + 8]) for i in range(len(keys) // 4)])
+        _, drops, _ = self.read("dropped")
+        lost = _U64.unpack_from(drops, DROP_RENAMED * self.opened["dropped"].value_stride)[0]
+        if lost != self._renames_lost:
+            self._renames_lost = lost
+            return None
+        return {tgid for (tgid,) in _U32.iter_unpack(keys)}
 
     def _running(self) -> dict[int, int]:
         """Thread id -> nanoseconds it has been on its CPU, for the thread each CPU runs now."""
@@ -116,6 +132,7 @@ class SchedProbe(BpfProbe):
                 # of one of its threads may come after it and fold into a new one: the process is
                 # gone, so is its entry.
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
+        m = self._monotonic
         keys, values, _ = self.read("thread_sched")
         running = self._running()  # read after the threads: a slice that ended meanwhile is in neither
         for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
@@ -127,12 +144,12 @@ class SchedProbe(BpfProbe):
             totals.add_thread(tgid, start, s)
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))
+            oncpu = m((THREAD_CPU, tid, start), oncpu)  # with a running slice estimated here, never below the last
             snap.add(THREAD_CPU, labels, oncpu / 1e9)
             snap.add(THREAD_RUNQ, labels, runq_ns / 1e9)
             snap.add(THREAD_RUNQ_WAITS, labels, runq_waits)
             snap.add(THREAD_SWITCHES, labels + ("voluntary",), vol)
             snap.add(THREAD_SWITCHES, labels + ("involuntary",), invol)
-        m = self._monotonic
         for (tgid, start), s in totals.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), pt.name(tgid))

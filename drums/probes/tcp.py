@@ -9,6 +9,7 @@ from __future__ import annotations
 import socket
 import struct
 import time
+from operator import add
 
 from drums.errors import KernelError
 from drums.kernel import sockdiag
@@ -46,6 +47,9 @@ ESTABLISHED, TCP_CLOSE = 1, 7
 # Reading tcp_info costs a netlink round trip per connection (a dump of every established one,
 # about 17 ms per 1,000), so RTT is sampled at this interval (seconds) rather than at every scrape.
 RTT_INTERVAL = 5.0
+# How long what closed connections counted stays in their series, for a later connection with the
+# same addresses (a client that reconnects from its port): Prometheus's staleness window.
+CARRY_FOR = 300.0
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
 EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
@@ -70,6 +74,8 @@ class TcpProbe(BpfProbe):
         self.rtt_interval = rtt_interval
         self._rtt: list = []
         self._rtt_at = float("-inf")
+        self._carried: dict[tuple, tuple[tuple, float]] = {}  # labels -> (counts of closed connections, when)
+        self._carried_pruned = 0.0
         self._decoded: dict[bytes, tuple] = {}  # map value -> (labels, counts, state)
         self._wanted: set[tuple[str, str]] | None = None
 
@@ -93,6 +99,9 @@ class TcpProbe(BpfProbe):
         rows = snap.group_rows(CONN_GROUP)
         size = _CONN_VALUE.size
         decoded, self._decoded = self._decoded, {}
+        # A connection's series is named by its addresses, which a later connection can reuse while
+        # the kernel still holds the earlier one: the two are one series, their counts summed.
+        series: dict[tuple, tuple] = {}
         for i, key in enumerate(_U64.iter_unpack(keys)):
             raw = values[i * size:(i + 1) * size]
             row = decoded.get(raw)  # most connections did nothing since the last collect
@@ -101,11 +110,26 @@ class TcpProbe(BpfProbe):
                 row = ((endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns)),
                        tuple(counts), state)
             self._decoded[raw] = row
-            rows.append(row[:2])
+            labels, counts = row[0], row[1]
+            if labels in series:
+                counts = tuple(map(add, series[labels], counts))
+            series[labels] = counts
             if row[2] == TCP_CLOSE:
-                closed.append((_U64.pack(*key), raw))
-        # A closed connection is exported once, with the reset that closed it, then forgotten.
-        self.opened["tcp_conns"].delete_unchanged(closed)
+                closed.append((_U64.pack(*key), raw, labels, row[1]))
+        # A closed connection is exported once, with the reset that closed it, then forgotten; what it
+        # counted stays in its series for a connection that reuses its addresses (CARRY_FOR).
+        carried = self._carried
+        for labels, counts in series.items():
+            past = carried.get(labels)
+            rows.append((labels, tuple(map(add, counts, past[0])) if past else counts))
+        now = time.monotonic()
+        for _, _, labels, counts in closed:
+            past = carried.get(labels)
+            carried[labels] = (tuple(map(add, counts, past[0])) if past else counts, now)
+        if carried and now - self._carried_pruned >= CARRY_FOR / 10:
+            self._carried = {k: v for k, v in carried.items() if now - v[1] < CARRY_FOR or k in series}
+            self._carried_pruned = now
+        self.opened["tcp_conns"].delete_unchanged([(key, raw) for key, raw, _, _ in closed])
         _, values, _ = self.read("tcp_totals")
         totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]
         snap.add(RETRANSMITS, (), totals[0])

@@ -201,17 +201,27 @@ def test_the_api_off_loopback_needs_the_token_and_the_stream_is_encrypted(lab):
     job = agent.job("latency", address(2))
     assert job["mesh"] and job["stream"]["address"].startswith(f"tcp://{address(1)}:")
     assert len(job["stream"]["curve_public_key"]) == 40  # Z85 of a CURVE public key
+    assert agent.info()["stream"]["curve_public_key"] == job["stream"]["curve_public_key"]
+    stranger = type(agent)(agent.url)  # without the token: no key
+    assert stranger.info()["stream"]["curve_public_key"] == ""
+    assert {j["stream"]["curve_public_key"] for j in stranger.jobs()} == {""}
     plain = zmq.Context.instance().socket(zmq.SUB)  # no CURVE: the agent must not talk to it
-    plain.linger = 0
-    plain.connect(job["stream"]["address"])
-    plain.subscribe(b"")
+    # CURVE to the agent's key, but with a key pair of its own rather than the token's: refused.
+    keyless = zmq.Context.instance().socket(zmq.SUB)
+    keyless.curve_publickey, keyless.curve_secretkey = zmq.curve_keypair()
+    keyless.curve_serverkey = job["stream"]["curve_public_key"].encode()
+    for sock in (plain, keyless):
+        sock.linger = 0
+        sock.connect(job["stream"]["address"])
+        sock.subscribe(b"")
     client.subscribe(job["stream"])
     samples = wait_for("a decoded latency sample over CURVE",
                        lambda: [s for s in client.poll(0.5) if s.key == job["stream"]["key"]])
     rtt = samples[-1].value("drums_latency_rtt_mean_seconds", target=address(2))
     assert 0 < rtt < 0.05
-    assert plain.poll(500) == 0
+    assert plain.poll(500) == 0 and keyless.poll(500) == 0
     plain.close()
+    keyless.close()
 
 
 def test_a_host_that_ignores_ping_is_measured_by_tcp_connects(lab):

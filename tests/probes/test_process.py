@@ -7,6 +7,8 @@ import time
 import pytest
 
 from drums.metrics import Snapshot
+from drums.proctable import ProcessTable
+from tests.conftest import eventually
 from drums.probes.process import (
     OPEN_FDS,
     READ_BYTES,
@@ -45,6 +47,7 @@ sys.stdin.read()
 
 
 def collect(probe: ProcessProbe) -> Snapshot:
+    probe.proctable.refresh(None)  # as the agent does before every collect, without the sched probe
     snap = Snapshot()
     probe.collect(snap)
     return snap
@@ -88,7 +91,7 @@ def fstype_of(path) -> str:
 
 @pytest.fixture
 def probe():
-    probe = ProcessProbe(interval=0)
+    probe = ProcessProbe(ProcessTable(), interval=0)
     probe.start()
     return probe
 
@@ -185,10 +188,16 @@ def _respawn_at(pid: int, argv: list) -> subprocess.Popen:
     pytest.skip(f"another process kept taking PID {pid}")
 
 
+def exec_done(pid: int) -> None:
+    assert comm(pid) == "sleep"
+
+
 def test_reused_pid_is_not_read_as_the_dead_process(probe):
     first = subprocess.Popen(["sleep", "60"])
     pid = first.pid
     probe.set_pids([pid])
+    # Popen returns once the child has let go of our memory, a moment before exec names it "sleep".
+    eventually(lambda: exec_done(pid))
     first_start = collect(probe).values(START_TIME)[(str(pid), "sleep")]
     time.sleep(0.05)  # start times have clock-tick resolution: the two must not share a tick
     first.kill()
@@ -196,6 +205,7 @@ def test_reused_pid_is_not_read_as_the_dead_process(probe):
 
     second = _respawn_at(pid, ["sleep", "61"])
     try:
+        eventually(lambda: exec_done(pid))
         snaps = [collect(probe), collect(probe)]
         assert all(first_start not in snap.values(START_TIME).values() for snap in snaps)
         assert snaps[-1].values(START_TIME) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
