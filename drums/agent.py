@@ -53,10 +53,13 @@ AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
                    ("role",))
 GRAPH_STALE = Metric("drums_graph_stale", GAUGE,
                      "1 while the graph adapter fails (the last good graph is kept), else 0", ("adapter",))
+GRAPH_TRUNCATED = Metric("drums_graph_truncated", GAUGE,
+                         "1 while the graph holds only part of what the middleware said (over the adapter's "
+                         "limits), else 0", ("adapter",))
 GRAPH_ENTITIES = Metric("drums_graph_entities", GAUGE, "Entities in the graph, by kind", ("kind",))
 LOSS_SAID_EVERY = 60.0  # seconds: at most one line per probe about lost events or full maps
 NEARLY_FULL = 0.9  # a map this full is said to be, before it loses anything
-SELF_METRICS = (GRAPH_STALE, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
+SELF_METRICS = (GRAPH_STALE, GRAPH_TRUNCATED, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
                 FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
 
@@ -295,6 +298,7 @@ class Agent:
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
         if self.graph is not None:
             snap.add(GRAPH_STALE, (self.graph_adapter,), int(bool(self.graph.error)))
+            snap.add(GRAPH_TRUNCATED, (self.graph_adapter,), int(bool(self.graph.truncated)))
             for kind in ENTITIES:
                 snap.add(GRAPH_ENTITIES, (kind,), len(self.graph.entities(kind)))
         for kind, count in self.budget.folded().items():

@@ -183,7 +183,7 @@ def test_healthz_says_what_each_source_does_and_readyz_waits_for_the_graph(agent
     eventually(ready, timeout=20)
     health = json.loads(scrape(base + "/healthz"))
     assert (health["status"], health["degraded"]) == ("ok", [])
-    assert health["graph"] == {"adapter": "ros2", "read": True, "stale": False, "error": ""}
+    assert health["graph"] == {"adapter": "ros2", "read": True, "stale": False, "error": "", "truncated": ""}
     assert health["probes"]["rcl"] == {"attached": True, "attach_type": "uprobe", "reason": ""}
 
     # A ROS 1 master that is not there: the agent serves, says it is degraded, and is not ready.

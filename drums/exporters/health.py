@@ -22,8 +22,8 @@ def health(probes: list[Probe], graph: Graph | None, adapter: str) -> dict:
     out = {"status": "degraded" if degraded else "ok", "degraded": degraded, "probes": sources}
     if graph is not None:
         out["graph"] = {"adapter": adapter, "read": graph.updated_at > 0, "stale": bool(graph.error),
-                        "error": graph.error}
-        if graph.error:
+                        "error": graph.error, "truncated": graph.truncated}
+        if graph.error or graph.truncated:
             out["status"] = "degraded"
             out["degraded"].append(f"graph {adapter}")
     return out

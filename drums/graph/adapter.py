@@ -149,6 +149,8 @@ class Follower:
             return
         if self.graph.error:
             log.info("graph (%s): reading again", self.adapter.name)
+        if state.truncated and state.truncated != self.graph.truncated:
+            log.warning("graph (%s): truncated: %s", self.adapter.name, state.truncated)
         self.graph.update(state)
 
     def _run(self) -> None:

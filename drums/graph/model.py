@@ -94,6 +94,7 @@ class GraphState:
     topics: list[Topic] = field(default_factory=list)
     endpoints: list[Endpoint] = field(default_factory=list)
     connections: list[Connection] = field(default_factory=list)
+    truncated: str = ""  # why the adapter kept only part of what the middleware said ("" if it kept all)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -103,7 +104,9 @@ class GraphState:
         """From JSON (an adapter's child process, a client): anything malformed is a GraphError."""
         if not isinstance(data, dict):
             raise GraphError(f"a graph state is an object, not {type(data).__name__}")
-        state = cls()
+        state = cls(truncated=data.get("truncated", ""))
+        if not isinstance(state.truncated, str):
+            raise GraphError(f"truncated: a reason, not {type(state.truncated).__name__}")
         for kind, entity in ENTITIES.items():
             items = data.get(PLURAL[kind], [])
             if not isinstance(items, list):
@@ -179,6 +182,7 @@ class Graph:
         self.updated_at = 0.0  # time.time() of the last good state
         self.stale_after = stale_after
         self.error = ""  # why the last poll failed, "" after a good one
+        self.truncated = ""  # why the last good state is only part of the graph, "" if it is whole
 
     def update(self, state: GraphState, at: float | None = None) -> list[Change]:
         at = time.time() if at is None else at
@@ -211,6 +215,7 @@ class Graph:
             self.change_count += len(changes)
             self.updated_at = at
             self.error = ""
+            self.truncated = state.truncated
         return changes
 
     def changes_since(self, count: int) -> tuple[list[Change], int]:

@@ -40,6 +40,11 @@ from drums.proctable import ProcessTable
 CALLER_ID = "/drums_graph"  # who we say we are; we register nothing with the master
 DEFAULT_MASTER = "http://localhost:11311/"
 MAX_ANSWER = 64 << 20  # bytes: getSystemState of a large robot is a few MB, more is garbage or an attack
+# What one poll keeps of what a master says, past which the graph is truncated: values in one answer
+# (topic and node names: a large robot has a few thousand), and nodes asked for their connections
+# and PID (three calls each). A master that lists a million topics costs no more than that.
+MAX_VALUES = 10_000
+MAX_NODES = 1_000
 WORKERS = 16  # XML-RPC calls in flight at once
 GRACE = 0.1  # seconds past the deadline for a call that timed out to say so
 # roscpp's TransportTCP::getTransportInfo, which rospy's TCPROSTransport.get_transport_info copies:
@@ -95,6 +100,7 @@ class _Transport(xmlrpc.client.Transport):
     def __init__(self, deadline: float):
         super().__init__()
         self.deadline = deadline
+        self.cut = 0  # values of the answer past MAX_VALUES, dropped
 
     def _left(self) -> float:
         left = self.deadline - time.monotonic()
@@ -119,7 +125,7 @@ class _Transport(xmlrpc.client.Transport):
         return connection
 
     def getparser(self):
-        unmarshaller = xmlrpc.client.Unmarshaller()
+        unmarshaller = _Capped()
         return DefusedExpatParser(unmarshaller, forbid_dtd=True), unmarshaller
 
     def parse_response(self, response):
@@ -137,21 +143,44 @@ class _Transport(xmlrpc.client.Transport):
                 raise ValueError(f"an answer over {MAX_ANSWER >> 20} MiB")
             parser.feed(chunk)
         parser.close()
+        self.cut = unmarshaller.cut
         return unmarshaller.close()
 
 
-def _pairs(value, what: str) -> list[tuple[str, object]]:
-    if not isinstance(value, list) or not all(
-            isinstance(p, list) and len(p) == 2 and isinstance(p[0], str) for p in value):
+class _Capped(xmlrpc.client.Unmarshaller):
+    """An unmarshaller that keeps the first MAX_VALUES values of an answer and counts the rest
+    (`cut`) instead of building them: lists past the limit come out short or empty."""
+
+    def __init__(self):
+        super().__init__()
+        self.kept = self.cut = 0
+        keep = self._stack.append
+
+        def append(value) -> None:
+            if self.kept < MAX_VALUES:
+                self.kept += 1
+                keep(value)
+            else:
+                self.cut += 1
+        self.append = append
+
+
+def _pairs(value, what: str, cut: bool = False) -> list[tuple[str, object]]:
+    """[name, value] pairs; of an answer that was `cut`, the whole ones (the rest were cut short)."""
+    whole = lambda p: isinstance(p, list) and len(p) == 2 and isinstance(p[0], str)  # noqa: E731
+    if not isinstance(value, list) or not (cut or all(whole(p) for p in value)):
         raise GraphError(f"{what}: not a list of [name, value] pairs")
-    return [(p[0], p[1]) for p in value]
+    return [(p[0], p[1]) for p in value if whole(p)]
 
 
-def system_state(value, who: str) -> tuple[dict[str, list[str]], dict[str, list[str]], set[str]]:
-    """(publishers by topic, subscribers by topic, every node) from getSystemState's value."""
+def system_state(value, who: str, cut: bool = False) -> tuple[dict[str, list[str]], dict[str, list[str]], set[str]]:
+    """(publishers by topic, subscribers by topic, every node) from getSystemState's value, which
+    may have been `cut` short past MAX_VALUES."""
+    if cut and isinstance(value, list):
+        value = (value + [[], [], []])[:3]
     if not isinstance(value, list) or len(value) != 3:
         raise GraphError(f"{who} answered getSystemState with {type(value).__name__}, not [pubs, subs, services]")
-    pubs, subs, services = (_pairs(part, f"{who}, getSystemState") for part in value)
+    pubs, subs, services = (_pairs(part, f"{who}, getSystemState", cut) for part in value)
     nodes = set()
     for name, members in pubs + subs + services:
         if not isinstance(members, list) or not all(isinstance(m, str) for m in members):
@@ -245,6 +274,7 @@ class Ros1Adapter(Adapter):
         self._pids: dict[str, int] = {}  # slave URI -> PID: a node's PID stays while its URI does
         self._local: set[str] = set()
         self._here = ""
+        self._cuts: list[str] = []  # what this poll kept only part of, said in the state's `truncated`
 
     def start(self) -> None:
         url = urlsplit(self.master_uri)
@@ -262,8 +292,9 @@ class Ros1Adapter(Adapter):
 
     def _call(self, uri: str, who: str, deadline: float, method: str, *args):
         """The value of one ROS API call ([code, statusMessage, value]); a GraphError otherwise."""
+        transport = _Transport(deadline)
         try:
-            proxy = xmlrpc.client.ServerProxy(uri, transport=_Transport(deadline))
+            proxy = xmlrpc.client.ServerProxy(uri, transport=transport)
             answer = getattr(proxy, method)(CALLER_ID, *args)
         except (socket.timeout, TimeoutError):
             raise GraphError(f"{who} did not answer {method} within {self.timeout:g} s") from None
@@ -284,6 +315,9 @@ class Ros1Adapter(Adapter):
             raise GraphError(f"{who} answered {method} with something that is not [code, message, value]")
         if answer[0] != 1:
             raise GraphError(f"{who} refused {method}: {_line(answer[1])}")
+        if transport.cut:
+            self._cuts.append(f"{who} answered {method} with {transport.cut + MAX_VALUES:,} values; "
+                              f"the first {MAX_VALUES:,} were kept")
         return answer[2]
 
     def _ask(self, name: str, slave: _Slave, deadline: float) -> None:
@@ -325,14 +359,21 @@ class Ros1Adapter(Adapter):
     def poll(self) -> GraphState:
         deadline = time.monotonic() + self.timeout
         master = f"the ROS master at {self.master_uri}"
+        self._cuts = []
         asked = {m: self._pool.submit(self._call, self.master_uri, master, deadline, m)
                  for m in ("getSystemState", "getTopicTypes")}
-        pubs, subs, names = system_state(self._master(asked["getSystemState"], "getSystemState", deadline), master)
-        types = dict(_pairs(self._master(asked["getTopicTypes"], "getTopicTypes", deadline), f"{master}, getTopicTypes"))
-        slaves = {name: _Slave() for name in sorted(names)}
+        pubs, subs, names = system_state(self._master(asked["getSystemState"], "getSystemState", deadline), master,
+                                         cut=bool(self._cuts))
+        types = dict(_pairs(self._master(asked["getTopicTypes"], "getTopicTypes", deadline), f"{master}, getTopicTypes",
+                            cut=bool(self._cuts)))
+        if len(names) > MAX_NODES:
+            self._cuts.append(f"{master} listed {len(names):,} nodes; the first {MAX_NODES:,} were asked")
+        slaves = {name: _Slave() for name in sorted(names)[:MAX_NODES]}
         concurrent.futures.wait([self._pool.submit(self._ask, name, slave, deadline) for name, slave in slaves.items()],
                                 timeout=max(0.0, deadline + GRACE - time.monotonic()))
-        return self._describe(pubs, subs, types, slaves)
+        state = self._describe(pubs, subs, types, slaves)
+        state.truncated = "; ".join(sorted(self._cuts))  # the calls ran side by side: in a stable order
+        return state
 
     def _describe(self, pubs: dict, subs: dict, types: dict, slaves: dict[str, _Slave]) -> GraphState:
         state = GraphState()
@@ -357,7 +398,8 @@ class Ros1Adapter(Adapter):
             kind = types.get(topic)
             state.topics.append(Topic(topic, (kind,) if isinstance(kind, str) and kind else ()))
             for role, members in (("publisher", pubs), ("subscriber", subs)):
-                state.endpoints += [Endpoint(f"{node}:{role}:{topic}", role, node, topic) for node in members.get(topic, ())]
+                state.endpoints += [Endpoint(f"{node}:{role}:{topic}", role, node, topic)
+                                    for node in members.get(topic, ()) if node in slaves]  # those kept
 
         def resolve(peer: str) -> str | None:  # a caller id ("o"), or the publisher's slave URI ("i")
             return peer if peer in slaves else by_uri.get(_where(peer))

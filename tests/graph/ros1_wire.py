@@ -1,13 +1,14 @@
 """A ROS 1 master and ROS 1 nodes that speak the documented wire protocols (the Master and Slave
 XML-RPC APIs, TCPROS), from the standard library alone: the ground truth of tests/graph/test_ros1.py.
 
-    python ros1_wire.py master [--port P] [--mode good|garbage|silent|bomb]
+    python ros1_wire.py master [--port P] [--mode good|garbage|silent|bomb|huge]
     python ros1_wire.py node --name /camera --master URI --publish /image:sensor_msgs/Image \\
         [--subscribe /objects:vision_msgs/Detection2DArray] [--messages 3] [--size 100] \\
         [--hang getPid] [--bus-info roscpp|opaque] [--hostname NAME]
 
 A master prints "ready <uri>" and takes "mode <mode>" lines on stdin: "garbage" answers HTTP 200
-with a body that is not XML, "bomb" an XML entity bomb, "silent" reads nothing and never answers.
+with a body that is not XML, "bomb" an XML entity bomb, "silent" reads nothing and never answers,
+"huge" lists HUGE topics, each published by a node of its own (about 17 MB), and knows no node.
 A node prints "ready <pid> <uri>", then one JSON line per connection: a publisher, once it has
 sent its messages, what it wrote on that socket (header included) and the socket's two addresses
 as getsockname() and getpeername() give them; a subscriber, once it has read as many messages,
@@ -25,6 +26,7 @@ import sys
 import threading
 import time
 from socketserver import ThreadingMixIn
+import xmlrpc.client
 from xmlrpc.client import ServerProxy
 from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 
@@ -124,6 +126,21 @@ class Master:
         return [1, "node api", uri] if uri else [-1, f"unknown node [{node}]", ""]
 
 
+HUGE = 100_000
+
+
+def huge(handler) -> bytes:
+    """The "huge" master's answer to the call the handler reads."""
+    method = xmlrpc.client.loads(handler.rfile.read(int(handler.headers["Content-Length"])))[1]
+    if method == "getSystemState":
+        value = [[[f"/topic{i}", [f"/node{i}"]] for i in range(HUGE)], [], []]
+    elif method == "getTopicTypes":
+        value = [[f"/topic{i}", "std_msgs/String"] for i in range(HUGE)]
+    else:
+        return xmlrpc.client.dumps(([-1, "unknown node", ""],), methodresponse=True).encode()
+    return xmlrpc.client.dumps(([1, "huge", value],), methodresponse=True).encode()
+
+
 def run_master(port: int, mode: str) -> None:
     modes = {"now": mode}
 
@@ -133,8 +150,8 @@ def run_master(port: int, mode: str) -> None:
                 return super().do_POST()
             while modes["now"] == "silent":
                 time.sleep(0.05)  # holds the connection, never answers
-            if modes["now"] in ("garbage", "bomb"):
-                body = GARBAGE if modes["now"] == "garbage" else BOMB
+            if modes["now"] in ("garbage", "bomb", "huge"):
+                body = GARBAGE if modes["now"] == "garbage" else BOMB if modes["now"] == "bomb" else huge(self)
                 self.send_response(200)
                 self.send_header("Content-Type", "text/xml")
                 self.send_header("Content-Length", str(len(body)))
@@ -332,7 +349,7 @@ def main() -> None:
     roles = parser.add_subparsers(dest="role", required=True)
     master = roles.add_parser("master")
     master.add_argument("--port", type=int, default=0)
-    master.add_argument("--mode", default="good", choices=("good", "garbage", "silent", "bomb"))
+    master.add_argument("--mode", default="good", choices=("good", "garbage", "silent", "bomb", "huge"))
     node = roles.add_parser("node")
     node.add_argument("--name", required=True)
     node.add_argument("--master", required=True)
