@@ -33,6 +33,8 @@ struct tcp_totals_t {
 // reset comes with or right after the close); LRU, so that without an agent the oldest go first.
 BPF_TABLE("lru_hash", u64, struct tcp_conn_t, tcp_conns, 32768);
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
+// Numbers the closed connections whose struct sock was reused before the agent exported them.
+BPF_ARRAY(closed_seq, u64, 1);
 
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
 // main file, so each program declares this map and its helper itself.)
@@ -85,13 +87,15 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c && c->state == TCP_CLOSE && newstate != TCP_CLOSE) {
         // The struct sock now holds a new connection (the kernel reuses them at once): the closed
-        // one moves to the key sk | 1 (a struct sock is aligned) until the agent has exported it.
-        // Its sk | 1 of an earlier reuse, not yet exported, is overwritten: that is a drop.
-        u64 moved = sk | 1;
-        struct tcp_conn_t closed = *c;
-        if (tcp_conns.lookup(&moved))
-            count_drop(0);
-        tcp_conns.update(&moved, &closed);
+        // one moves to a key of its own, odd (a struct sock is aligned) and never used before,
+        // until the agent has exported it.
+        u32 zero = 0;
+        u64 *next = closed_seq.lookup(&zero);
+        if (next) {
+            u64 moved = (__sync_fetch_and_add(next, 1) << 1) | 1;
+            struct tcp_conn_t closed = *c;
+            tcp_conns.update(&moved, &closed);
+        }
         tcp_conns.delete(&sk);
         c = 0;
     }

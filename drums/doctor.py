@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 import os
 
-from drums.kernel.features import Features
+from drums.kernel.features import TRACEFS, Features, is_mount_of_type
 from drums.probes.bpf import BpfProbe, choose_path, common_requirements
 from drums.probes.registry import build
 from drums.proctable import ProcessTable
@@ -17,6 +17,15 @@ KEY_TRACEPOINTS = ("sock_send_length", "sock_recv_length", "inet_sock_set_state"
 def _line(name: str, ok: bool, text: str, fix: str = "") -> str:
     mark = "ok " if ok else "NO "
     return f"{mark} {name:<12} {text}" + (f"\n    fix: {fix}" if fix and not ok else "")
+
+
+def _mount_line(name: str, ok: bool, path: str, fstype: str, why: str = "") -> str:
+    """A file system the agent needs: there, mounted but closed to this user, or not mounted."""
+    if not ok and is_mount_of_type("/proc/mounts", path, fstype):
+        return _line(name, False, f"{path} is mounted but not readable as uid {os.geteuid()}",
+                     "run the agent (and this doctor) as root")
+    return _line(name, ok, path if ok else "not mounted",
+                 f"mount -t {fstype} {fstype} {path}" + (f" ({why})" if why else ""))
 
 
 def _bcc_version() -> str | None:
@@ -46,10 +55,8 @@ def report(f: Features) -> tuple[list[str], bool]:
                        "run the agent as root (BPF needs CAP_BPF and CAP_PERFMON)"))
     lines.append(_line("BTF", f.btf is not None, "/sys/kernel/btf/vmlinux" if f.btf else "missing",
                        "use a kernel built with CONFIG_DEBUG_INFO_BTF=y; without it only /proc probes run"))
-    lines.append(_line("tracefs", f.tracefs, "/sys/kernel/tracing" if f.tracefs else "not mounted",
-                       "mount -t tracefs tracefs /sys/kernel/tracing (kprobes need it)"))
-    lines.append(_line("bpffs", f.bpffs, "/sys/fs/bpf" if f.bpffs else "not mounted",
-                       "mount -t bpf bpf /sys/fs/bpf"))
+    lines.append(_mount_line("tracefs", f.tracefs, TRACEFS, "tracefs", "kprobes need it"))
+    lines.append(_mount_line("bpffs", f.bpffs, "/sys/fs/bpf", "bpf"))
     version = _bcc_version()
     lines.append(_line("bcc", version is not None, version or "not installed",
                        "apt-get install python3-bpfcc, and run Drums from a venv made with "

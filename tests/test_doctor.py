@@ -60,3 +60,15 @@ def test_doctor_reports_this_machine_as_platform_md_says():
     assert line["BTF"].startswith("ok ")
     for probe in ("sockets", "sched", "tcp"):
         assert any(l.strip().startswith(f"probe {probe}") and "will use raw_tracepoint" in l for l in lines)
+
+
+def test_doctor_as_an_ordinary_user_tells_no_permission_from_not_mounted():
+    """tracefs is mounted here, and closed to other users (mode 700): not "not mounted"."""
+    out = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
+                          sys.executable, "-m", "drums", "doctor"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    at = next(i for i, l in enumerate(lines) if l.split()[1:2] == ["tracefs"])
+    assert lines[at:at + 2] == ["NO  tracefs      /sys/kernel/tracing is mounted but not readable as uid 65534",
+                                "    fix: run the agent (and this doctor) as root"]
+    assert any(l.startswith("ok  bpffs") for l in lines)

@@ -51,7 +51,7 @@ class Features:
 
     @cached_property
     def bpffs(self) -> bool:
-        return _is_mount_of_type("/proc/mounts", "/sys/fs/bpf", "bpf")
+        return is_mount_of_type("/proc/mounts", "/sys/fs/bpf", "bpf")
 
     @cached_property
     def bcc(self) -> bool:
@@ -108,7 +108,7 @@ def _listdir(path: str) -> list[str]:
         return []
 
 
-def _is_mount_of_type(mounts: str, target: str, fstype: str) -> bool:
+def is_mount_of_type(mounts: str, target: str, fstype: str) -> bool:
     try:
         with open(mounts) as f:
             return any(line.split()[1:3] == [target, fstype] for line in f)

@@ -58,7 +58,7 @@ EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_re
 class TcpProbe(BpfProbe):
     name = "tcp"
     source = "tcp.bpf.c"
-    maps = ("tcp_conns", "tcp_totals", "dropped")
+    maps = ("tcp_conns", "tcp_totals", "closed_seq", "dropped")
     metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_RESETS_RECEIVED, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
                RESETS_RECEIVED, STATE_ENTERED)
     paths = (
