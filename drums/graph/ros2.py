@@ -27,6 +27,10 @@ from drums.graph.nodepids import ProcScan, map_nodes
 from drums.netfmt import is_address
 from drums.proctable import name_helper
 
+# Measured: a reader that is not root sees the topics of a root node but not the node, nor its
+# endpoints (Fast DDS carries them over shared memory, whose segments are closed to other users).
+NOT_ROOT = ("the agent is not root: nodes of other users' processes are missing (their DDS shared memory is "
+            "closed to it) and nodes are not mapped to processes it may not read")
 OWN_NODE = "_drums_graph"  # a leading underscore hides a node from `ros2 node list`; every agent's reader has it
 ANNOUNCE_TOPIC = "/drums/agents"
 # The name rmw gives an endpoint whose node is not discovered yet: skipped until it is.
@@ -116,7 +120,7 @@ def discover(node, scan: ProcScan, agents: Agents) -> GraphState:
     names = [full_name(ns, n) for n, ns in node.get_node_names_and_namespaces() if n != OWN_NODE]
     prefixes: dict[str, bytes | None] = dict.fromkeys(names)
     own = b""  # our participant's GUID prefix: its host id tells local nodes from remote ones
-    state = GraphState()
+    state = GraphState(truncated=NOT_ROOT if os.geteuid() else "")
     for topic, types in node.get_topic_names_and_types():
         pubs = node.get_publishers_info_by_topic(topic)
         subs = node.get_subscriptions_info_by_topic(topic)
