@@ -32,6 +32,7 @@ demo-stop:
 
 # Every benchmark; their tables go to bench/results.json, and from there into the README.
 bench: setup-test
+	@DRUMS_SETUP_TEST=1 DRUMS_SETUP_BENCH=1 scripts/setup.sh
 	$(PY) bench/run_all.py
 	$(PY) bench/readme.py README.md
 

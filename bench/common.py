@@ -241,6 +241,7 @@ class Agent:
 
     keep_loaded: bool = False
     extra: list[str] = field(default_factory=list)
+    under: list[str] = field(default_factory=list)  # a command that execs the agent (prlimit ...)
     port: int = 0
     proc: subprocess.Popen | None = None
     started_at: float = 0.0
@@ -259,7 +260,7 @@ class Agent:
             cmd.append("--keep-loaded")
         self._log = tempfile.TemporaryFile(mode="w+")
         self.started_at = time.perf_counter()
-        self.proc = subprocess.Popen(cmd + self.extra, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(self.under + cmd + self.extra, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
         return self
 
     def wait_ready(self, timeout: float = 60, interval: float = 0.01) -> float:

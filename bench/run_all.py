@@ -32,6 +32,7 @@ BENCHMARKS = (
     ("agent_cost", ["--seconds", "5"]),
     ("topic_latency", ["--rounds", "1", "--seconds", "2"]),
     ("stream_bandwidth", ["--seconds", "3"]),
+    ("http_robustness", ["--seconds", "5"]),
 )
 TIMEOUT = 600  # seconds; each benchmark is meant to finish within about 3 minutes
 

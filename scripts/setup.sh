@@ -11,6 +11,8 @@ APT_PACKAGES=(python3-bpfcc python3-venv libbpf1 bpftool iproute2)
 # For the tests: Prometheus and VictoriaMetrics run the mixin, Graphviz draws the graph, Chromium
 # loads the agent's page, tmux runs `drums top` in a terminal.
 [ "${DRUMS_SETUP_TEST:-0}" = 1 ] && APT_PACKAGES+=(prometheus victoria-metrics iperf3 tcpdump graphviz chromium tmux)
+# For the benchmarks: node_exporter is a peer (its service is disabled again: the benchmark runs it).
+[ "${DRUMS_SETUP_BENCH:-0}" = 1 ] && APT_PACKAGES+=(prometheus-node-exporter)
 
 log() { echo "setup: $*" >&2; }
 
@@ -30,6 +32,9 @@ if [ ${#need_apt[@]} -gt 0 ] || [ $need_headers = 1 ]; then
   log "apt-get install ${need_apt[*]:-} (kernel headers: $([ $need_headers = 1 ] && echo needed || echo present))"
   apt-get update -qq
   [ ${#need_apt[@]} -gt 0 ] && apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
+  if [[ " ${need_apt[*]} " == *" prometheus-node-exporter "* ]]; then
+    systemctl disable --now prometheus-node-exporter >/dev/null 2>&1 || true
+  fi
   if [ $need_headers = 1 ]; then
     if apt-get install -y -qq --no-install-recommends "linux-headers-$release" >/dev/null 2>&1; then
       log "installed linux-headers-$release"
