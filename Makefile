@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 9969
 
-.PHONY: setup setup-test run test bench readme lock mixin demo demo-stop clean
+.PHONY: setup setup-test run test bench soak readme lock mixin demo demo-stop clean
 
 setup:
 	@scripts/setup.sh
@@ -35,6 +35,12 @@ bench: setup-test
 	@DRUMS_SETUP_TEST=1 DRUMS_SETUP_BENCH=1 scripts/setup.sh
 	$(PY) bench/run_all.py
 	$(PY) bench/readme.py README.md
+
+# A soak, apart from make bench for its length: the agent under churn for MINUTES (default 30),
+# its memory, open files, threads and byte exactness printed every minute.
+MINUTES ?= 30
+soak: setup-test
+	$(PY) bench/soak.py --minutes $(MINUTES)
 
 # The README's metric table is generated from the probes' own declarations, its measured figures
 # from bench/results.json.

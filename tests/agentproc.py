@@ -61,3 +61,27 @@ def samples(text: str, name: str) -> dict[tuple, float]:
             if s.name == name:
                 out[tuple(sorted(s.labels.items()))] = s.value
     return out
+
+
+def counters(text: str) -> dict[str, float]:
+    """Every sample of a counter (and of a histogram's buckets, count and sum) in a scrape, by its
+    name and labels as written."""
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            series, _, value = line.rpartition(" ")
+            name = series.split("{", 1)[0]
+            if name.endswith(("_total", "_bucket", "_count", "_sum")):
+                out[series] = float(value)
+    return out
+
+
+def assert_monotonic(scrapes: list[str]) -> None:
+    """No counter of a series went backwards from one scrape to the next (a series that left and
+    came back may start again: that is a new entity's)."""
+    last: dict[str, float] = {}
+    for text in scrapes:
+        now = counters(text)
+        back = {s: (last[s], v) for s, v in now.items() if s in last and v < last[s]}
+        assert not back, f"counters went backwards: {dict(list(back.items())[:5])}"
+        last = now

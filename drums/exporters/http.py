@@ -122,7 +122,7 @@ class _Connections(web.Server):
     def connection_made(self, handler, transport) -> None:
         super().connection_made(handler, transport)
         self._waiting[handler] = None
-        if len(self._connections) > self.limit:
+        if len(self.connections) > self.limit:
             victim = next(iter(self._waiting))
             del self._waiting[victim]
             # After aiohttp has finished setting the connection up, not in the middle of it.

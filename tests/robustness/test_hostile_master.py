@@ -6,7 +6,7 @@ import time
 import urllib.request
 
 from drums.graph.ros1 import MAX_NODES, MAX_VALUES
-from tests.agentproc import running_agent, samples, scrape
+from tests.agentproc import assert_monotonic, running_agent, samples, scrape
 from tests.conftest import eventually
 from tests.graph.test_ros1 import Wire
 from tests.robustness.test_http import MB, agent_process, timed_scrape
@@ -27,6 +27,7 @@ def test_a_master_that_lists_a_hundred_thousand_topics_is_truncated_and_costs_li
                 time.sleep(1)
                 scrape(url)
             before = peak = agent.memory_full_info().uss
+            texts = [scrape(url)]
             master.say("mode huge")
             eventually(lambda: value(url, "drums_graph_truncated", adapter="ros1") == 1, timeout=30)
             times = []
@@ -34,6 +35,8 @@ def test_a_master_that_lists_a_hundred_thousand_topics_is_truncated_and_costs_li
                 times.append(timed_scrape(url))
                 peak = max(peak, agent.memory_full_info().uss)
                 time.sleep(1)
+            texts.append(scrape(url))
+            assert_monotonic(texts)
             topics = value(url, "drums_graph_entities", kind="topic")
             nodes = value(url, "drums_graph_entities", kind="node")
             with urllib.request.urlopen(url.replace("/metrics", "/healthz"), timeout=10) as reply:

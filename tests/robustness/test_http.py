@@ -10,7 +10,7 @@ import urllib.request
 
 import psutil
 
-from tests.agentproc import running_agent, samples, scrape
+from tests.agentproc import assert_monotonic, running_agent, samples, scrape
 from tests.conftest import eventually
 
 SLOWLORIS = 3000
@@ -68,13 +68,14 @@ def test_slowloris_connections_do_not_lock_out_scrapes():
         for _ in range(3):  # warm: the first scrapes fill the agent's caches
             scrape(url)
         before = agent.memory_full_info().uss
-        times, peak = [], before
+        times, peak, texts = [], before, [scrape(url)]
         with hostile("slowloris", url, SLOWLORIS):
             for _ in range(20):
                 began = time.monotonic()
                 times.append(timed_scrape(url))
                 peak = max(peak, agent.memory_full_info().uss)
                 time.sleep(max(0.0, 1 - (time.monotonic() - began)))
+            texts.append(scrape(url))
             assert value(url, "drums_http_connections_closed_total", reason="over_limit") > 0
         gone = time.monotonic()
 
@@ -83,6 +84,7 @@ def test_slowloris_connections_do_not_lock_out_scrapes():
             assert (took := timed_scrape(url)) is not None and took < 1
             return time.monotonic() - gone
         recovery = eventually(recovered, timeout=5)
+        assert_monotonic(texts + [scrape(url)])
     answered = [t for t in times if t is not None]
     print(f"slowloris: {len(answered)}/{len(times)} answered, p99 {p99(answered):.3f} s, "
           f"USS +{(peak - before) / MB:.1f} MB, recovered in {recovery:.2f} s")

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from tests.agentproc import running_agent, scrape
+from tests.agentproc import assert_monotonic, running_agent, scrape
 from tests.conftest import eventually
 
 # A parent that names itself, forks a child that burns a little CPU (so that it has sched rows) and
@@ -53,8 +53,11 @@ def named(url: str, pid: int, name: str) -> None:
 
 @pytest.fixture(scope="module")
 def agent():
+    """The agent; once every test of the module has run, its counters have never gone backwards."""
     with running_agent("--graph", "auto") as url:
+        first = scrape(url)
         yield url
+        assert_monotonic([first, scrape(url)])
 
 
 def test_a_renamed_or_exec_d_process_carries_its_new_name(agent):
