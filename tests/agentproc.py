@@ -17,12 +17,13 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address: str = "127.0.0.1"):
+def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address: str = "127.0.0.1",
+                  logs: list | None = None):
     """`drums agent` on a free port, serving; yields its /metrics URL. Stops it and checks it
     left no traceback and (for an agent with BPF probes, `bpf`) no pins behind. Each agent pins
     in a folder of its own, so that agents of tests running side by side leave each other alone.
     `under`: a command that execs the agent, e.g. one that gives it a host name of its own;
-    `address`: where it listens (and is reached)."""
+    `address`: where it listens (and is reached); `logs`: gets the agent's log once it has stopped."""
     port = free_port()
     pins = f"/sys/fs/bpf/drums_agent_{port}"
     proc = subprocess.Popen([*under, sys.executable, "-m", "drums", "agent", "--port", str(port), "--pin-dir", pins,
@@ -45,6 +46,8 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
         proc.terminate()
     assert proc.wait(timeout=10) == 0
     log = proc.stdout.read()
+    if logs is not None:
+        logs.append(log)
     assert "Traceback" not in log, log
     if bpf:
         assert not os.path.exists(pins), "pins left behind after shutdown"
