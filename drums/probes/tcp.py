@@ -47,9 +47,6 @@ ESTABLISHED, TCP_CLOSE = 1, 7
 # Reading tcp_info costs a netlink round trip per connection (a dump of every established one,
 # about 17 ms per 1,000), so RTT is sampled at this interval (seconds) rather than at every scrape.
 RTT_INTERVAL = 5.0
-# How long what closed connections counted stays in their series, for a later connection with the
-# same addresses (a client that reconnects from its port): Prometheus's staleness window.
-CARRY_FOR = 300.0
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
 EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
@@ -74,8 +71,7 @@ class TcpProbe(BpfProbe):
         self.rtt_interval = rtt_interval
         self._rtt: list = []
         self._rtt_at = float("-inf")
-        self._carried: dict[tuple, tuple[tuple, float]] = {}  # labels -> (counts of closed connections, when)
-        self._carried_pruned = 0.0
+        self._carried: dict[tuple, tuple] = {}  # labels -> what closed connections with them counted
         self._decoded: dict[bytes, tuple] = {}  # map value -> (labels, counts, state)
         self._wanted: set[tuple[str, str]] | None = None
 
@@ -116,19 +112,20 @@ class TcpProbe(BpfProbe):
             series[labels] = counts
             if row[2] == TCP_CLOSE:
                 closed.append((_U64.pack(*key), raw, labels, row[1]))
-        # A closed connection is exported once, with the reset that closed it, then forgotten; what it
-        # counted stays in its series for a connection that reuses its addresses (CARRY_FOR).
-        carried = self._carried
+        # A closed connection is exported once, with the reset that closed it, then forgotten. What it
+        # counted stays in its series while a connection with its addresses is in the next collect (a
+        # client that reconnects from its port at once): a series missing from a scrape is a new one
+        # to Prometheus anyway, and so no more counts are carried than connections were collected.
+        carried, self._carried = self._carried, {}
         for labels, counts in series.items():
             past = carried.get(labels)
-            rows.append((labels, tuple(map(add, counts, past[0])) if past else counts))
-        now = time.monotonic()
+            if past:
+                self._carried[labels] = past
+                counts = tuple(map(add, counts, past))
+            rows.append((labels, counts))
         for _, _, labels, counts in closed:
-            past = carried.get(labels)
-            carried[labels] = (tuple(map(add, counts, past[0])) if past else counts, now)
-        if carried and now - self._carried_pruned >= CARRY_FOR / 10:
-            self._carried = {k: v for k, v in carried.items() if now - v[1] < CARRY_FOR or k in series}
-            self._carried_pruned = now
+            past = self._carried.get(labels)
+            self._carried[labels] = tuple(map(add, counts, past)) if past else counts
         self.opened["tcp_conns"].delete_unchanged([(key, raw) for key, raw, _, _ in closed])
         _, values, _ = self.read("tcp_totals")
         totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]

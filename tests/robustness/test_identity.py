@@ -1,6 +1,7 @@
 """Identity that follows the kernel, in the real agent: a process renamed or exec'd carries its new
 name, a PID that comes back is the new process's, and a TCP connection whose addresses are reused
 is one series that never goes back."""
+import os
 import socket
 import struct
 import subprocess
@@ -68,7 +69,7 @@ def test_a_renamed_or_exec_d_process_carries_its_new_name(agent):
                              "import os; os.execvp('sh', ['sh', '-c', 'read x'])"],
                             stdin=subprocess.PIPE, text=True)
     try:
-        eventually(lambda: named(agent, proc.pid, "python"), timeout=10)
+        eventually(lambda: named(agent, proc.pid, os.path.basename(sys.executable)[:15]), timeout=10)
         proc.stdin.write("\n")
         proc.stdin.flush()
         eventually(lambda: named(agent, proc.pid, "drums-renamed"), timeout=10)
