@@ -2,14 +2,14 @@
 files and threads, and the exactness of its byte counts, printed every minute.
 
 Churn, all the while: short processes started 5 times a second; a process whose threads start and
-end 20 times a second; TCP connections opened, used and closed 20 times a second; a ROS 2 talker
-and listener started and stopped every 30 s (each minute is read in the same phase); a scrape every
-second and a job (created, read, deleted) every 10 s. Exactness: a meter process sends exactly 100,000 bytes over one TCP
-connection each minute; the agent's drums_process_socket_sent_bytes_total of it must grow by
-exactly that. Goals (issue 14): USS flat within 2 MB after the warm-up (the first 2 minutes),
-open files and threads flat, 0 bytes off.
+end 20 times a second; TCP connections opened, used and closed 20 times a second; a ROS 2 talker and
+listener started and stopped every 30 s (each minute is read in the same phase); a scrape every
+second and a job (created, read, deleted) every 10 s. Exactness: a meter process sends exactly
+100,000 bytes over one TCP connection each minute; the agent's drums_process_socket_sent_bytes_total
+of it must grow by exactly that. Goals (issue 14): USS flat within 2 MB after the warm-up (the first
+2 minutes), open files and threads flat, 0 bytes off.
 
-    .venv/bin/python bench/soak.py [--minutes 30]
+.venv/bin/python bench/soak.py [--minutes 30]
 """
 from __future__ import annotations
 
