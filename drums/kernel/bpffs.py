@@ -20,6 +20,8 @@ PIN_ROOT = os.path.join(BPFFS, "drums")
 PERCPU_TYPES = {5, 6, 10}  # BPF_MAP_TYPE_PERCPU_HASH, PERCPU_ARRAY, LRU_PERCPU_HASH
 ARRAY_TYPES = {2, 6}  # BPF_MAP_TYPE_ARRAY, PERCPU_ARRAY
 _BATCH = 4096
+# What bpf_map_lookup_batch fails with where the map type or kernel has no batch operations.
+_NO_BATCH = {errno.EINVAL, errno.EOPNOTSUPP, 524}  # 524: the kernel's ENOTSUPP
 
 
 class _MapInfo(ctypes.Structure):
@@ -52,6 +54,12 @@ def libbpf() -> ctypes.CDLL:
                                          ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32), ctypes.c_void_p]
     lib.bpf_obj_get_info_by_fd.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32)]
     return lib
+
+
+class _BatchError(ProbeError):
+    def __init__(self, err: int, message: str):
+        super().__init__(message)
+        self.errno = err
 
 
 def _check(ret: int, what: str) -> int:
@@ -118,9 +126,10 @@ class PinnedMap:
         if self._batch_ok:
             try:
                 return self._read_batch()
-            except ProbeError:
-                # Array maps before kernel 5.6 and some map types have no batch operations.
-                self._batch_ok = False
+            except _BatchError as e:
+                # Array maps before kernel 5.6 and some map types have no batch operations; any
+                # other failure (no memory, say) is this read's only.
+                self._batch_ok = e.errno not in _NO_BATCH
         return self._read_each()
 
     def _read_batch(self) -> tuple[bytes, bytes, int]:
@@ -137,7 +146,7 @@ class PinnedMap:
                                            ctypes.byref(count), None)
             err = ctypes.get_errno() if ret < 0 else 0
             if ret < 0 and err != errno.ENOENT:
-                raise ProbeError(f"batch read of {self.path}: {os.strerror(err)}")
+                raise _BatchError(err, f"batch read of {self.path}: {os.strerror(err)}")
             n = count.value
             if n:
                 keys.append(kbuf.raw[: n * self.key_size])
@@ -150,17 +159,21 @@ class PinnedMap:
         return b"".join(keys), b"".join(values), total
 
     def _read_each(self) -> tuple[bytes, bytes, int]:
+        """Entry by entry. When the key last read is deleted meanwhile, the kernel starts again
+        from the first key: an entry is kept once (its latest value), and the walk ends after as
+        many steps as the map can hold entries, twice, so churn can neither repeat nor prolong it."""
         lib = libbpf()
-        keys, values = [], []
+        entries: dict[bytes, bytes] = {}
         prev = None
         key = ctypes.create_string_buffer(self.key_size)
         value = ctypes.create_string_buffer(self.value_stride)
-        while lib.bpf_map_get_next_key(self.fd, prev, key) == 0:
+        for _ in range(2 * self.max_entries):
+            if lib.bpf_map_get_next_key(self.fd, prev, key) != 0:
+                break
             if lib.bpf_map_lookup_elem(self.fd, key, value) == 0:
-                keys.append(key.raw)
-                values.append(value.raw)
+                entries[key.raw] = value.raw
             prev = ctypes.create_string_buffer(key.raw, self.key_size)
-        return b"".join(keys), b"".join(values), len(keys)
+        return b"".join(entries), b"".join(entries.values()), len(entries)
 
     def update(self, key: bytes, value: bytes) -> None:
         _check(libbpf().bpf_map_update_elem(self.fd, key, value, 0), f"update {self.path}")

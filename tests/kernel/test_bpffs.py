@@ -1,0 +1,81 @@
+"""Reading BPF maps through libbpf, on real kernel maps: in batches, and entry by entry (the path
+for kernels and map types without batch operations) while another thread churns the map."""
+import ctypes
+import os
+import struct
+import threading
+
+import pytest
+
+from drums.kernel.bpffs import PinnedMap, libbpf
+
+HASH, LRU_HASH = 1, 9
+ENTRIES = 2000
+
+
+def new_map(kind: int, max_entries: int) -> PinnedMap:
+    lib = libbpf()
+    lib.bpf_map_create.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_uint32, ctypes.c_uint32,
+                                   ctypes.c_uint32, ctypes.c_void_p]
+    fd = lib.bpf_map_create(kind, b"drums_test", 4, 8, max_entries, None)
+    assert fd >= 0, os.strerror(ctypes.get_errno())
+    try:
+        return PinnedMap.from_fd(fd, "drums_test")
+    finally:
+        os.close(fd)
+
+
+def contents(keys: bytes, values: bytes) -> dict[int, int]:
+    out = {}
+    for (k,), (v,) in zip(struct.iter_unpack("<I", keys), struct.iter_unpack("<Q", values)):
+        assert k not in out, f"key {k} read twice"
+        out[k] = v
+    return out
+
+
+@pytest.mark.parametrize("kind", [HASH, LRU_HASH])
+def test_a_batch_read_and_a_read_entry_by_entry_return_every_entry_once(kind):
+    m = new_map(kind, ENTRIES * 2)
+    try:
+        truth = {k: k * 7 for k in range(ENTRIES)}
+        for k, v in truth.items():
+            m.update(struct.pack("<I", k), struct.pack("<Q", v))
+        keys, values, count = m.read()
+        assert count == ENTRIES and contents(keys, values) == truth
+        keys, values, count = m._read_each()
+        assert count == ENTRIES and contents(keys, values) == truth
+    finally:
+        m.close()
+
+
+def test_a_read_entry_by_entry_under_churn_ends_and_repeats_no_key():
+    """Deleting the key the walk stands on sends the kernel back to the first key: without care a
+    walk repeats entries (a counter summed twice) and may never end."""
+    m = new_map(HASH, ENTRIES)
+    stop = threading.Event()
+    steady = range(ENTRIES // 2)  # never touched: each must be read exactly once, with its value
+    for k in steady:
+        m.update(struct.pack("<I", k), struct.pack("<Q", k))
+
+    churned = [struct.pack("<I", k) for k in range(ENTRIES // 2, ENTRIES)]
+    for key in churned:
+        m.update(key, struct.pack("<Q", 1))
+
+    def churn():  # each churned key deleted and put back, again and again
+        while not stop.is_set():
+            for key in churned:
+                m.delete(key)
+                m.update(key, struct.pack("<Q", 1))
+
+    thread = threading.Thread(target=churn)
+    thread.start()
+    try:
+        for _ in range(20):
+            keys, values, count = m._read_each()
+            read = contents(keys, values)
+            assert count == len(read) <= ENTRIES
+            assert {k: read[k] for k in steady} == {k: k for k in steady}
+    finally:
+        stop.set()
+        thread.join()
+        m.close()
