@@ -200,6 +200,7 @@ def run_agent(args) -> int:
     from drums.graph.draw import Rates
     from drums.graph.export import document
     from drums.graph.model import Graph
+    from drums.kernel import pinlock
     from drums.kernel.features import Features
     from drums.probes.registry import PROBES, ROS2_PROBES, build
     from drums.proctable import OWN_NETNS, ProcessTable
@@ -216,6 +217,7 @@ def run_agent(args) -> int:
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
     features = Features()
+    pins = pinlock.hold(args.pin_dir)  # held while the agent runs
     probes = build(features, proctable, names, args.pin_dir)
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
@@ -271,6 +273,8 @@ def run_agent(args) -> int:
         server.stop()
         follower.stop()
         agent.stop(unload=not args.keep_loaded)
+        if pins is not None:
+            pins.close()
     return 0
 
 
@@ -449,6 +453,8 @@ def run_unload(args) -> int:
     import shutil
 
     from drums.errors import KernelError
+    from drums.kernel import pinlock
+    pinlock.hold(args.pin_dir)  # refused while an agent runs on these pins
     shutil.rmtree(args.pin_dir, ignore_errors=True)
     if os.path.exists(args.pin_dir):
         raise KernelError(f"could not remove {args.pin_dir} (root is needed)")

@@ -270,3 +270,38 @@ def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
     for role, p in processes.items():
         assert 10 * 2 ** 20 < uss[role] <= rss[role], (role, uss[role], rss[role])
         assert abs(rss[role] - p.memory_info().rss) < 0.2 * rss[role], (role, rss[role], p.memory_info().rss)
+
+
+SENDER = ("import socket, sys\nsrv = socket.create_server(('127.0.0.1', 0))\n"
+          "c = socket.create_connection(srv.getsockname()); s, _ = srv.accept()\n"
+          "c.sendall(b'x' * 12345); s.recv(1 << 16)\nprint('sent', flush=True)\nsys.stdin.read()")
+
+
+def test_a_second_agent_or_an_unload_on_the_same_pins_is_refused_and_the_first_keeps_counting():
+    """A second agent on the same pin directory would adopt the first's programs and, on stopping,
+    remove them from under it (found when two agents were run side by side)."""
+    with running_agent("--probe", "sockets") as url:
+        pins = f"/sys/fs/bpf/drums_agent_{url.rsplit(':', 1)[1].split('/')[0]}"
+        for argv in (["agent", "--port", "0", "--stream-port", "0", "--probe", "sockets"], ["unload"]):
+            out = subprocess.run([sys.executable, "-m", "drums", *argv, "--pin-dir", pins], capture_output=True,
+                                 text=True, timeout=60)
+            assert out.returncode == 2, out
+            assert out.stderr.splitlines() == [f"drums: another drums agent (pid {_agent_pid(url)}) uses the pins "
+                                               f"in {pins}: stop it, or give this one a --pin-dir of its own"]
+        sender = subprocess.Popen([sys.executable, "-c", SENDER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                  text=True)
+        try:
+            assert sender.stdout.readline() == "sent\n"
+            key = (("pid", str(sender.pid)), ("process", os.path.basename(sys.executable)[:15]), ("protocol", "tcp"))
+
+            def counted():
+                assert samples(scrape(url), "drums_process_socket_sent_bytes_total").get(key) == 12345
+            eventually(counted, timeout=10)
+        finally:
+            sender.kill()
+            sender.wait()
+
+
+def _agent_pid(url: str) -> int:
+    port = int(url.rsplit(":", 1)[1].split("/")[0])
+    return next(c.pid for c in psutil.net_connections("tcp") if c.laddr.port == port and c.status == "LISTEN")

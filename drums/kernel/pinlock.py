@@ -1,0 +1,40 @@
+"""One agent per pin directory.
+
+Two agents on one pin directory would share its programs and maps: the second adopts the first's
+pins as a warm start, and whichever stops first removes them, which silently detaches the other's
+programs while it still reports them attached. So an agent holds an exclusive lock named after
+its pin directory while it runs, and `drums unload` takes the same lock before it removes pins.
+"""
+from __future__ import annotations
+
+import fcntl
+import os
+from typing import IO
+
+from drums.errors import UsageError
+
+LOCK_DIR = "/run/drums"
+
+
+def hold(pin_dir: str, lock_dir: str = LOCK_DIR) -> IO | None:
+    """The lock of `pin_dir`, held until the returned file is closed (or the process ends). None
+    where the lock cannot be made (not root): such a process cannot pin programs either."""
+    name = os.path.abspath(pin_dir).strip("/").replace("/", "_") or "root"
+    try:
+        os.makedirs(lock_dir, exist_ok=True)
+        f = open(os.path.join(lock_dir, f"{name}.lock"), "a+")
+    except PermissionError:
+        return None
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "?"
+        f.close()
+        raise UsageError(f"another drums agent (pid {holder}) uses the pins in {pin_dir}: stop it, or give "
+                         "this one a --pin-dir of its own") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
