@@ -263,8 +263,8 @@ def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
     after = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}
     cpu = {dict(k)["role"]: v for k, v in samples(text, "drums_agent_cpu_seconds_total").items()}
     assert set(cpu) == set(processes)
-    for role in processes:
-        assert before[role] <= cpu[role] <= after[role] + 0.01, (role, before[role], cpu[role], after[role])
+    for role in processes:  # within a clock tick: the agent reads itself through times(2), psutil through /proc
+        assert before[role] - 0.01 <= cpu[role] <= after[role] + 0.01, (role, before[role], cpu[role], after[role])
     rss = {dict(k)["role"]: v for k, v in samples(text, "drums_agent_resident_memory_bytes").items()}
     uss = {dict(k)["role"]: v for k, v in samples(text, "drums_agent_unique_memory_bytes").items()}
     for role, p in processes.items():

@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import struct
 import time
-from dataclasses import dataclass
+
+import numpy as np
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
                               needs_fentry, needs_kprobes, needs_tracepoints, offset_defines)
+from drums.probes.entries import Entries, Matched
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -33,7 +35,7 @@ THREAD_LABELS = ("pid", "tid", "protocol")
 
 SOCKET = {c: Metric(f"drums_socket_{c}_total", COUNTER, f"{_HELP[c]} on this socket", SOCKET_LABELS)
           for c in _COUNTS}
-SOCKET_GROUP = tuple(SOCKET[c] for c in _COUNTS)  # a socket's counters, in SocketCounts.counts order
+SOCKET_GROUP = tuple(SOCKET[c] for c in _COUNTS)  # a socket's counters, in the map value's order
 PROCESS = {c: Metric(f"drums_process_socket_{c}_total", COUNTER,
                      f"{_HELP[c]} by this process on sockets of this protocol, closed ones included",
                      PROCESS_LABELS) for c in _COUNTS}
@@ -44,7 +46,6 @@ THREAD = {c: Metric(f"drums_thread_socket_{c}_total", COUNTER,
 # Map layouts, as in bpf/sockets.bpf.c.
 _SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6Q")
 _IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
-_COUNTS6 = struct.Struct("<6Q")
 _THREAD_VALUE = struct.Struct("<IIQ24Q")
 _PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
@@ -64,18 +65,10 @@ LIFECYCLE = (
 _LIFECYCLE_EVENTS = tuple(event for _, event, _ in LIFECYCLE)
 
 
-@dataclass
-class SocketCounts:
-    """One socket as the kernel counted it."""
-
-    sk: int
-    inode: int
-    pid: int
-    netns: int
-    protocol: str
-    local: str
-    remote: str
-    counts: tuple[int, ...]  # in _COUNTS order
+# The map value as 8-byte words (bpf/sockets.bpf.c): the identity (inode, process, addresses) in
+# the first 8, the six counts after it.
+_WORDS_IDENTITY = _IDENTITY.size // 8
+_TCP, _UNIX = PROTOCOLS.index("tcp"), PROTOCOLS.index("unix")
 
 
 def _identity(raw: bytes) -> tuple:
@@ -83,34 +76,6 @@ def _identity(raw: bytes) -> tuple:
     ino, tgid, netns, family, _proto, _unused, lport, rport, klass, _pad, laddr, raddr = _IDENTITY.unpack(raw)
     return (ino, tgid, netns, PROTOCOLS[klass] if klass < len(PROTOCOLS) else "other",
             endpoint(family, laddr, lport), endpoint(family, raddr, rport))
-
-
-class SocketDecoder:
-    """Map entries to sockets. Of ten thousand sockets most sit idle between two collects: an
-    entry whose bytes did not change is not decoded again, and a socket's identity (its
-    addresses) is decoded once, not at each change of its counts. Each call forgets what the
-    entries it did not see."""
-
-    def __init__(self):
-        self._entries: dict[tuple[int, bytes], tuple[SocketCounts, tuple]] = {}  # -> (socket, identity)
-        self._identities: dict[bytes, tuple] = {}
-
-    def __call__(self, keys: bytes, values: bytes) -> list[tuple[SocketCounts, bytes]]:
-        """(socket, its map value) for each entry."""
-        entries, self._entries = self._entries, {}
-        identities, self._identities = self._identities, {}
-        out = []
-        size, head = _SOCKET_VALUE.size, _IDENTITY.size
-        for i, (sk,) in enumerate(_U64.iter_unpack(keys)):
-            raw = values[i * size:(i + 1) * size]
-            entry = entries.get((sk, raw))
-            if entry is None:
-                ident = identities.get(raw[:head]) or _identity(raw[:head])
-                entry = (SocketCounts(sk, *ident, _COUNTS6.unpack_from(raw, head)), ident)
-            self._entries[sk, raw] = entry
-            self._identities[raw[:head]] = entry[1]
-            out.append((entry[0], raw))
-        return out
 
 
 def unix_paths(path: str) -> dict[int, str]:
@@ -164,11 +129,10 @@ class SocketsProbe(BpfProbe):
         super().__init__(features, **kw)
         self.proctable = proctable
         self.proc_net_unix = proc_net_unix
-        self._last_counts: dict[int, tuple[int, ...]] = {}
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
-        self._decode = SocketDecoder()
-        self._rows: dict[int, tuple] = {}  # sk -> (socket, process name, local, row) at the last collect
+        self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)  # rows: each socket's row, as exported last
+        self._names: dict[int, str] = {}  # pid -> its name in its sockets' rows
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -185,29 +149,44 @@ class SocketsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         keys, values, _ = self.read("socket_traffic")
-        sockets = self._decode(keys, values)
-        stale = self._stale([s for s, _ in sockets])
-        if stale:
-            self.opened["socket_traffic"].delete_unchanged(
-                [(_U64.pack(s.sk), raw) for s, raw in sockets if s.sk in stale])
-        paths = unix_paths(self.proc_net_unix) if any(s.protocol == "unix" for s, _ in sockets) else {}
-        rows = snap.group_rows(SOCKET_GROUP)
-        # An idle socket's row is the very one of the last collect, and a busy one's labels are:
-        # what the budget compares them with next is found at once.
-        made, self._rows = self._rows, {}
-        for s, _ in sockets:
-            if s.sk in stale:
+        m = self._entries.read(keys, values)
+        words = m.words
+        pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
+        klass = (words[:, 3] >> 16) & 0xFFFF
+        # Per process, not per socket: which are gone, and which were renamed since the last collect.
+        names, self._names = self._names, {}
+        dead, renamed = [], []
+        for pid in np.unique(pids).tolist():
+            if not pt.alive(pid):
+                dead.append(pid)
                 continue
-            local = paths.get(s.inode, "") if s.protocol == "unix" else s.local
-            name = pt.name(s.pid)
-            last = made.get(s.sk)
-            if last is not None and last[1] == name and last[2] == local and last[0].inode == s.inode \
-                    and last[0].pid == s.pid and last[0].remote == s.remote:
-                row = last[3] if last[0] is s else (last[3][0], s.counts)
-            else:
-                row = ((str(s.pid), name, s.protocol, local, s.remote, str(s.netns), str(s.inode)), s.counts)
-            self._rows[s.sk] = (s, name, local, row)
-            rows.append(row)
+            name = self._names[pid] = pt.name(pid)
+            if names.get(pid, name) != name:
+                renamed.append(pid)
+        stale = np.isin(pids, dead) | self._closed(m, pids, klass)
+        if stale.any():
+            self.opened["socket_traffic"].delete_unchanged(
+                [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])])
+        live = ~stale
+        # An idle socket's row is the very one of the last collect; only the others are made again.
+        remake = live & ~(m.same & ~np.isin(pids, renamed))
+        unix = np.flatnonzero(live & (klass == _UNIX))
+        paths = unix_paths(self.proc_net_unix) if len(unix) else {}
+        for i in unix.tolist():  # a unix socket is named by the path it is bound to, which can change
+            if m.rows[i] is not None and m.rows[i][0][3] != paths.get(int(words[i, 0]), ""):
+                remake[i] = True
+        for i in np.flatnonzero(remake).tolist():
+            row, counts, pid = m.rows[i], tuple(words[i, _WORDS_IDENTITY:].tolist()), int(pids[i])
+            if m.same_head[i] and row[0][1] == self._names[pid] and (
+                    klass[i] != _UNIX or row[0][3] == paths.get(int(words[i, 0]), "")):
+                m.rows[i] = (row[0], counts)  # the same socket, counted further
+                continue
+            ino, pid, netns, protocol, local, remote = _identity(words[i, :_WORDS_IDENTITY].tobytes())
+            if protocol == "unix":
+                local = paths.get(ino, "")
+            m.rows[i] = ((str(pid), self._names[pid], protocol, local, remote, str(netns), str(ino)), counts)
+        self._entries.keep(m, live)
+        snap.group_rows(SOCKET_GROUP).extend(m.rows[live].tolist())
 
         totals = ProcessTotals()
         keys, values, _ = self.read("exited_traffic")
@@ -234,25 +213,20 @@ class SocketsProbe(BpfProbe):
         m.next_collect()
         self.read_dropped()
 
-    def _stale(self, sockets: list[SocketCounts]) -> set[int]:
-        """Entries of sockets that are gone: their process exited, or (for sockets the kernel
-        frees without a tracepoint) the process no longer holds the inode. Only sockets idle since
-        the last collect are checked, each process at most once per FD_CHECK_INTERVAL, which keeps
-        the /proc reads few."""
-        stale = set()
+    def _closed(self, m: Matched, pids: np.ndarray, klass: np.ndarray) -> np.ndarray:
+        """Entries of sockets the kernel freed without a tracepoint (all but TCP): the process no
+        longer holds the inode. Only sockets idle since the last collect are checked, each process
+        at most once per FD_CHECK_INTERVAL, which keeps the /proc reads few."""
+        closed = np.zeros(len(pids), bool)
+        idle = m.same & (klass != _TCP)
         now = time.monotonic()
-        inodes_of: dict[int, set[int]] = {}
-        last, self._last_counts = self._last_counts, {s.sk: s.counts for s in sockets}
-        for s in sockets:
-            if not self.proctable.alive(s.pid):
-                stale.add(s.sk)
-            elif s.protocol != "tcp" and last.get(s.sk) == s.counts:
-                if s.pid not in inodes_of:
-                    if now - self._fds_read_at.get(s.pid, float("-inf")) < FD_CHECK_INTERVAL:
-                        continue
-                    self._fds_read_at[s.pid] = now
-                    inodes_of[s.pid] = self.proctable.socket_inodes(s.pid)
-                if s.inode not in inodes_of[s.pid]:
-                    stale.add(s.sk)
-        self._fds_read_at = {pid: t for pid, t in self._fds_read_at.items() if self.proctable.alive(pid)}
-        return stale
+        due = [pid for pid in np.unique(pids[idle]).tolist()
+               if self.proctable.alive(pid) and now - self._fds_read_at.get(pid, float("-inf")) >= FD_CHECK_INTERVAL]
+        if due:
+            inodes_of = {pid: self.proctable.socket_inodes(pid) for pid in due}
+            for pid in due:
+                self._fds_read_at[pid] = now
+            for i in np.flatnonzero(idle & np.isin(pids, due)).tolist():
+                closed[i] = int(m.words[i, 0]) not in inodes_of[int(pids[i])]
+            self._fds_read_at = {pid: t for pid, t in self._fds_read_at.items() if self.proctable.alive(pid)}
+        return closed

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from drums.probes.sockets import SocketDecoder
+from drums.probes.sockets import _SOCKET_VALUE
 from tests.conftest import eventually, series, wait_until
 
 COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
@@ -413,8 +413,8 @@ def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
     # sockets is left behind. (Counted per process: the whole map's size also moves with whatever
     # else runs on the host.)
     def drained():
-        keys, values, _ = sockets_probe.read("socket_traffic")
-        assert [s for s, _ in SocketDecoder()(keys, values) if s.pid in pids] == []
+        _, values, _ = sockets_probe.read("socket_traffic")
+        assert [v for v in _SOCKET_VALUE.iter_unpack(values) if v[1] in pids] == []  # v[1]: the process
     eventually(drained)
 
 
