@@ -38,17 +38,30 @@ def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") ->
     return "{" + ",".join(parts) + "}" if parts else ""
 
 
+class Renderer:
+    """Renders snapshots, remembering each series' text up to its value: from one scrape to the
+    next nearly every series is the same, and only its number is formatted again. What a render
+    did not use is forgotten."""
+
+    def __init__(self):
+        self._prefixes: dict[Metric, dict[tuple, str]] = {}
+
+    def __call__(self, snap: Snapshot) -> bytes:
+        known, self._prefixes = self._prefixes, {}
+        out: list[str] = []
+        for metric in sorted(snap.series, key=lambda m: m.name):
+            rows = snap.series[metric]
+            if rows:
+                out.append(_family(metric, rows, known.get(metric, {}), self._prefixes.setdefault(metric, {})))
+        return "".join(out).encode()
+
+
 def render(snap: Snapshot) -> bytes:
-    out: list[str] = []
-    for metric in sorted(snap.series, key=lambda m: m.name):
-        rows = snap.series[metric]
-        if not rows:
-            continue
-        out.append(_family(metric, rows))
-    return "".join(out).encode()
+    """One snapshot, remembering nothing."""
+    return Renderer()(snap)
 
 
-def _family(metric: Metric, rows) -> str:
+def _family(metric: Metric, rows, known: dict, kept: dict) -> str:
     kind = "gauge" if metric.kind == INFO else metric.kind
     lines = [f"# HELP {metric.name} {metric.help}\n# TYPE {metric.name} {kind}\n"]
     name, names = metric.name, metric.labels
@@ -62,5 +75,9 @@ def _family(metric: Metric, rows) -> str:
             lines.append(f"{name}_count{_labels(names, values)} {h.count}\n")
     else:
         for values, v in rows:
-            lines.append(f"{name}{_labels(names, values)} {_number(v)}\n")
+            prefix = known.get(values)
+            if prefix is None:
+                prefix = f"{name}{_labels(names, values)} "
+            kept[values] = prefix
+            lines.append(f"{prefix}{_number(v)}\n")
     return "".join(lines)
