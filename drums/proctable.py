@@ -61,6 +61,10 @@ class ProcessTable:
         self._names: dict[int, str] = {}
         self._cmdlines: dict[int, list[str]] = {}  # read when first asked for, kept while the PID lives
         self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
+        # PIDs whose process may be another since the refresh before the last (new, renamed,
+        # exec'd, or exited and come back); None unless the last refresh was told by the kernel
+        # which processes were renamed (a set), as the agent's is by the sched probe.
+        self.changed: set[int] | None = None
 
     def refresh(self, renamed: Iterable[int] | None = ()) -> None:
         """List the processes. A name is read when its PID first appears, and again when the PID is
@@ -79,6 +83,7 @@ class ProcessTable:
             self._elsewhere = {pid for pid in alive if pid in self._elsewhere or (
                 pid not in known and netns(self.proc, pid) != self.netns)}
             alive -= self._elsewhere
+        self.changed = alive - known.keys() if isinstance(renamed, set) else None
         self._names = {pid: known.get(pid) or comm(self.proc, pid) for pid in alive}
         self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive and pid in known}
 

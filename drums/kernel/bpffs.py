@@ -115,7 +115,6 @@ class PinnedMap:
         self.value_size = (info.value_size + 7) // 8 * 8 if self.ncpus > 1 else info.value_size
         self.value_stride = self.value_size * self.ncpus
         self._batch_ok = True
-        self._buffers = None
 
     def close(self) -> None:
         if self.fd >= 0:
@@ -135,13 +134,11 @@ class PinnedMap:
 
     def _read_batch(self) -> tuple[bytes, bytes, int]:
         lib = libbpf()
-        if self._buffers is None:  # kept: a read of ten thousand entries would zero half a MB first
-            self._buffers = (ctypes.create_string_buffer(self.key_size * _BATCH),
-                             ctypes.create_string_buffer(self.value_stride * _BATCH),
-                             ctypes.create_string_buffer(max(self.key_size, 8)),
-                             ctypes.create_string_buffer(max(self.key_size, 8)))
-        kbuf, vbuf, token, token_next = self._buffers
         keys, values, total = [], [], 0
+        kbuf = ctypes.create_string_buffer(self.key_size * _BATCH)
+        vbuf = ctypes.create_string_buffer(self.value_stride * _BATCH)
+        token = ctypes.create_string_buffer(max(self.key_size, 8))
+        token_next = ctypes.create_string_buffer(max(self.key_size, 8))
         first = True
         while True:
             count = ctypes.c_uint32(_BATCH)

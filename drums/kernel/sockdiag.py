@@ -103,15 +103,23 @@ def own_netns() -> str:
         raise KernelError(f"cannot read /proc/self/ns/net: {e.strerror}") from None
 
 
-def dump_tcp(states: int = ALL_STATES, info: bool = True) -> list[TcpConnection]:
+def dump_tcp(states: int = ALL_STATES, info: bool = True, known: dict | None = None) -> list[TcpConnection]:
     """Every IPv4 and IPv6 TCP socket of this network namespace whose state bit is set in `states`;
-    without `info`, their tcp_info fields are 0 (and the kernel sends a fifth of the bytes)."""
+    without `info`, their tcp_info fields are 0 (and the kernel sends a fifth of the bytes).
+    `known`: the caller's message -> connection of its last dump. An idle socket's message is the
+    same byte for byte, and is not parsed again; `known` is left holding this dump's."""
     try:
         sock = socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
     except OSError as e:
         raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
+    parsed: dict[bytes, TcpConnection] = {}
     with sock:
-        return _dump(sock, socket.AF_INET, states, info) + _dump(sock, socket.AF_INET6, states, info)
+        conns = (_dump(sock, socket.AF_INET, states, info, known or {}, parsed)
+                 + _dump(sock, socket.AF_INET6, states, info, known or {}, parsed))
+    if known is not None:
+        known.clear()
+        known.update(parsed)
+    return conns
 
 
 def lookup_tcp(connections: list[tuple[tuple[int, bytes, int], tuple[int, bytes, int]]]
@@ -154,7 +162,8 @@ def _lookup(sock: socket.socket, family: int, src: bytes, sport: int, dst: bytes
     return connections[0] if connections else None
 
 
-def _dump(sock: socket.socket, family: int, states: int, info: bool) -> list[TcpConnection]:
+def _dump(sock: socket.socket, family: int, states: int, info: bool, known: dict, parsed: dict
+          ) -> list[TcpConnection]:
     body = _REQUEST.pack(family, socket.IPPROTO_TCP, 1 << (INET_DIAG_INFO - 1) if info else 0, states)
     header = _NLMSGHDR.pack(_NLMSGHDR.size + len(body), SOCK_DIAG_BY_FAMILY, NLM_F_REQUEST | NLM_F_DUMP, 1, 0)
     try:
@@ -164,7 +173,7 @@ def _dump(sock: socket.socket, family: int, states: int, info: bool) -> list[Tcp
             data, _, flags, _ = sock.recvmsg(_RECV_SIZE)
             if flags & socket.MSG_TRUNC:
                 raise KernelError(f"a sock_diag reply did not fit in {_RECV_SIZE} bytes")
-            batch, done = _parse(data)
+            batch, done = _parse(data, known, parsed)
             connections += batch
             if done:
                 return connections
@@ -181,8 +190,9 @@ def parse_messages(data: bytes) -> list[TcpConnection]:
     return _parse(data)[0]
 
 
-def _parse(data: bytes) -> tuple[list[TcpConnection], bool]:
-    """The connections in `data`, and whether the dump ended in it (NLMSG_DONE)."""
+def _parse(data: bytes, known: dict | None = None, parsed: dict | None = None) -> tuple[list[TcpConnection], bool]:
+    """The connections in `data`, and whether the dump ended in it (NLMSG_DONE). A message in
+    `known` is its connection there; every message's connection goes into `parsed`."""
     connections = []
     offset = 0
     while offset < len(data):
@@ -200,7 +210,12 @@ def _parse(data: bytes) -> tuple[list[TcpConnection], bool]:
             if kind == NLMSG_DONE:
                 return connections, True
         elif kind == SOCK_DIAG_BY_FAMILY:
-            connections.append(_connection(payload))
+            connection = known.get(payload) if known else None
+            if connection is None:
+                connection = _connection(payload)
+            if parsed is not None:
+                parsed[payload] = connection
+            connections.append(connection)
         offset += _align(length)
     return connections, False
 

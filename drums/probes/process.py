@@ -56,9 +56,11 @@ class ProcessProbe(Probe):
 
     def collect(self, snap: Snapshot) -> None:
         now = time.monotonic()
+        changed = self.proctable.changed  # where the kernel said which processes changed, no PID is checked
         for pid in self._pids:
             cached = self._read_at.get(pid)
-            if cached and now - cached[0] < self.interval and self._procs[pid].is_running():
+            if cached and now - cached[0] < self.interval and (
+                    self._procs[pid].is_running() if changed is None else pid not in changed):
                 values = cached[1]
             else:
                 try:

@@ -204,3 +204,27 @@ def test_a_dump_longer_than_one_read_is_complete():
     finally:
         for s in listeners:
             s.close()
+
+
+def test_a_dump_with_what_the_last_one_parsed_parses_only_sockets_whose_message_changed():
+    srv = socket.create_server(("127.0.0.1", 0))
+    idle = socket.create_connection(srv.getsockname())
+    accepted, _ = srv.accept()
+    port = srv.getsockname()[1]
+    try:
+        states = (1 << ESTABLISHED) | (1 << LISTEN)
+        known: dict = {}
+        first = [c for c in dump_tcp(states, info=False, known=known) if port in (c.local_port, c.remote_port)]
+        assert len(first) == 3 and len(known) >= 3
+        late = socket.create_connection(srv.getsockname())  # a new socket: parsed, the others not
+        second = [c for c in dump_tcp(states, info=False, known=known) if port in (c.local_port, c.remote_port)]
+        plain = [c for c in dump_tcp(states, info=False) if port in (c.local_port, c.remote_port)]
+        assert sorted(map(repr, second)) == sorted(map(repr, plain))  # the same connections as a dump without
+        assert len(second) == 5
+        # The idle pair is not parsed again; the listener's message changed (its accept queue grew).
+        assert {id(c) for c in first if c.state == ESTABLISHED} <= {id(c) for c in second}
+        late.close()
+    finally:
+        idle.close()
+        accepted.close()
+        srv.close()
