@@ -90,7 +90,9 @@ class _Group:
         """Take this collect's rows: (rows that are new or changed, labels of rows that are gone).
         What each entity's ranking counters grew by is added to grew[metric name][entity]."""
         now, last, entity_of = dict(rows), self.last, self.entity_of
-        changed = [(labels, values) for labels, values in now.items() if last.get(labels) != values]
+        # An idle entity's row is often the very tuple of the last collect: `is` settles it.
+        changed = [(labels, values) for labels, values in now.items()
+                   if (was := last.get(labels)) is not values and was != values]
         if self.single:
             changed = [(labels, (value,)) for labels, value in changed]
         for i, name in self.rank:
