@@ -455,8 +455,10 @@ def run_unload(args) -> int:
 
     from drums.errors import KernelError
     from drums.kernel import pinlock
-    pinlock.hold(args.pin_dir)  # refused while an agent runs on these pins
+    lock = pinlock.hold(args.pin_dir)  # refused while an agent runs on these pins
     shutil.rmtree(args.pin_dir, ignore_errors=True)
+    if lock is not None:
+        lock.close()
     if os.path.exists(args.pin_dir):
         raise KernelError(f"could not remove {args.pin_dir} (root is needed)")
     print(f"removed {args.pin_dir}")

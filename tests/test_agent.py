@@ -300,6 +300,7 @@ def test_a_second_agent_or_an_unload_on_the_same_pins_is_refused_and_the_first_k
         finally:
             sender.kill()
             sender.wait()
+    assert not os.path.exists(f"/run/drums/{pins.strip('/').replace('/', '_')}.lock")  # let go, and removed
 
 
 def _agent_pid(url: str) -> int:
