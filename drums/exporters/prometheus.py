@@ -47,12 +47,13 @@ class Renderer:
         self._prefixes: dict[Metric, dict[tuple, str]] = {}
 
     def __call__(self, snap: Snapshot) -> bytes:
-        known, self._prefixes = self._prefixes, {}
+        known, kept = self._prefixes, {}
         out: list[str] = []
         for metric in sorted(snap.series, key=lambda m: m.name):
             rows = snap.series[metric]
             if rows:
-                out.append(_family(metric, rows, known.get(metric, {}), self._prefixes.setdefault(metric, {})))
+                out.append(_family(metric, rows, known.get(metric, {}), kept.setdefault(metric, {})))
+        self._prefixes = kept  # two renders at once: the last one's is kept, both are right
         return "".join(out).encode()
 
 

@@ -18,8 +18,8 @@ class Matched:
 
     keys: np.ndarray  # (n,) uint64
     words: np.ndarray  # (n, value size / 8) uint64: each value as 8-byte little-endian words
-    known: np.ndarray  # (n,) bool: the key was in the previous read
-    same_head: np.ndarray  # (n,) bool: ... with the same head (what names the entry), counted on
+    same_head: np.ndarray  # (n,) bool: the key was in the previous read with the same head (what
+    # names the entry): the same thing, counted on
     same: np.ndarray  # (n,) bool: ... with the very same value
     rows: np.ndarray  # (n,) object: what the caller kept for the key at the previous read (None if new)
 
@@ -48,15 +48,15 @@ class Entries:
         k, w = k[self._order], w[self._order]
         rows = np.full(len(k), None, object)
         if not len(self._keys):
-            known = np.zeros(len(k), bool)
-            return Matched(k, w, known, known, known, rows)
+            new = np.zeros(len(k), bool)
+            return Matched(k, w, new, new, rows)
         at = np.minimum(np.searchsorted(self._keys, k), len(self._keys) - 1)
         known = self._keys[at] == k
         equal = self._words[at] == w
         same_head = known & equal[:, :self.head].all(axis=1)
         same = same_head & equal[:, self.head:].all(axis=1)
         rows[known] = self._rows[at[known]]
-        return Matched(k, w, known, same_head, same, rows)
+        return Matched(k, w, same_head, same, rows)
 
     def keep(self, matched: Matched, mask: np.ndarray) -> None:
         """What the next read is matched against: the entries of `matched` under `mask`, with the
