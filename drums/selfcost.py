@@ -11,17 +11,19 @@ from drums.proctable import HELPER
 AGENT = "agent"
 _TICKS = os.sysconf("SC_CLK_TCK")
 # glibc keeps in its heaps what the agent frees (the buffers of each scrape) and hands it back to
-# the system only from their top: under churn the agent's USS crept by 0.5 MB a minute, all of it
-# given back by malloc_trim (measured flat within 0.4 MB after the warm-up). At most this often
-# (seconds), a sample of the tree trims first (about a millisecond).
-TRIM_EVERY = 60.0
+# the system only from their top: under churn the agent's USS crept by 0.5 MB a minute, nearly
+# all of it given back by malloc_trim. At most this often (seconds), a sample of the tree trims
+# first (a few milliseconds). And each thread that allocates would get a heap (arena) of its own,
+# a MB or two more for each: the agent's threads share a few.
+TRIM_EVERY = 10.0
+ARENAS = 2
+_M_ARENA_MAX = -8  # mallopt's parameter, from glibc's malloc.h
 
 
-def _malloc_trim():
-    try:
-        return ctypes.CDLL(None).malloc_trim
-    except AttributeError:  # not glibc (musl): nothing to trim
-        return None
+def _glibc():
+    """The C library where it is glibc (with malloc_trim and mallopt), else None (musl)."""
+    libc = ctypes.CDLL(None)
+    return libc if hasattr(libc, "malloc_trim") and hasattr(libc, "mallopt") else None
 
 
 def memory(pid: int | str = "self") -> tuple[int, int]:
@@ -70,13 +72,15 @@ class TreeCost:
     def __init__(self):
         self._last: dict[int, tuple[str, float]] = {}  # child pid -> (role, CPU seconds) when last seen
         self._ended: dict[str, float] = {}  # role -> CPU seconds of its children that ended
-        self._trim = _malloc_trim()
+        self._libc = _glibc()  # made before the agent starts its threads
+        if self._libc is not None:
+            self._libc.mallopt(_M_ARENA_MAX, ARENAS)
         self._trimmed_at = time.monotonic()
 
     def sample(self) -> dict[str, tuple[float, int, int]]:
         """role -> (CPU seconds, RSS, USS)."""
-        if self._trim is not None and time.monotonic() - self._trimmed_at >= TRIM_EVERY:
-            self._trim(0)
+        if self._libc is not None and time.monotonic() - self._trimmed_at >= TRIM_EVERY:
+            self._libc.malloc_trim(0)
             self._trimmed_at = time.monotonic()
         times = os.times()
         rss, uss = memory()
