@@ -30,14 +30,15 @@ class PinLock:
 
 def hold(pin_dir: str, lock_dir: str = LOCK_DIR) -> PinLock | None:
     """The lock of `pin_dir`, held until closed (or the process ends). None where the lock cannot
-    be made (not root): such a process cannot pin programs either."""
+    be made (not root, or a read-only /run): such a process cannot pin programs either, or runs
+    where no other agent can share its pins."""
     name = os.path.abspath(pin_dir).strip("/").replace("/", "_") or "root"
     path = os.path.join(lock_dir, f"{name}.lock")
     while True:
         try:
             os.makedirs(lock_dir, exist_ok=True)
             f = open(path, "a+")
-        except PermissionError:
+        except OSError:
             return None
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
