@@ -61,10 +61,13 @@ class ProcessTable:
         self._names: dict[int, str] = {}
         self._cmdlines: dict[int, list[str]] = {}  # read when first asked for, kept while the PID lives
         self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
-        # PIDs whose process may be another since the refresh before the last (new, renamed,
-        # exec'd, or exited and come back); None unless the last refresh was told by the kernel
-        # which processes were renamed (a set), as the agent's is by the sched probe.
-        self.changed: set[int] | None = None
+        # For each PID, the refresh at which its process was last found new: it appeared, or was
+        # renamed, exec'd, or exited and came back. Known while every refresh is told by the kernel
+        # which processes were renamed (a set, as the agent's is by the sched probe) or reads every
+        # name (None); one that is told nothing (the default) may miss a PID reused meanwhile.
+        self.refreshes = 0
+        self._new_at: dict[int, int] = {}
+        self._told = True
 
     def refresh(self, renamed: Iterable[int] | None = ()) -> None:
         """List the processes. A name is read when its PID first appears, and again when the PID is
@@ -83,9 +86,16 @@ class ProcessTable:
             self._elsewhere = {pid for pid in alive if pid in self._elsewhere or (
                 pid not in known and netns(self.proc, pid) != self.netns)}
             alive -= self._elsewhere
-        self.changed = alive - known.keys() if isinstance(renamed, set) else None
+        self.refreshes += 1
+        self._told = self._told and (renamed is None or isinstance(renamed, set))
+        self._new_at = {pid: self._new_at.get(pid, 0) if pid in known else self.refreshes for pid in alive}
         self._names = {pid: known.get(pid) or comm(self.proc, pid) for pid in alive}
         self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive and pid in known}
+
+    def new_at(self, pid: int) -> int | None:
+        """The refresh at which the process with this PID was last found new; None when that cannot
+        be known (a refresh was not told which processes were renamed) or the PID is gone."""
+        return self._new_at.get(pid) if self._told else None
 
     def alive(self, pid: int) -> bool:
         return pid in self._names

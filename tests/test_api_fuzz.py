@@ -104,7 +104,10 @@ def test_the_api_survives_a_schema_driven_fuzzer(tmp_path):
             parts = [p for p in path[len("/drums/v1"):].split("/") if p]  # as the agent splits it
             if method in ("POST", "DELETE"):
                 assert e["response"]["status"] == (405 if parts in READ_ONLY else 401), e
-        assert [(j["id"], j["interval"]) for j in call("GET", f"{api}/jobs")[1]["jobs"]] == jobs
+        # Nothing made or changed without the token. A job may have ended meanwhile by itself: its
+        # lease ran out, or its process ended (the fuzzer's jobs carry leases and PIDs of its own).
+        after = [(j["id"], j["interval"]) for j in call("GET", f"{api}/jobs")[1]["jobs"]]
+        assert set(after) <= set(jobs), set(after) - set(jobs)
         took = time.monotonic() - start
 
         clear_jobs(api)

@@ -42,7 +42,7 @@ class ProcessProbe(Probe):
         self.interval = interval
         self._pids: frozenset[int] = frozenset()
         self._procs: dict[int, psutil.Process] = {}
-        self._read_at: dict[int, tuple[float, list]] = {}
+        self._read_at: dict[int, tuple[float, list, int]] = {}  # pid -> (when, values, table's refreshes)
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
@@ -55,12 +55,16 @@ class ProcessProbe(Probe):
             del self._read_at[pid]
 
     def collect(self, snap: Snapshot) -> None:
-        now = time.monotonic()
-        changed = self.proctable.changed  # where the kernel said which processes changed, no PID is checked
+        now, table = time.monotonic(), self.proctable
         for pid in self._pids:
             cached = self._read_at.get(pid)
-            if cached and now - cached[0] < self.interval and (
-                    self._procs[pid].is_running() if changed is None else pid not in changed):
+            # The process table knows which PIDs have another process since a read, where the kernel
+            # tells it of every exit and exec (new_at); else psutil checks the start time.
+            new_at = table.new_at(pid)
+            if cached and new_at is not None and new_at > cached[2]:
+                self._procs.pop(pid, None)
+                cached = None
+            if cached and now - cached[0] < self.interval and (new_at is not None or self._procs[pid].is_running()):
                 values = cached[1]
             else:
                 try:
@@ -69,7 +73,7 @@ class ProcessProbe(Probe):
                     self._procs.pop(pid, None)
                     self._read_at.pop(pid, None)
                     continue
-                self._read_at[pid] = (now, values)
+                self._read_at[pid] = (now, values, table.refreshes)
             labels = (str(pid), self.proctable.name(pid))
             for metric, value in values:
                 snap.add(metric, labels, value)

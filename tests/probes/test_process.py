@@ -212,3 +212,36 @@ def test_reused_pid_is_not_read_as_the_dead_process(probe):
     finally:
         second.kill()
         second.wait()
+
+
+def test_a_cached_process_is_read_again_once_the_kernel_says_its_pid_changed():
+    """Values are cached for the interval; a PID the sched probe marks (it exited and came back,
+    or exec'd) is read anew, even when another refresh (a job's collect) came in between."""
+    table = ProcessTable()
+    probe = ProcessProbe(table, interval=60)
+    probe.start()
+    first = subprocess.Popen(["sleep", "60"])
+    pid = first.pid
+    probe.set_pids([pid])
+    eventually(lambda: exec_done(pid))
+
+    def collect_told(renamed: set) -> dict:
+        table.refresh(renamed)
+        snap = Snapshot()
+        probe.collect(snap)
+        return snap.values(START_TIME)
+
+    first_start = collect_told(set())[(str(pid), "sleep")]
+    time.sleep(0.05)  # start times have clock-tick resolution: the two must not share a tick
+    first.kill()
+    first.wait()
+    second = _respawn_at(pid, ["sleep", "61"])
+    try:
+        eventually(lambda: exec_done(pid))
+        assert collect_told(set()) == {(str(pid), "sleep"): first_start}  # not told: the cache stands
+        table.refresh({pid})  # the exit, as a job's collect sees it
+        assert collect_told(set()) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
+        assert start_time(pid) != pytest.approx(first_start, abs=0.001)
+    finally:
+        second.kill()
+        second.wait()
