@@ -1,4 +1,5 @@
 """process: a child with known memory, threads and storage I/O, read by the probe and checked with /proc."""
+import contextlib
 import os
 import subprocess
 import sys
@@ -192,26 +193,33 @@ def exec_done(pid: int) -> None:
     assert comm(pid) == "sleep"
 
 
-def test_reused_pid_is_not_read_as_the_dead_process(probe):
+@contextlib.contextmanager
+def a_reused_pid(probe: ProcessProbe, read_start):
+    """A `sleep` the probe reads once (`read_start` gives the start times read), killed, and
+    another `sleep` started with its PID: yields (the PID, the first one's start time)."""
     first = subprocess.Popen(["sleep", "60"])
     pid = first.pid
     probe.set_pids([pid])
     # Popen returns once the child has let go of our memory, a moment before exec names it "sleep".
     eventually(lambda: exec_done(pid))
-    first_start = collect(probe).values(START_TIME)[(str(pid), "sleep")]
+    first_start = read_start()[(str(pid), "sleep")]
     time.sleep(0.05)  # start times have clock-tick resolution: the two must not share a tick
     first.kill()
     first.wait()
-
     second = _respawn_at(pid, ["sleep", "61"])
     try:
         eventually(lambda: exec_done(pid))
-        snaps = [collect(probe), collect(probe)]
-        assert all(first_start not in snap.values(START_TIME).values() for snap in snaps)
-        assert snaps[-1].values(START_TIME) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
+        yield pid, first_start
     finally:
         second.kill()
         second.wait()
+
+
+def test_reused_pid_is_not_read_as_the_dead_process(probe):
+    with a_reused_pid(probe, lambda: collect(probe).values(START_TIME)) as (pid, first_start):
+        snaps = [collect(probe), collect(probe)]
+        assert all(first_start not in snap.values(START_TIME).values() for snap in snaps)
+        assert snaps[-1].values(START_TIME) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
 
 
 def test_a_cached_process_is_read_again_once_the_kernel_says_its_pid_changed():
@@ -220,10 +228,6 @@ def test_a_cached_process_is_read_again_once_the_kernel_says_its_pid_changed():
     table = ProcessTable()
     probe = ProcessProbe(table, interval=60)
     probe.start()
-    first = subprocess.Popen(["sleep", "60"])
-    pid = first.pid
-    probe.set_pids([pid])
-    eventually(lambda: exec_done(pid))
 
     def collect_told(renamed: set) -> dict:
         table.refresh(renamed)
@@ -231,17 +235,8 @@ def test_a_cached_process_is_read_again_once_the_kernel_says_its_pid_changed():
         probe.collect(snap)
         return snap.values(START_TIME)
 
-    first_start = collect_told(set())[(str(pid), "sleep")]
-    time.sleep(0.05)  # start times have clock-tick resolution: the two must not share a tick
-    first.kill()
-    first.wait()
-    second = _respawn_at(pid, ["sleep", "61"])
-    try:
-        eventually(lambda: exec_done(pid))
+    with a_reused_pid(probe, lambda: collect_told(set())) as (pid, first_start):
         assert collect_told(set()) == {(str(pid), "sleep"): first_start}  # not told: the cache stands
         table.refresh({pid})  # the exit, as a job's collect sees it
         assert collect_told(set()) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
         assert start_time(pid) != pytest.approx(first_start, abs=0.001)
-    finally:
-        second.kill()
-        second.wait()
