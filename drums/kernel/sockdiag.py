@@ -112,10 +112,10 @@ def dump_tcp(states: int = ALL_STATES, info: bool = True, known: dict | None = N
         sock = socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
     except OSError as e:
         raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
-    parsed: dict[bytes, TcpConnection] = {}
+    parsed = None if known is None else {}
     with sock:
-        conns = (_dump(sock, socket.AF_INET, states, info, known or {}, parsed)
-                 + _dump(sock, socket.AF_INET6, states, info, known or {}, parsed))
+        conns = (_dump(sock, socket.AF_INET, states, info, known, parsed)
+                 + _dump(sock, socket.AF_INET6, states, info, known, parsed))
     if known is not None:
         known.clear()
         known.update(parsed)
@@ -162,8 +162,8 @@ def _lookup(sock: socket.socket, family: int, src: bytes, sport: int, dst: bytes
     return connections[0] if connections else None
 
 
-def _dump(sock: socket.socket, family: int, states: int, info: bool, known: dict, parsed: dict
-          ) -> list[TcpConnection]:
+def _dump(sock: socket.socket, family: int, states: int, info: bool, known: dict | None,
+          parsed: dict | None) -> list[TcpConnection]:
     body = _REQUEST.pack(family, socket.IPPROTO_TCP, 1 << (INET_DIAG_INFO - 1) if info else 0, states)
     header = _NLMSGHDR.pack(_NLMSGHDR.size + len(body), SOCK_DIAG_BY_FAMILY, NLM_F_REQUEST | NLM_F_DUMP, 1, 0)
     try:

@@ -168,18 +168,19 @@ class SocketsProbe(BpfProbe):
             self.opened["socket_traffic"].delete_unchanged(
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])])
         live = ~stale
-        # An idle socket's row is the very one of the last collect; only the others are made again.
-        remake = live & ~(m.same & ~np.isin(pids, renamed))
+        # Sockets whose labels changed though the socket did not: its process was renamed, or (a
+        # unix socket) the path it is bound to changed.
+        relabel = np.isin(pids, renamed)
         unix = np.flatnonzero(live & (klass == _UNIX))
         paths = unix_paths(self.proc_net_unix) if len(unix) else {}
-        for i in unix.tolist():  # a unix socket is named by the path it is bound to, which can change
+        for i in unix.tolist():
             if m.rows[i] is not None and m.rows[i][0][3] != paths.get(int(words[i, 0]), ""):
-                remake[i] = True
-        for i in np.flatnonzero(remake).tolist():
-            row, counts, pid = m.rows[i], tuple(words[i, _WORDS_IDENTITY:].tolist()), int(pids[i])
-            if m.same_head[i] and row[0][1] == self._names[pid] and (
-                    klass[i] != _UNIX or row[0][3] == paths.get(int(words[i, 0]), "")):
-                m.rows[i] = (row[0], counts)  # the same socket, counted further
+                relabel[i] = True
+        # An idle socket's row is the very one of the last collect; only the others are made again.
+        for i in np.flatnonzero(live & ~(m.same & ~relabel)).tolist():
+            counts = tuple(words[i, _WORDS_IDENTITY:].tolist())
+            if m.same_head[i] and not relabel[i]:
+                m.rows[i] = (m.rows[i][0], counts)  # the same socket, counted further
                 continue
             ino, pid, netns, protocol, local, remote = _identity(words[i, :_WORDS_IDENTITY].tobytes())
             if protocol == "unix":
