@@ -17,6 +17,11 @@
 #   throttle  the camera computer's link drops to 4 Mbit/s (a faulty router): /camera/image
 #             collapses and is repaired over and over (DrumsEdgeRetransmitsHigh on /camera ->
 #             /processor within two minutes; DrumsEdgeBandwidthCollapsed needs an hour of history)
+#   all       the three in turn, each for a while: the leak at $DRUMS_DEMO_FAULT_AFTER s (default 20)
+#             for 20 s, the flood 40 s later for 20 s, the throttle 40 s after that for 30 s
+#
+# `drums detect` watches the agent too (http://127.0.0.1:19971/anomalies, its events in
+# .demo/detect.jsonl): each fault is named there within seconds, on its node, topic or edge.
 #
 # `make demo-stop` ends all of it and leaves nothing behind: processes, BPF pins, the namespace.
 set -euo pipefail
@@ -29,8 +34,9 @@ PINS=/sys/fs/bpf/drums-demo
 AGENT_PORT=${DRUMS_DEMO_AGENT_PORT:-19969}  # each port can be moved by its variable
 STREAM_PORT=${DRUMS_DEMO_STREAM_PORT:-19970}
 PROMETHEUS_PORT=${DRUMS_DEMO_PROMETHEUS_PORT:-19090}
+DETECT_PORT=${DRUMS_DEMO_DETECT_PORT:-19971}
 PY=.venv/bin/python
-FAULT_AFTER=20
+FAULT_AFTER=${DRUMS_DEMO_FAULT_AFTER:-20}
 THROTTLE_AFTER=60
 export ROS_DOMAIN_ID=201 FASTDDS_BUILTIN_TRANSPORTS=UDPv4 ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET \
   ROS_STATIC_PEERS="10.77.0.1;10.77.0.2"
@@ -82,11 +88,11 @@ wait_for() {  # NAME URL: until the URL answers 200 while NAME runs, 60 s at mos
 
 start() {
   local fault=${1:-}
-  case "$fault" in ""|leak|flood|throttle) ;; *) say "FAULT=$fault: one of leak, flood, throttle"; exit 2 ;; esac
+  case "$fault" in ""|leak|flood|throttle|all) ;; *) say "FAULT=$fault: one of leak, flood, throttle, all"; exit 2 ;; esac
   stop
-  for port in "$AGENT_PORT" "$STREAM_PORT" "$PROMETHEUS_PORT"; do
+  for port in "$AGENT_PORT" "$STREAM_PORT" "$PROMETHEUS_PORT" "$DETECT_PORT"; do
     if ! "$PY" -c 'import socket, sys; socket.create_server(("127.0.0.1", int(sys.argv[1]))).close()' "$port" 2>/dev/null; then
-      say "port $port is in use by another program: the demo needs $AGENT_PORT, $STREAM_PORT and $PROMETHEUS_PORT"
+      say "port $port is in use by another program: the demo needs $AGENT_PORT, $STREAM_PORT, $PROMETHEUS_PORT and $DETECT_PORT"
       exit 1
     fi
   done
@@ -108,25 +114,43 @@ yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
   "$PY" -m deploy.mixin.build --config "$STATE/mixin.yaml" --out "$STATE/mixin" >/dev/null
 
   spawn agent .venv/bin/drums agent --port "$AGENT_PORT" --stream-port "$STREAM_PORT" --pin-dir "$PINS" --graph ros2
-  sed -e "s/AGENT_PORT/$AGENT_PORT/" demo/prometheus.yml >"$STATE/prometheus.yml"
+  sed -e "s/AGENT_PORT/$AGENT_PORT/" -e "s/DETECT_PORT/$DETECT_PORT/" demo/prometheus.yml >"$STATE/prometheus.yml"
   spawn prometheus prometheus --config.file="$STATE/prometheus.yml" --storage.tsdb.path="$STATE/prometheus" \
     --web.listen-address="127.0.0.1:$PROMETHEUS_PORT"
   wait_for agent "http://127.0.0.1:$AGENT_PORT/readyz"
+  # The robot's own entities only: the rest of this machine (its host totals, processes that run no
+  # node) is left out, as the paper left the host out.
+  spawn detect .venv/bin/drums detect --agent "http://127.0.0.1:$AGENT_PORT" --port "$DETECT_PORT" \
+    --log "$STATE/detect.jsonl" --ignore host --ignore process
 
   local env=(env DRUMS_DEMO_FAULT="$fault" DRUMS_DEMO_FAULT_AFTER="$FAULT_AFTER")
+  local throttle_after=$THROTTLE_AFTER throttle_for=infinity
+  if [ "$fault" = all ]; then  # each node its own fault, in turn
+    env=(env DRUMS_DEMO_FAULT_FOR=20)
+    throttle_after=$((FAULT_AFTER + 80)) throttle_for=30
+  fi
   spawn camera ip netns exec "$NS" "${env[@]}" "$PY" demo/robot.py camera
-  for role in processor controller logger; do
-    spawn "$role" "${env[@]}" "$PY" demo/robot.py "$role"
-  done
-  if [ "$fault" = throttle ]; then
-    spawn throttle sh -c "sleep $THROTTLE_AFTER && ip netns exec $NS tc qdisc add dev ${LINK}1 root tbf rate 4mbit burst 32kbit latency 400ms && sleep infinity"
+  spawn controller "${env[@]}" "$PY" demo/robot.py controller
+  if [ "$fault" = all ]; then
+    spawn processor "${env[@]}" DRUMS_DEMO_FAULT=leak DRUMS_DEMO_FAULT_AFTER="$FAULT_AFTER" "$PY" demo/robot.py processor
+    spawn logger "${env[@]}" DRUMS_DEMO_FAULT=flood DRUMS_DEMO_FAULT_AFTER=$((FAULT_AFTER + 40)) "$PY" demo/robot.py logger
+  else
+    spawn processor "${env[@]}" "$PY" demo/robot.py processor
+    spawn logger "${env[@]}" "$PY" demo/robot.py logger
+  fi
+  if [ "$fault" = throttle ] || [ "$fault" = all ]; then
+    local qdisc="ip netns exec $NS tc qdisc"
+    spawn throttle sh -c "sleep $throttle_after && $qdisc add dev ${LINK}1 root tbf rate 4mbit burst 32kbit latency 400ms \
+      && echo fault throttle started at \$(date +%s.%N) && sleep $throttle_for && $qdisc del dev ${LINK}1 root \
+      && echo fault throttle ended at \$(date +%s.%N) && sleep infinity"
   fi
   wait_for prometheus "http://127.0.0.1:$PROMETHEUS_PORT/-/ready"
 
   local after=$FAULT_AFTER
   [ "$fault" = throttle ] && after=$THROTTLE_AFTER
   say "running${fault:+, with the fault $fault from $after s on}: the agent's live graph at http://127.0.0.1:$AGENT_PORT/,"
-  say "Prometheus and its alerts at http://127.0.0.1:$PROMETHEUS_PORT/alerts; make demo-stop ends it all"
+  say "Prometheus and its alerts at http://127.0.0.1:$PROMETHEUS_PORT/alerts, the detector's findings at"
+  say "http://127.0.0.1:$DETECT_PORT/anomalies and in $STATE/detect.jsonl; make demo-stop ends it all"
   if [ -t 0 ] && [ -t 1 ]; then
     .venv/bin/drums top --agent "http://127.0.0.1:$AGENT_PORT" || true
     say "the demo goes on: make demo-stop ends it"

@@ -5,10 +5,12 @@ processor   /camera/image -> /detections (a small message per image)
 controller  /detections -> /cmd_vel, at the camera's pace
 logger      logs a line to /rosout for each second of detections
 
-$DRUMS_DEMO_FAULT injects one of the faults of the paper that started Drums, 20 s after start:
-leak (the processor keeps one image in ten: its memory grows by about 3 MB/s, up to 1 GiB) and
-flood (the logger logs in a tight loop to /rosout). The third, throttle (a router that drops bandwidth), is
-made outside the nodes, on the camera computer's link (demo/demo.sh).
+$DRUMS_DEMO_FAULT injects one of the faults of the paper that started Drums, $DRUMS_DEMO_FAULT_AFTER
+seconds after start (default 20), for $DRUMS_DEMO_FAULT_FOR seconds (default: to the end): leak (the
+processor keeps one image in ten: its memory grows by about 3 MB/s, up to 1 GiB) and flood (the
+logger logs in a tight loop to /rosout). The third, throttle (a router that drops bandwidth), is
+made outside the nodes, on the camera computer's link (demo/demo.sh). The node prints when its
+fault starts and ends ("fault leak started at <Unix time>"), for the scenario tests' clock.
 """
 import os
 import sys
@@ -24,6 +26,7 @@ IMAGE_BYTES = 1_000_000
 RATE = 30.0
 FAULT = os.environ.get("DRUMS_DEMO_FAULT", "")
 FAULT_AFTER = float(os.environ.get("DRUMS_DEMO_FAULT_AFTER", "20"))
+FAULT_FOR = float(os.environ.get("DRUMS_DEMO_FAULT_FOR", "inf"))
 LEAK_IMAGES = (1 << 30) // IMAGE_BYTES  # the leak stops at 1 GiB: a demo must not take the machine down
 
 
@@ -31,6 +34,7 @@ class Demo(Node):
     def __init__(self, role: str):
         super().__init__(role)
         self.started = time.monotonic()
+        self.fault_said = ""  # the fault's last state printed: "", "started", "ended"
         self.kept = []  # the leak
         self.images = 0
         if role == "camera":
@@ -51,7 +55,15 @@ class Demo(Node):
             raise SystemExit(f"unknown role {role}: camera, processor, controller or logger")
 
     def faulty(self, fault: str) -> bool:
-        return FAULT == fault and time.monotonic() - self.started > FAULT_AFTER
+        if FAULT != fault:
+            return False
+        elapsed = time.monotonic() - self.started
+        state = "started" if FAULT_AFTER < elapsed < FAULT_AFTER + FAULT_FOR else \
+            "ended" if elapsed >= FAULT_AFTER + FAULT_FOR else ""
+        if state != self.fault_said:
+            self.fault_said = state
+            print(f"fault {fault} {state} at {time.time():.3f}", flush=True)
+        return state == "started"
 
     def on_image(self, msg) -> None:
         self.images += 1

@@ -83,6 +83,7 @@ def _pin_flag(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from drums.exporters.prometheus import DEFAULT_PORT
     from drums.exporters.stream import DEFAULT_PORT as STREAM_PORT
+    from drums.detect.run import DEFAULT_PORT as DETECT_PORT
     from drums.graph.export import FORMATS
     from drums.probes.registry import PROBES
 
@@ -180,6 +181,30 @@ def build_parser() -> argparse.ArgumentParser:
     top.add_argument("--once", action="store_true", help="print the first complete view as text and exit")
     top.add_argument("--json", action="store_true", help="print the first complete view as JSON and exit")
     top.add_argument("--no-color", action="store_true", help="draw without colors (as $NO_COLOR does)")
+
+    detect = sub.add_parser("detect", help="watch every series of one or more agents and name the few that changed",
+                            description="Judges each new point of every series (a counter's rate) against its "
+                                        "recent history by five statistical checks, and prints a line per anomaly "
+                                        "(by the host, process, node, topic or edge it belongs to) and per change "
+                                        "of the graph.")
+    detect.add_argument("--agent", metavar="URL", action="append", default=None,
+                        help=f"an agent to watch (repeatable; default http://127.0.0.1:{DEFAULT_PORT} unless "
+                             "--prometheus is given)")
+    detect.add_argument("--prometheus", metavar="URL", default="",
+                        help="watch every drums_ series this Prometheus server holds, for a whole fleet")
+    detect.add_argument("--token-file", default="",
+                        help="file holding the agents' API token, for agents off loopback ($DRUMS_TOKEN also works)")
+    detect.add_argument("--interval", type=_seconds, default=1.0, help="seconds between reads (0.1-3600, default 1)")
+    detect.add_argument("--log", metavar="FILE", default="", help="append each event to FILE as a JSON line")
+    detect.add_argument("--address", default="127.0.0.1", help="address of the detector's /metrics and /anomalies")
+    detect.add_argument("--port", type=_port, default=DETECT_PORT,
+                        help=f"port of the detector's /metrics and /anomalies (default {DETECT_PORT}; 0: any)")
+    detect.add_argument("--ignore", action="append", choices=("host", "process", "connection", "link"), default=[],
+                        help="do not flag series of this kind of entity (repeatable): host for the host's own "
+                             "totals, as the paper did; process for processes that run no node")
+    detect.add_argument("--detail", action="store_true",
+                        help="also watch per-thread and per-socket series (their process's totals, in detail)")
+    detect.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
@@ -450,6 +475,33 @@ def _agent_graph(url: str, fmt: str, everything: bool = False) -> str:
         raise UsageError(f"--agent {e}") from None
 
 
+def run_detect(args) -> int:
+    from drums.detect.detector import Detector
+    from drums.detect.run import Loop, serve
+    from drums.detect.sources import AgentSource, PrometheusSource
+    from drums.exporters.prometheus import DEFAULT_PORT
+
+    logging.basicConfig(level=args.log_level.upper(), format="drums: %(message)s")
+    token = _read_token(args.token_file)
+    urls = args.agent or ([] if args.prometheus else [f"http://127.0.0.1:{DEFAULT_PORT}"])
+    sources = [AgentSource(url, token, args.detail) for url in urls]
+    if args.prometheus:
+        sources.append(PrometheusSource(args.prometheus, args.detail))
+    loop = Loop(sources, Detector(ignore=set(args.ignore)), args.interval, args.log,
+                echo=lambda line: print(line, flush=True))
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    server = serve(loop, args.address, args.port)
+    log.info("detect: watching %s; /metrics and /anomalies on port %d", ", ".join(s.address for s in sources), server.port)
+    try:
+        loop.run(done)
+    finally:
+        server.stop()
+        loop.close()
+    return 0
+
+
 def run_unload(args) -> int:
     import shutil
 
@@ -481,6 +533,8 @@ def main(argv: list[str] | None = None) -> int:
                        args.view, args.once, args.json, color=not args.no_color)
         if args.command == "sd":
             return run_sd(args)
+        if args.command == "detect":
+            return run_detect(args)
         if args.command == "doctor":
             from drums.doctor import run
             return run()

@@ -21,13 +21,16 @@ import time
 import urllib.error
 import urllib.request
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import msgpack
-import networkx as nx
 import zmq
 
 from drums.errors import DrumsError, UsageError
 from drums.exporters.stream import client_keys, layout_id
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 
 class AgentError(DrumsError):
@@ -122,6 +125,7 @@ class Agent:
 
     def graph(self) -> nx.MultiDiGraph:
         """The agent's graph with its metrics (its /graph)."""
+        import networkx as nx  # only here: the detector and the stream's clients do without it
         try:
             return nx.node_link_graph(json.loads(self.page("/graph?format=json")), edges="edges")
         except (ValueError, KeyError, TypeError) as e:
@@ -315,6 +319,7 @@ class Client:
         own host (with their process and metrics) and sees the others only through the middleware:
         a node's attributes come from the agent whose host it is on; an edge's metrics from every
         agent that measured one end of it."""
+        import networkx as nx
         merged = nx.MultiDiGraph()
         for agent in self.agents:
             g = agent.graph()

@@ -265,17 +265,18 @@ def _listen(address: str, port: int) -> socket.socket:
 
 class HttpServer:
     def __init__(self, address: str, port: int, pages: dict[str, Page], pictures: dict[str, Picture],
-                 collect: Callable[[], Snapshot], jobs: Jobs, info: Callable[[], dict], token: str = "",
-                 stream: dict | None = None):
+                 collect: Callable[[], Snapshot], jobs: Jobs | None, info: Callable[[], dict] | None,
+                 token: str = "", stream: dict | None = None):
         """`pages` are drawn on each request, `pictures` from the shared snapshot `collect()` takes.
-        `stream`: the stream's {"port", "curve_public_key"}, named in every job."""
+        `stream`: the stream's {"port", "curve_public_key"}, named in every job. Without `jobs`
+        there is no job API (the detector serves only its pages)."""
         self._sock = _listen(address, port)
         self.port = self._sock.getsockname()[1]
         with open(HOME, "rb") as f:
             home = f.read()
         self._pages = {"/": lambda _query: (home, "text/html; charset=utf-8"), **pages}
         self._pictures = pictures
-        self._links = sorted([*self._pages, *pictures, f"{API}/openapi.json"])
+        self._links = sorted([*self._pages, *pictures, *([f"{API}/openapi.json"] if jobs is not None else [])])
         self._document = openapi_document()
         self._jobs, self._info, self._token, self._stream = jobs, info, token, stream or {}
         self._workers = ThreadPoolExecutor(WORKERS, thread_name_prefix="http")
@@ -353,7 +354,8 @@ class HttpServer:
 
     async def _answer(self, request: web.BaseRequest) -> tuple[int, bytes, str, dict]:
         url = urlsplit(request.raw_path)
-        method, in_api = request.method, url.path == API or url.path.startswith(API + "/")
+        in_api = self._jobs is not None and (url.path == API or url.path.startswith(API + "/"))
+        method = request.method
         try:
             if in_api:
                 return await self._api(request, method, url.path)

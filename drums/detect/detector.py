@@ -1,0 +1,242 @@
+"""The detector: each tick takes one Reading per host, appends every series' newest point (a
+counter's rate) to the history, judges all of them with the checks, and turns what they flag into
+anomalies of the graph's entities, which start, go on and end.
+
+An anomaly is a series whose checks agree that it left its recent behaviour by more than its
+floor. It is reported once when it starts ("edge /camera -> /processor on /image: received
+bytes -82% since 13:42:29, 4 checks of 5"), held while it is flagged again within HOLD seconds,
+and reported ended after that. The series of an entity that just changed in the graph (a node
+started or restarted) are left alone for GRACE seconds: the change is reported, not its effects.
+"""
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from drums.detect import checks
+from drums.detect.graph import Change, Entity, Graph, entity_of
+from drums.detect.history import History
+from drums.detect.series import Series
+from drums.detect.sources import Reading
+
+WIDTH = 240  # points of history per series: 4 minutes at 1 s
+HOLD = 30.0  # seconds an anomaly lasts after it was last flagged
+GRACE = 120.0  # seconds a changed entity's series are expected to move
+# What the detector keeps per row besides its history: the change that matters, and a counter's last
+# raw value and when it was read (0: never).
+ROW = np.dtype([("floor", "f8"), ("relative", "f8"), ("last", "f8"), ("last_at", "f8"), ("counter", "?")])
+
+
+@dataclass
+class Anomaly:
+    series: Series
+    entity: Entity
+    start: float
+    baseline: float  # the series' median before it started
+    value: float  # its latest judged value
+    failed: tuple[str, ...]  # the checks that flagged it, the last time
+    severity: float
+    last: float  # when it was last flagged
+    end: float | None = None
+
+    @property
+    def change(self) -> str:
+        """+45%, -82%, or the new value where there was nothing before."""
+        s = self.series
+        if abs(self.baseline) > 1e-9:
+            return f"{100 * (self.value - self.baseline) / abs(self.baseline):+.0f}%"
+        return f"{s.format(self.value)} from {s.format(self.baseline)}"
+
+    def __str__(self) -> str:
+        since = time.strftime("%H:%M:%S", time.localtime(self.start))
+        return (f"{self.entity}: {self.series.what} {self.change} since {since} "
+                f"({len(self.failed)} checks of {len(checks.CHECKS)})")
+
+    def as_dict(self) -> dict:
+        s = self.series
+        return {"entity": {"kind": self.entity.kind, "name": self.entity.name, "host": self.entity.source},
+                "category": s.category, "series": s.key.split("|", 1)[1], "what": s.what,
+                "start": self.start, "end": self.end, "baseline": self.baseline, "value": self.value,
+                "change": self.change, "checks": list(self.failed), "severity": round(self.severity, 2),
+                "text": str(self)}
+
+
+@dataclass
+class Event:
+    time: float
+    kind: str  # anomaly, ended, graph
+    anomaly: Anomaly | None = None
+    change: Change | None = None
+
+    @property
+    def category(self) -> str:
+        return self.anomaly.series.category if self.anomaly else "graph"
+
+    def as_dict(self) -> dict:
+        out = {"time": self.time, "event": self.kind}
+        if self.anomaly is not None:
+            out.update(self.anomaly.as_dict())
+        if self.change is not None:
+            e = self.change.entity
+            out.update(entity={"kind": e.kind, "name": e.name, "host": e.source}, category="graph",
+                       change=self.change.change, detail=self.change.detail, text=f"graph: {self.change}")
+        return out
+
+    def __str__(self) -> str:
+        at = time.strftime("%H:%M:%S", time.localtime(self.time))
+        if self.change is not None:
+            return f"{at} graph: {self.change}"
+        return f"{at} {'ended: ' if self.kind == 'ended' else ''}{self.anomaly}"
+
+
+class Detector:
+    def __init__(self, width: int = WIDTH, hold: float = HOLD, grace: float = GRACE, ignore: set[str] = frozenset()):
+        """`ignore`: kinds of entity whose series are watched but never called anomalous."""
+        self.history = History(width)
+        self.hold, self.grace, self.ignore = hold, grace, ignore
+        self.series: dict[str, Series] = {}
+        self.by_row: dict[int, Series] = {}
+        self._index: dict[str, dict[str, int]] = {}  # source -> series text -> row
+        self._state = np.zeros(len(self.history.used), ROW)
+        self._edges: dict[str, Entity] = {}  # key of an edge's series -> its edge
+        self.graph = Graph()
+        self.active: dict[str, Anomaly] = {}  # series key -> its anomaly
+        self.started = Counter()  # (category, entity kind) -> anomalies started
+        self.changes = Counter()  # (entity kind, change) -> graph changes
+        self.flagged: set[str] = set()  # every series ever called anomalous
+        self.tick_seconds = 0.0
+
+    @property
+    def watched(self) -> int:
+        return len(self.series)
+
+    def tick(self, readings: list[Reading], now: float | None = None) -> list[Event]:
+        began = time.perf_counter()
+        now = time.time() if now is None else now
+        rows, values = self._ingest(readings)
+        for row in self.history.tick(rows, values).tolist():
+            s = self.by_row.pop(row)
+            del self.series[s.key]
+            self._edges.pop(s.key, None)
+            del self._index[s.source][s.key.split("|", 1)[1]]
+        events = [Event(now, "graph", change=c) for c in self._graph(now, readings)]
+        events += self._judge(now)
+        events += self._expire(now)
+        self.tick_seconds = time.perf_counter() - began
+        return events
+
+    def _ingest(self, readings: list[Reading]) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and newest points of every series read (a counter's rate since its last read)."""
+        all_rows, all_values = [], []
+        for r in readings:
+            index = self._index.setdefault(r.source, {})
+            rows = np.fromiter((index.get(text, -1) for text in r.series), np.int64, len(r.series))
+            new = np.flatnonzero(rows < 0)  # series seen for the first time
+            if len(new):
+                texts = list(r.series)
+                for i in new.tolist():
+                    rows[i] = self._add(r, texts[i])
+            values = np.fromiter(r.series.values(), np.float64, len(r.series))
+            state = self._state[rows]
+            counter = state["counter"]
+            if counter.any():
+                raw = values[counter]
+                increase = raw - state["last"][counter]
+                increase = np.where(increase < 0, raw, increase)  # a reset counts from zero
+                elapsed = r.time - state["last_at"][counter]
+                c_rows = rows[counter]
+                self._state["last"][c_rows] = raw
+                self._state["last_at"][c_rows] = r.time
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    values[counter] = increase / elapsed
+                # A counter's first read has no rate yet; nor has a read no later than the last.
+                keep = np.ones(len(rows), bool)
+                keep[np.flatnonzero(counter)[(state["last_at"][counter] <= 0) | (elapsed <= 0)]] = False
+                rows, values = rows[keep], values[keep]
+            all_rows.append(rows)
+            all_values.append(values)
+        if not all_rows:
+            return np.zeros(0, np.int64), np.zeros(0)
+        return np.concatenate(all_rows), np.concatenate(all_values)
+
+    def _add(self, r: Reading, text: str) -> int:
+        key = f"{r.source}|{text}"
+        brace = text.find("{")
+        s = Series.of(key, r.source, text, (text if brace < 0 else text[:brace]) in r.counters)
+        s.row = self.history.add()
+        if s.row >= len(self._state):
+            grown = np.zeros(len(self.history.used), self._state.dtype)
+            grown[:len(self._state)] = self._state
+            self._state = grown
+        self._state[s.row] = (s.floor, s.relative, 0.0, 0.0, s.counter)
+        self.series[key] = s
+        self.by_row[s.row] = s
+        if s.name.startswith("drums_edge_"):
+            self._edges[key] = entity_of(s.source, s.labels, {})
+        self._index.setdefault(r.source, {})[text] = s.row
+        return s.row
+
+    def _graph(self, now: float, readings: list[Reading]) -> list[Change]:
+        nodes = {(r.source, node): pid for r in readings for node, pid in r.nodes.items()}
+        started = {(r.source, pid): at for r in readings for pid, at in r.started.items()}
+        edges = set(self._edges.values())
+        changes = self.graph.update(now, {r.source for r in readings}, nodes, edges, started)
+        for c in changes:
+            self.changes[c.entity.kind, c.change] += 1
+        return changes
+
+    def _entity(self, s: Series) -> Entity:
+        return entity_of(s.source, s.labels, self.graph.node_of_pid.get(s.source, {}))
+
+    def _settling(self, s: Series, entity: Entity, now: float) -> bool:
+        """The entity, or the node its series names, changed in the graph a moment ago."""
+        if self.graph.settling(entity, now, self.grace):
+            return True
+        node = s.labels.get("node") or self.graph.node_of_pid.get(s.source, {}).get(s.labels.get("pid", ""))
+        return bool(node) and self.graph.settling(Entity("node", node, s.source), now, self.grace)
+
+    def _judge(self, now: float) -> list[Event]:
+        events = []
+        for rows, window in self.history.cohorts(checks.MIN_POINTS):
+            state = self._state[rows]
+            verdict = checks.judge(window, state["floor"], state["relative"])
+            failed = verdict.failed.sum(axis=1) >= checks.CONSENSUS
+            for i in np.flatnonzero(failed).tolist():
+                s = self.by_row[int(rows[verdict.rows[i]])]
+                entity = self._entity(s)
+                if entity.kind in self.ignore or self._settling(s, entity, now):
+                    continue
+                names = tuple(c for c, f in zip(checks.CHECKS, verdict.failed[i]) if f)
+                value, severity = float(verdict.value[i]), float(verdict.severity[i])
+                a = self.active.get(s.key)
+                if a is None:
+                    a = self.active[s.key] = Anomaly(s, entity, now, float(verdict.baseline[i]), value, names,
+                                                     severity, now)
+                    self.started[s.category, entity.kind] += 1
+                    self.flagged.add(s.key)
+                    events.append(Event(now, "anomaly", a))
+                else:
+                    a.value, a.failed, a.severity, a.last, a.entity = value, names, severity, now, entity
+        return events
+
+    def _expire(self, now: float) -> list[Event]:
+        events = []
+        for key, a in list(self.active.items()):
+            if now - a.last >= self.hold or key not in self.series:
+                a.end = now
+                del self.active[key]
+                events.append(Event(now, "ended", a))
+        return events
+
+    def ranked(self) -> list[tuple[Entity, list[Anomaly]]]:
+        """The entities with anomalies now, the most suspicious first: most anomalous series, then
+        the most severe."""
+        by_entity: dict[Entity, list[Anomaly]] = {}
+        for a in self.active.values():
+            by_entity.setdefault(a.entity, []).append(a)
+        for anomalies in by_entity.values():
+            anomalies.sort(key=lambda a: (-a.severity, a.start))
+        return sorted(by_entity.items(), key=lambda item: (-len(item[1]), -item[1][0].severity, str(item[0])))

@@ -1,0 +1,120 @@
+"""What the detector knows of one series: where it comes from, what it belongs to (host, process,
+node, topic, edge), what it measures in which unit, and how big a change must be to matter.
+
+Read once, when the series first appears; the per-tick path only touches numbers.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from drums import units
+
+# Families that say what the agent is and does rather than what the robot does, and families whose
+# value is an identity (a start time) or a histogram's buckets (its count and sum are watched).
+SKIPPED = re.compile(r"drums_(probe|budget|graph|http|agent|self|scrape|job|stream)_|_info$|_bucket$|"
+                     r"_start_time_seconds$|_total_bytes$|_size_bytes$|_deadline_seconds$|_fill_ratio$|"
+                     r"_unattributed_rows$|_connection_limit$")
+
+CATEGORIES = (  # the first pattern that matches the name
+    ("cpu", re.compile(r"cpu|runqueue|context_switches|_load$")),
+    ("memory", re.compile(r"memory|swap|_threads$|open_fds")),
+    ("io", re.compile(r"disk|filesystem|_read_bytes|_written_bytes")),
+    ("network", re.compile(r".")),
+)
+
+# Counts of the scheduler's own doings, which shift by a third and back as threads move between CPUs
+# on a healthy host: only a doubling, or a fall to nothing, is news.
+CHURN = re.compile(r"context_switches|runqueue_waits|runqueue_latency_seconds_count")
+# Per-thread and per-socket series: their process's totals, in detail. Watched on request.
+DETAIL = re.compile(r"^drums_(thread|socket)_")
+
+_LABEL = re.compile(r'([a-zA-Z_][a-zA-Z0-9_]*)="((?:[^"\\]|\\.)*)"')
+_ESCAPE = re.compile(r"\\(.)")
+
+KIB, MIB = 1024.0, 1024.0 ** 2
+
+
+def labels_of(text: str) -> dict[str, str]:
+    """The labels of a series written as `name{a="1",b="2"}`."""
+    brace = text.find("{")
+    if brace < 0:
+        return {}
+    return {k: _ESCAPE.sub(lambda m: "\n" if m[1] == "n" else m[1], v) for k, v in _LABEL.findall(text, brace)}
+
+
+def floors(name: str, counter: bool) -> tuple[float, float]:
+    """(absolute, relative) change under which a series' move is noise to a user, by unit: a
+    counter is watched as its rate per second."""
+    if counter:
+        if name.endswith("_seconds_total") or name.endswith("_seconds_sum"):
+            return 0.05, 0.25  # 5% of a core (CPU), 50 ms waited per second
+        if name.endswith("_bytes_total"):
+            return 16 * KIB, 0.25
+        if CHURN.search(name):
+            return 50.0, 1.0
+        return 5.0, 0.25  # messages, calls, packets, errors per second
+    if name.endswith("_bytes"):
+        return 4 * MIB, 0.05  # memory: a leak shows long before it is a quarter more
+    if name.endswith("_seconds"):
+        return 0.005, 0.25  # round trips: a loopback RTT that triples is still nothing
+    if name.endswith("_ratio"):
+        return 0.05, 0.0
+    return 2.0, 0.10  # threads, files, load
+
+
+def measure(name: str, labels: dict[str, str]) -> str:
+    """What the series measures, in a user's words: "received bytes", "resident memory", "cpu"."""
+    words = name.removeprefix("drums_")
+    for prefix in ("process_", "node_", "edge_", "topic_", "thread_", "socket_", "host_", "tcp_connection_",
+                   "dds_writer_", "ros_", "latency_"):
+        if words.startswith(prefix):
+            words = words[len(prefix):]
+            break
+    words = words.removesuffix("_total").replace("memory_bytes", "memory").replace("_", " ")
+    detail = [labels[k] for k in ("protocol", "kind", "mode", "interface", "device", "tid", "thread") if k in labels]
+    words = words.removesuffix(" seconds") if "cpu" in words else words
+    return words + (f" ({', '.join(detail)})" if detail else "")
+
+
+@dataclass(slots=True)
+class Series:
+    key: str  # source and series text, unique
+    source: str  # the agent (host) or Prometheus instance it came from
+    name: str
+    labels: dict[str, str]
+    counter: bool
+    category: str
+    floor: float
+    relative: float
+    row: int = -1
+
+    @classmethod
+    def of(cls, key: str, source: str, text: str, counter: bool) -> "Series":
+        brace = text.find("{")
+        name = text if brace < 0 else text[:brace]
+        floor, relative = floors(name, counter)
+        category = next(c for c, pattern in CATEGORIES if pattern.search(name))
+        return cls(key, source, name, labels_of(text), counter, category, floor, relative)
+
+    @property
+    def what(self) -> str:
+        return measure(self.name, self.labels)
+
+    def format(self, value: float) -> str:
+        """A value of the series in its unit: 1.5 MiB/s, 12% (of a core), 250 MiB, 1.5 ms, 30/s."""
+        if self.name.endswith(("_seconds_total", "_seconds_sum")):
+            return units.percent(100 * value)
+        if self.name.endswith("_bytes_total"):
+            return units.bandwidth(value)
+        if self.name.endswith("_bytes"):
+            return units.size(value)
+        if self.name.endswith("_seconds"):
+            return units.duration(value)
+        if self.name.endswith("_ratio"):
+            return units.percent(100 * value)
+        return f"{value:.3g}/s" if self.counter else f"{value:.3g}"
+
+
+def watched(name: str, detail: bool = False) -> bool:
+    return name.startswith("drums_") and not SKIPPED.search(name) and (detail or not DETAIL.search(name))

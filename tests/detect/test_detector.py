@@ -1,0 +1,158 @@
+"""The detector over readings drawn here, with known faults at known ticks: what it flags, when,
+on which entity, and what it leaves alone (noise, a node's restart, ignored kinds)."""
+from __future__ import annotations
+
+import numpy as np
+
+from drums.detect import checks
+from drums.detect.detector import Detector
+from drums.detect.sources import Reading, parse_exposition
+
+EDGE = 'drums_edge_received_bytes_total{topic="/image",publisher="/camera",subscriber="/processor"}'
+MEMORY = 'drums_node_resident_memory_bytes{node="%s"}'
+HOST_CPU = 'drums_host_cpu_seconds_total{mode="user"}'
+T0 = 1_700_000_000.0
+
+
+class Robot:
+    """One host's series, advanced a second per tick with noise: an edge's bytes (a counter),
+    the memory of nodes (gauges), the host's CPU (a counter)."""
+
+    def __init__(self, nodes=("/camera", "/processor", "/planner"), seed=1):
+        self.rng = np.random.default_rng(seed)
+        self.t, self.edge, self.cpu = T0, 0.0, 0.0
+        self.bandwidth = 1e6  # bytes/s on the edge
+        self.cpu_rate = 0.3
+        self.memory = {n: 50e6 for n in nodes}
+        self.pids = {n: str(100 + i) for i, n in enumerate(nodes)}
+
+    def read(self) -> Reading:
+        self.t += 1.0
+        self.edge += self.bandwidth * self.rng.normal(1, 0.02)
+        self.cpu += self.cpu_rate * self.rng.normal(1, 0.05)
+        series = {EDGE: self.edge, HOST_CPU: self.cpu}
+        for node, memory in self.memory.items():
+            series[MEMORY % node] = memory + self.rng.normal(0, 20e3)
+        return Reading("robot", self.t, series, {"drums_edge_received_bytes_total", "drums_host_cpu_seconds_total"},
+                       dict(self.pids))
+
+
+def run(detector: Detector, robot: Robot, ticks: int, change=None) -> list:
+    events = []
+    for i in range(ticks):
+        if change is not None:
+            change(i, robot)
+        reading = robot.read()
+        events += [(i, e) for e in detector.tick([reading], now=reading.time)]
+    return events
+
+
+def test_counters_are_watched_as_their_rate_and_a_reset_counts_from_zero():
+    d = Detector()
+    for t, value in ((0, 1000.0), (2, 1500.0), (3, 1600.0), (4, 40.0)):  # 250/s, 100/s, then a restart
+        d.tick([Reading("h", T0 + t, {"drums_x_total": value, "drums_y_bytes": 7.0}, {"drums_x_total"})], T0 + t)
+        rate = d.series["h|drums_x_total"]
+        if t:
+            assert d.history.points[rate.row, d.history.column] == {2: 250.0, 3: 100.0, 4: 40.0}[t]
+    assert d.history.held[d.series["h|drums_x_total"].row] == 3  # the first read has no rate
+    assert d.history.held[d.series["h|drums_y_bytes"].row] == 4
+
+
+def test_a_collapsed_edge_is_named_within_ten_seconds_and_nothing_else_is():
+    robot = Robot()
+
+    def throttle(i, r):
+        if i == 150:
+            r.bandwidth = 0.18e6  # -82%
+    events = run(Detector(), robot, 200, throttle)
+    anomalies = [(i, e) for i, e in events if e.kind == "anomaly"]
+    assert len(anomalies) == 1, [str(e) for _, e in events]
+    i, e = anomalies[0]
+    assert 150 <= i <= 160
+    assert str(e.anomaly.entity) == "edge /camera -> /processor on /image"
+    assert e.anomaly.series.category == "network"
+    assert -86 <= int(e.anomaly.change.rstrip("%")) <= -78
+    assert str(e.anomaly).startswith("edge /camera -> /processor on /image: received bytes -")
+    assert f"({len(e.anomaly.failed)} checks of 5)" in str(e.anomaly) and len(e.anomaly.failed) >= checks.CONSENSUS
+
+
+def test_an_anomaly_ends_once_calm_for_the_hold_time():
+    robot = Robot()
+
+    def blip(i, r):
+        r.bandwidth = 3e6 if 100 <= i < 115 else 1e6
+    d = Detector(hold=30.0)
+    events = run(d, robot, 200, blip)
+    kinds = [(e.kind, str(e.anomaly.entity)) for _, e in events if e.anomaly]
+    assert kinds == [("anomaly", "edge /camera -> /processor on /image"), ("ended", "edge /camera -> /processor on /image")]
+    ended = next(i for i, e in events if e.kind == "ended")
+    assert 115 + 30 <= ended <= 115 + 30 + checks.TAIL + 1
+    assert d.active == {} and len(d.flagged) == 1
+
+
+def test_graph_changes_are_reported_and_a_restarted_node_is_left_to_settle():
+    robot = Robot()
+
+    def restart(i, r):
+        if i == 100:  # the planner restarts (new PID, memory back to a fresh start) ...
+            r.pids["/planner"] = "999"
+            r.memory["/planner"] = 20e6
+        if i == 120:  # ... a new node starts, and the camera stops
+            r.pids["/mapper"] = "1000"
+            r.memory["/mapper"] = 80e6
+            del r.pids["/camera"]
+        if i == 150:  # and the processor, unchanged in the graph, leaks
+            r.memory["/processor"] = 90e6
+    events = run(Detector(), robot, 180, restart)
+    said = [(i, str(e)[9:]) for i, e in events]
+    assert (100, "graph: node /planner restarted (pid 102 -> 999)") in said
+    assert (120, "graph: node /mapper started (pid 1000)") in said
+    assert (120, "graph: node /camera stopped (pid 100)") in said
+    anomalies = [(i, str(e.anomaly.entity)) for i, e in events if e.kind == "anomaly"]
+    assert len(anomalies) == 1 and anomalies[0][1] == "node /processor" and 150 <= anomalies[0][0] <= 155
+
+
+def test_ignored_kinds_are_watched_but_never_flagged():
+    def busy(i, r):
+        if i == 100:
+            r.cpu_rate = 1.5
+    flagged = {str(e.anomaly.entity) for _, e in run(Detector(), Robot(), 150, busy) if e.kind == "anomaly"}
+    assert flagged == {"host robot"}
+    d = Detector(ignore={"host"})
+    assert [e for _, e in run(d, Robot(), 150, busy) if e.kind == "anomaly"] == []
+    assert d.watched == 5
+
+
+def test_a_series_missing_for_five_reads_is_forgotten():
+    robot = Robot()
+    d = Detector()
+    run(d, robot, 40)
+    del robot.memory["/planner"]
+    run(d, robot, 4)
+    assert d.watched == 5
+    run(d, robot, 1)
+    assert d.watched == 4 and "robot|" + MEMORY % "/planner" not in d.series
+
+
+def test_the_agents_page_is_read_with_its_types_nodes_and_without_its_own_or_detail_series():
+    page = "\n".join([
+        "# HELP drums_process_cpu_seconds_total CPU", "# TYPE drums_process_cpu_seconds_total counter",
+        'drums_process_cpu_seconds_total{pid="7",process="cam"} 1.5',
+        "# TYPE drums_process_runqueue_latency_seconds histogram",
+        'drums_process_runqueue_latency_seconds_bucket{pid="7",process="cam",le="0.001"} 3',
+        'drums_process_runqueue_latency_seconds_sum{pid="7",process="cam"} 0.25',
+        'drums_process_runqueue_latency_seconds_count{pid="7",process="cam"} 4',
+        'drums_node_info{node="/camera",pid="7",process="cam",mapped_by="gid",nodes_in_process="1"} 1',
+        'drums_thread_cpu_seconds_total{pid="7",tid="8",thread="cam"} 1.0',
+        'drums_probe_attached{probe="sched",attach_type="raw_tracepoint"} 1',
+        'drums_process_start_time_seconds{pid="7",process="cam"} 1700000000',
+        'drums_host_load{period="1m"} 0.5', ""])
+    r = parse_exposition("robot", T0, page)
+    assert r.series == {'drums_process_cpu_seconds_total{pid="7",process="cam"}': 1.5,
+                        'drums_process_runqueue_latency_seconds_sum{pid="7",process="cam"}': 0.25,
+                        'drums_process_runqueue_latency_seconds_count{pid="7",process="cam"}': 4.0,
+                        'drums_host_load{period="1m"}': 0.5}
+    assert r.counters == {"drums_process_cpu_seconds_total", "drums_process_runqueue_latency_seconds_count",
+                          "drums_process_runqueue_latency_seconds_sum"}
+    assert r.nodes == {"/camera": "7"}
+    assert 'drums_thread_cpu_seconds_total{pid="7",tid="8",thread="cam"}' in parse_exposition("r", T0, page, True).series
