@@ -33,6 +33,7 @@ BENCHMARKS = (
     ("topic_latency", ["--rounds", "1", "--seconds", "2"]),
     ("stream_bandwidth", ["--seconds", "3"]),
     ("http_robustness", ["--seconds", "5"]),
+    ("detect", ["--ticks", "5", "--series-quality", "50"]),
 )
 TIMEOUT = 600  # seconds; each benchmark is meant to finish within about 3 minutes
 

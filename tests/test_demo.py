@@ -10,8 +10,12 @@ import subprocess
 import urllib.parse
 import urllib.request
 
+import pytest
+
 from tests.agentproc import free_port
 from tests.conftest import eventually
+
+pytestmark = pytest.mark.demo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -17,8 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from drums.detect import checks
-from drums.detect.graph import Change, Entity, Graph, entity_of
+from drums.detect.graph import KINDS, Change, Entity, Graph, entity_of
 from drums.detect.history import History
+from drums.detect.incidents import Incidents, touches
 from drums.detect.series import Series
 from drums.detect.sources import Reading
 
@@ -41,6 +42,8 @@ class Anomaly:
     severity: float
     last: float  # when it was last flagged
     end: float | None = None
+    incident: int = 0  # the incident it belongs to (drums.detect.incidents)
+    leads: bool = True  # whether it is its incident's first anomaly, which names the incident
 
     @property
     def change(self) -> str:
@@ -50,18 +53,26 @@ class Anomaly:
             return f"{100 * (self.value - self.baseline) / abs(self.baseline):+.0f}%"
         return f"{s.format(self.value)} from {s.format(self.baseline)}"
 
+    @property
+    def what(self) -> str:
+        """What changed, with the process where a node's own series is also counted per process."""
+        what, pid = self.series.what, self.series.labels.get("pid")
+        if not pid or self.entity.kind == "process":
+            return what
+        return f"{what[:-1]}, pid {pid})" if what.endswith(")") else f"{what} (pid {pid})"
+
     def __str__(self) -> str:
         since = time.strftime("%H:%M:%S", time.localtime(self.start))
-        return (f"{self.entity}: {self.series.what} {self.change} since {since} "
+        return (f"{self.entity}: {self.what} {self.change} since {since} "
                 f"({len(self.failed)} checks of {len(checks.CHECKS)})")
 
     def as_dict(self) -> dict:
         s = self.series
         return {"entity": {"kind": self.entity.kind, "name": self.entity.name, "host": self.entity.source},
-                "category": s.category, "series": s.key.split("|", 1)[1], "what": s.what,
+                "category": s.category, "series": s.key.split("|", 1)[1], "what": self.what,
                 "start": self.start, "end": self.end, "baseline": self.baseline, "value": self.value,
                 "change": self.change, "checks": list(self.failed), "severity": round(self.severity, 2),
-                "text": str(self)}
+                "incident": self.incident, "leads": self.leads, "text": str(self)}
 
 
 @dataclass
@@ -89,7 +100,9 @@ class Event:
         at = time.strftime("%H:%M:%S", time.localtime(self.time))
         if self.change is not None:
             return f"{at} graph: {self.change}"
-        return f"{at} {'ended: ' if self.kind == 'ended' else ''}{self.anomaly}"
+        if self.kind == "ended":
+            return f"{at} ended: {self.anomaly}"
+        return f"{at} {'' if self.anomaly.leads else '  + '}{self.anomaly}"  # a member under its incident
 
 
 class Detector:
@@ -104,6 +117,7 @@ class Detector:
         self._edges: dict[str, Entity] = {}  # key of an edge's series -> its edge
         self.graph = Graph()
         self.active: dict[str, Anomaly] = {}  # series key -> its anomaly
+        self.incidents = Incidents()
         self.started = Counter()  # (category, entity kind) -> anomalies started
         self.changes = Counter()  # (entity kind, change) -> graph changes
         self.flagged: set[str] = set()  # every series ever called anomalous
@@ -199,7 +213,7 @@ class Detector:
         return bool(node) and self.graph.settling(Entity("node", node, s.source), now, self.grace)
 
     def _judge(self, now: float) -> list[Event]:
-        events = []
+        new = []
         for rows, window in self.history.cohorts(checks.MIN_POINTS):
             state = self._state[rows]
             verdict = checks.judge(window, state["floor"], state["relative"])
@@ -213,14 +227,19 @@ class Detector:
                 value, severity = float(verdict.value[i]), float(verdict.severity[i])
                 a = self.active.get(s.key)
                 if a is None:
-                    a = self.active[s.key] = Anomaly(s, entity, now, float(verdict.baseline[i]), value, names,
-                                                     severity, now)
-                    self.started[s.category, entity.kind] += 1
-                    self.flagged.add(s.key)
-                    events.append(Event(now, "anomaly", a))
+                    new.append(Anomaly(s, entity, now, float(verdict.baseline[i]), value, names, severity, now))
                 else:
                     a.value, a.failed, a.severity, a.last, a.entity = value, names, severity, now, entity
-        return events
+        # Links before their ends, streams before their consumers: the first names the incident.
+        new.sort(key=lambda a: (KINDS.index(a.entity.kind), -a.severity))
+        for a in new:
+            self.active[a.series.key] = a
+            self.started[a.series.category, a.entity.kind] += 1
+            self.flagged.add(a.series.key)
+            near = touches(a.entity, a.series.labels, self.graph.node_of_pid.get(a.series.source, {}))
+            incident = self.incidents.place(a, near, now)
+            a.incident, a.leads = incident.id, incident.root is a
+        return [Event(now, "anomaly", a) for a in new]
 
     def _expire(self, now: float) -> list[Event]:
         events = []
@@ -229,14 +248,17 @@ class Detector:
                 a.end = now
                 del self.active[key]
                 events.append(Event(now, "ended", a))
+        self.incidents.close(self.active)
         return events
 
-    def ranked(self) -> list[tuple[Entity, list[Anomaly]]]:
-        """The entities with anomalies now, the most suspicious first: most anomalous series, then
-        the most severe."""
-        by_entity: dict[Entity, list[Anomaly]] = {}
-        for a in self.active.values():
-            by_entity.setdefault(a.entity, []).append(a)
-        for anomalies in by_entity.values():
-            anomalies.sort(key=lambda a: (-a.severity, a.start))
-        return sorted(by_entity.items(), key=lambda item: (-len(item[1]), -item[1][0].severity, str(item[0])))
+    def ranked(self) -> list[tuple[int, list[tuple[Entity, list[Anomaly]]]]]:
+        """The incidents with anomalies now, the largest first, each as its entities with their
+        anomalies, the most severe first (the incident's first anomaly leads)."""
+        out = []
+        for incident in self.incidents.open:
+            live = [a for a in incident.members if self.active.get(a.series.key) is a]
+            by_entity: dict[Entity, list[Anomaly]] = {}
+            for a in sorted(live, key=lambda a: (not a.leads, -a.severity)):
+                by_entity.setdefault(a.entity, []).append(a)
+            out.append((incident.id, list(by_entity.items())))
+        return sorted(out, key=lambda item: (-sum(len(v) for _, v in item[1]), item[0]))

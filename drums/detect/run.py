@@ -125,9 +125,11 @@ class Loop:
         """The live list: entities with anomalies now, the most suspicious first."""
         with self.lock:
             return {"watched": self.detector.watched, "flagged": len(self.detector.flagged),
-                    "entities": [{"entity": {"kind": e.kind, "name": e.name, "host": e.source},
-                                  "anomalies": [a.as_dict() for a in anomalies]}
-                                 for e, anomalies in self.detector.ranked()]}
+                    "incidents": [{"incident": number,
+                                   "entities": [{"entity": {"kind": e.kind, "name": e.name, "host": e.source},
+                                                 "anomalies": [a.as_dict() for a in anomalies]}
+                                                for e, anomalies in entities]}
+                                  for number, entities in self.detector.ranked()]}
 
 
 def serve(loop: Loop, address: str, port: int):

@@ -124,7 +124,9 @@ class PrometheusSource:
             labels.pop("instance", None)
             reading = readings.get(host)
             if reading is None:
-                reading = readings[host] = Reading(host, at)
+                reading = readings[host] = Reading(host, 0.0)
+            # When the server scraped it: a rate is over the scrapes, not over our reads of them.
+            reading.time = max(reading.time, float(result["value"][0]))
             if name == NODE_INFO:
                 if labels.get("node") and labels.get("pid"):
                     reading.nodes[labels["node"]] = labels["pid"]
