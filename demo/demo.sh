@@ -119,9 +119,9 @@ yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
     --web.listen-address="127.0.0.1:$PROMETHEUS_PORT"
   wait_for agent "http://127.0.0.1:$AGENT_PORT/readyz"
   # The robot's own entities only: the rest of this machine (its host totals, processes that run no
-  # node) is left out, as the paper left the host out.
+  # node, TCP connections such as Prometheus's scrapes) is left out, as the paper left the host out.
   spawn detect .venv/bin/drums detect --agent "http://127.0.0.1:$AGENT_PORT" --port "$DETECT_PORT" \
-    --log "$STATE/detect.jsonl" --ignore host --ignore process
+    --log "$STATE/detect.jsonl" --ignore host --ignore process --ignore connection
 
   local env=(env DRUMS_DEMO_FAULT="$fault" DRUMS_DEMO_FAULT_AFTER="$FAULT_AFTER")
   local throttle_after=$THROTTLE_AFTER throttle_for=infinity

@@ -1,6 +1,6 @@
 """The demo robot's nodes, one per process: `python demo/robot.py ROLE`.
 
-camera      publishes /camera/image, about 1 MB at 30 Hz
+camera      publishes /camera/image, about 1 MB at 30 Hz ($DRUMS_DEMO_IMAGE_BYTES: another size)
 processor   /camera/image -> /detections (a small message per image)
 controller  /detections -> /cmd_vel, at the camera's pace
 logger      logs a line to /rosout for each second of detections
@@ -22,12 +22,13 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from std_msgs.msg import String, UInt8MultiArray
 
-IMAGE_BYTES = 1_000_000
+IMAGE_BYTES = int(os.environ.get("DRUMS_DEMO_IMAGE_BYTES", "1000000"))
+LEAK_BYTES = 1_000_000  # kept for one image in ten, whatever the images' size: 3 MB/s
 RATE = 30.0
 FAULT = os.environ.get("DRUMS_DEMO_FAULT", "")
 FAULT_AFTER = float(os.environ.get("DRUMS_DEMO_FAULT_AFTER", "20"))
 FAULT_FOR = float(os.environ.get("DRUMS_DEMO_FAULT_FOR", "inf"))
-LEAK_IMAGES = (1 << 30) // IMAGE_BYTES  # the leak stops at 1 GiB: a demo must not take the machine down
+LEAK_IMAGES = (1 << 30) // LEAK_BYTES  # the leak stops at 1 GiB: a demo must not take the machine down
 
 
 class Demo(Node):
@@ -68,7 +69,7 @@ class Demo(Node):
     def on_image(self, msg) -> None:
         self.images += 1
         if self.faulty("leak") and self.images % 10 == 0 and len(self.kept) < LEAK_IMAGES:
-            self.kept.append(bytes(msg.data))  # a copy that is never freed
+            self.kept.append(bytes(msg.data[:1]) * LEAK_BYTES)  # memory that is never freed
         self.pub.publish(String(data=f"objects in {len(msg.data)} bytes"))
 
     def on_detection(self, _msg) -> None:

@@ -181,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     top.add_argument("--once", action="store_true", help="print the first complete view as text and exit")
     top.add_argument("--json", action="store_true", help="print the first complete view as JSON and exit")
     top.add_argument("--no-color", action="store_true", help="draw without colors (as $NO_COLOR does)")
+    top.add_argument("--detector", metavar="URL", default=f"http://127.0.0.1:{DETECT_PORT}",
+                     help=f"the `drums detect` whose anomalies the Anomalies view (a) lists (default "
+                          f"http://127.0.0.1:{DETECT_PORT}; '' for none)")
 
     detect = sub.add_parser("detect", help="watch every series of one or more agents and name the few that changed",
                             description="Judges each new point of every series (a counter's rate) against its "
@@ -202,9 +205,21 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--ignore", action="append", choices=("host", "process", "connection", "link"), default=[],
                         help="do not flag series of this kind of entity (repeatable): host for the host's own "
                              "totals, as the paper did; process for processes that run no node")
+    detect.add_argument("--ros", action="store_true",
+                        help="also publish the anomalies now on the ROS 2 topic /drums/anomalies "
+                             "(diagnostic_msgs/DiagnosticArray, a WARN status per anomaly), every interval")
     detect.add_argument("--detail", action="store_true",
-                        help="also watch per-thread and per-socket series (their process's totals, in detail)")
+                        help="also watch per-thread and per-socket series (their process's totals, in detail) "
+                             "and the scheduler's: context switches and run-queue waits")
     detect.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+
+    report = sub.add_parser("report", help="an HTML page of the anomalies `drums detect --log` wrote in a time range",
+                            description="A figure per flagged entity, a plot per anomalous series around its "
+                                        "anomaly. Times are Unix seconds or ISO 8601 (2026-11-25T13:42).")
+    report.add_argument("log", help="the JSON-lines file of `drums detect --log`")
+    report.add_argument("--output", required=True, help="the HTML file to write")
+    report.add_argument("--from", dest="begin", default="", help="the range's start (default: the log's first)")
+    report.add_argument("--to", dest="end", default="", help="the range's end (default: now)")
 
     sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
     _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
@@ -488,7 +503,7 @@ def run_detect(args) -> int:
     if args.prometheus:
         sources.append(PrometheusSource(args.prometheus, args.detail))
     loop = Loop(sources, Detector(ignore=set(args.ignore)), args.interval, args.log,
-                echo=lambda line: print(line, flush=True))
+                echo=lambda line: print(line, flush=True), ros=args.ros)
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
@@ -530,11 +545,14 @@ def main(argv: list[str] | None = None) -> int:
             if args.once and args.json:
                 raise UsageError("--once prints text and --json JSON: one of them")
             return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval,
-                       args.view, args.once, args.json, color=not args.no_color)
+                       args.view, args.once, args.json, color=not args.no_color, detector=args.detector)
         if args.command == "sd":
             return run_sd(args)
         if args.command == "detect":
             return run_detect(args)
+        if args.command == "report":
+            from drums.detect.report import run
+            return run(args.log, args.output, args.begin, args.end)
         if args.command == "doctor":
             from drums.doctor import run
             return run()

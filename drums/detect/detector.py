@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,7 +25,9 @@ from drums.detect.sources import Reading
 
 WIDTH = 240  # points of history per series: 4 minutes at 1 s
 HOLD = 30.0  # seconds an anomaly lasts after it was last flagged
+BEFORE = 120.0  # seconds of a series before its anomaly kept with it, for the report's plots
 GRACE = 120.0  # seconds a changed entity's series are expected to move
+UNKNOWN_NODE = "unknown"  # the node the agent sums topic counts under when it can name none (drums.graph.join)
 # What the detector keeps per row besides its history: the change that matters, and a counter's last
 # raw value and when it was read (0: never).
 ROW = np.dtype([("floor", "f8"), ("relative", "f8"), ("last", "f8"), ("last_at", "f8"), ("counter", "?")])
@@ -44,6 +46,7 @@ class Anomaly:
     end: float | None = None
     incident: int = 0  # the incident it belongs to (drums.detect.incidents)
     leads: bool = True  # whether it is its incident's first anomaly, which names the incident
+    points: list = field(default_factory=list)  # [time, value] from BEFORE its start (to its end, once ended)
 
     @property
     def change(self) -> str:
@@ -74,6 +77,10 @@ class Anomaly:
                 "change": self.change, "checks": list(self.failed), "severity": round(self.severity, 2),
                 "incident": self.incident, "leads": self.leads, "text": str(self)}
 
+    def logged(self) -> dict:
+        """As the JSON log has it: with its points, for the report's plots."""
+        return {**self.as_dict(), "points": [[round(t, 3), v] for t, v in self.points]}
+
 
 @dataclass
 class Event:
@@ -89,7 +96,7 @@ class Event:
     def as_dict(self) -> dict:
         out = {"time": self.time, "event": self.kind}
         if self.anomaly is not None:
-            out.update(self.anomaly.as_dict())
+            out.update(self.anomaly.logged())
         if self.change is not None:
             e = self.change.entity
             out.update(entity={"kind": e.kind, "name": e.name, "host": e.source}, category="graph",
@@ -114,7 +121,7 @@ class Detector:
         self.by_row: dict[int, Series] = {}
         self._index: dict[str, dict[str, int]] = {}  # source -> series text -> row
         self._state = np.zeros(len(self.history.used), ROW)
-        self._edges: dict[str, Entity] = {}  # key of an edge's series -> its edge
+        self._edges: dict[str, tuple[Entity, tuple[Entity, ...]]] = {}  # key of an edge's series -> its edge, its ends
         self.graph = Graph()
         self.active: dict[str, Anomaly] = {}  # series key -> its anomaly
         self.incidents = Incidents()
@@ -131,7 +138,7 @@ class Detector:
         began = time.perf_counter()
         now = time.time() if now is None else now
         rows, values = self._ingest(readings)
-        for row in self.history.tick(rows, values).tolist():
+        for row in self.history.tick(rows, values, now).tolist():
             s = self.by_row.pop(row)
             del self.series[s.key]
             self._edges.pop(s.key, None)
@@ -189,14 +196,15 @@ class Detector:
         self.series[key] = s
         self.by_row[s.row] = s
         if s.name.startswith("drums_edge_"):
-            self._edges[key] = entity_of(s.source, s.labels, {})
+            edge = entity_of(s.source, s.labels, {})
+            self._edges[key] = edge, tuple(e for e in touches(edge, s.labels, {}) if e != edge)
         self._index.setdefault(r.source, {})[text] = s.row
         return s.row
 
     def _graph(self, now: float, readings: list[Reading]) -> list[Change]:
         nodes = {(r.source, node): pid for r in readings for node, pid in r.nodes.items()}
         started = {(r.source, pid): at for r in readings for pid, at in r.started.items()}
-        edges = set(self._edges.values())
+        edges = dict(self._edges.values())
         changes = self.graph.update(now, {r.source for r in readings}, nodes, edges, started)
         for c in changes:
             self.changes[c.entity.kind, c.change] += 1
@@ -204,6 +212,17 @@ class Detector:
 
     def _entity(self, s: Series) -> Entity:
         return entity_of(s.source, s.labels, self.graph.node_of_pid.get(s.source, {}))
+
+    def _ignored(self, s: Series, entity: Entity) -> bool:
+        """Of an ignored kind; with `process` ignored, also what a process that runs no node counts
+        (its messages on a topic, say), and what the agent could name no node for."""
+        if entity.kind in self.ignore:
+            return True
+        if "process" not in self.ignore:
+            return False
+        pid = s.labels.get("pid")
+        return s.labels.get("node") == UNKNOWN_NODE or (
+            bool(pid) and pid not in self.graph.node_of_pid.get(s.source, {}))
 
     def _settling(self, s: Series, entity: Entity, now: float) -> bool:
         """The entity, or the node its series names, changed in the graph a moment ago."""
@@ -221,7 +240,12 @@ class Detector:
             for i in np.flatnonzero(failed).tolist():
                 s = self.by_row[int(rows[verdict.rows[i]])]
                 entity = self._entity(s)
-                if entity.kind in self.ignore or self._settling(s, entity, now):
+                if self._ignored(s, entity):
+                    continue
+                if self._settling(s, entity, now):
+                    # What moved while its entity settled is no fault, nor a baseline to judge by later:
+                    # the series starts its history again, to be judged after a new warm-up.
+                    self.history.held[s.row] = 0
                     continue
                 names = tuple(c for c, f in zip(checks.CHECKS, verdict.failed[i]) if f)
                 value, severity = float(verdict.value[i]), float(verdict.severity[i])
@@ -233,6 +257,7 @@ class Detector:
         # Links before their ends, streams before their consumers: the first names the incident.
         new.sort(key=lambda a: (KINDS.index(a.entity.kind), -a.severity))
         for a in new:
+            a.points = self.history.since(a.series.row, now - BEFORE)
             self.active[a.series.key] = a
             self.started[a.series.category, a.entity.kind] += 1
             self.flagged.add(a.series.key)
@@ -245,6 +270,8 @@ class Detector:
         events = []
         for key, a in list(self.active.items()):
             if now - a.last >= self.hold or key not in self.series:
+                if key in self.series:  # a series that is gone has only its points from before
+                    a.points = a.points + self.history.since(a.series.row, a.start + 1e-6)
                 a.end = now
                 del self.active[key]
                 events.append(Event(now, "ended", a))

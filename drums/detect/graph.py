@@ -59,22 +59,26 @@ class Graph:
     def __init__(self):
         self.nodes: dict[tuple[str, str], str] = {}  # (source, node) -> pid
         self.edges: set[Entity] = set()
+        self.ends: dict[Entity, tuple[Entity, ...]] = {}  # an edge's topic and nodes
         self.hosts: set[str] = set()
         self.node_of_pid: dict[str, dict[str, str]] = {}  # source -> pid -> node
         self.changed_at: dict[Entity, float] = {}
         self._first = True
 
     def update(self, now: float, hosts: set[str], nodes: dict[tuple[str, str], str],
-               edges: set[Entity], started: dict[tuple[str, str], float]) -> list[Change]:
-        """The changes since the last tick. On the first tick everything is simply there: nothing
-        changed, but a node whose process `started` (source, pid -> Unix time) a moment ago is still
-        settling. A host that did not answer keeps its nodes and edges until it answers again."""
+               edges: dict[Entity, tuple[Entity, ...]], started: dict[tuple[str, str], float]) -> list[Change]:
+        """The changes since the last tick. `edges`: each edge with its ends (its topic and its two
+        nodes), which settle with it: a new subscriber changes what its publisher sends. On the
+        first tick everything is simply there: nothing changed, but a node whose process `started`
+        (source, pid -> Unix time) a moment ago is still settling. A host that did not answer keeps
+        its nodes and edges until it answers again."""
         answered = hosts
         changes = [Change(Entity("host", h, h), "joined") for h in sorted(hosts - self.hosts)]
         changes += [Change(Entity("host", h, h), "left", "its agent does not answer")
                     for h in sorted(self.hosts - hosts)]
         nodes = {**{k: v for k, v in self.nodes.items() if k[0] not in answered}, **nodes}
-        edges = {e for e in self.edges if e.source not in answered} | edges
+        self.ends.update(edges)
+        edges = {e for e in self.edges if e.source not in answered} | set(edges)
         for (source, node), pid in sorted(nodes.items()):
             before = self.nodes.get((source, node))
             if before is None:
@@ -96,7 +100,9 @@ class Graph:
                     self.changed_at[Entity("node", node, source)] = started[source, pid]
             return []
         for c in changes:
-            self.changed_at[c.entity] = now
+            for entity in (c.entity, *self.ends.get(c.entity, ())):
+                self.changed_at[entity] = now
+        self.ends = {e: self.ends[e] for e in edges}
         return changes
 
     def settling(self, entity: Entity, now: float, grace: float) -> bool:

@@ -19,6 +19,7 @@ class History:
         self.held = np.zeros(capacity, np.int64)  # points each row holds, up to width
         self.missed = np.zeros(capacity, np.int64)  # ticks since the row last had a point
         self.used = np.zeros(capacity, bool)
+        self.times = np.zeros(width)  # when each column's tick was
         self.column = -1  # the column of the newest tick
         self._free: list[int] = list(range(capacity - 1, -1, -1))
 
@@ -34,11 +35,12 @@ class History:
         self.used[row], self.held[row], self.missed[row] = True, 0, 0
         return row
 
-    def tick(self, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """Append one column: `values` for `rows`, the last point again for the other rows that
-        hold any. Returns the rows forgotten now (missing for GONE ticks)."""
+    def tick(self, rows: np.ndarray, values: np.ndarray, at: float = 0.0) -> np.ndarray:
+        """Append one column, of time `at`: `values` for `rows`, the last point again for the other
+        rows that hold any. Returns the rows forgotten now (missing for GONE ticks)."""
         previous = self.column
         self.column = (self.column + 1) % self.width
+        self.times[self.column] = at
         if previous >= 0:
             self.points[:, self.column] = self.points[:, previous]
         self.missed[self.used] += 1
@@ -51,6 +53,14 @@ class History:
         self.used[gone] = False
         self._free.extend(gone.tolist())
         return gone
+
+    def since(self, row: int, since: float) -> list[list[float]]:
+        """[time, value] of the row's points from `since` on, oldest first."""
+        length = int(self.held[row])
+        columns = (self.column - length + 1 + np.arange(length)) % self.width
+        times = self.times[columns]
+        keep = times >= since
+        return np.column_stack([times[keep], self.points[row, columns[keep]].astype(np.float64)]).tolist()
 
     def cohorts(self, least: int):
         """(rows, window) for each group of rows holding the same number of points, at least

@@ -1,6 +1,8 @@
 """`drums detect` as a process: read every source each interval, tick the detector, and say what it
 found: a line per event on standard output, a JSON object per event in the log, the detector's own
-counts on /metrics and its live list on /anomalies.
+counts on /metrics and its live list on /anomalies, and with --ros the anomalies now as a
+diagnostic_msgs/DiagnosticArray on the ROS 2 topic /drums/anomalies, for the robot's own
+controller (published from a child process, as the agent's /diagnostics are).
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 log = logging.getLogger("drums")
 
 DEFAULT_PORT = 9971
+ROS_TOPIC = "/drums/anomalies"
+WARN = 1  # DiagnosticStatus level of an anomaly
 
 CATEGORIES = ("cpu", "memory", "io", "network")
 STARTED = Metric("drums_anomalies_total", COUNTER,
@@ -40,8 +44,13 @@ FAILED = Metric("drums_detect_source_failures_total", COUNTER, "Reads of the sou
 
 
 class Loop:
-    def __init__(self, sources: list, detector: Detector, interval: float, log_path: str = "", echo=print):
+    def __init__(self, sources: list, detector: Detector, interval: float, log_path: str = "", echo=print,
+                 ros: bool = False):
         self.sources, self.detector, self.interval, self.echo = sources, detector, interval, echo
+        self.publisher = None
+        if ros:
+            from drums.exporters.diagnostics import Publisher
+            self.publisher = Publisher(topic=ROS_TOPIC)
         self.lock = threading.Lock()  # the detector's state, between the loop and the HTTP threads
         self.up = {s.address: 0 for s in sources}
         self.failures = {s.address: 0 for s in sources}
@@ -78,6 +87,9 @@ class Loop:
             readings += got
         with self.lock:
             events = self.detector.tick(readings, now)
+            statuses = self.statuses() if self.publisher is not None else None
+        if statuses is not None:
+            self.publisher.send(statuses)
         for e in events:
             self.echo(str(e))
             if self._log is not None:
@@ -94,7 +106,21 @@ class Loop:
                 next_at += self.interval * (late // self.interval + 1)
             done.wait(max(0.0, next_at - time.monotonic()))
 
+    def statuses(self) -> list[dict]:
+        """A WARN status per anomaly now, named by its entity ("drums: edge /camera -> /processor on
+        /image"), hardware_id its host; none when all is calm."""
+        out = []
+        for a in sorted(self.detector.active.values(), key=lambda a: (a.incident, not a.leads, -a.severity)):
+            d = a.as_dict()
+            message = f"{d['what']} {d['change']} since {time.strftime('%H:%M:%S', time.localtime(a.start))}"
+            out.append({"level": WARN, "name": f"drums: {a.entity}", "message": message, "hardware_id": a.entity.source,
+                        "values": [[k, str(d[k])] for k in ("category", "series", "baseline", "value", "change",
+                                                            "checks", "incident", "leads")]})
+        return out
+
     def close(self) -> None:
+        if self.publisher is not None:
+            self.publisher.stop()
         self._pool.shutdown(wait=False, cancel_futures=True)
         if self._log is not None:
             self._log.close()

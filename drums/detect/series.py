@@ -26,8 +26,10 @@ CATEGORIES = (  # the first pattern that matches the name
 # Counts of the scheduler's own doings, which shift by a third and back as threads move between CPUs
 # on a healthy host: only a doubling, or a fall to nothing, is news.
 CHURN = re.compile(r"context_switches|runqueue_waits|runqueue_latency_seconds_count")
-# Per-thread and per-socket series: their process's totals, in detail. Watched on request.
-DETAIL = re.compile(r"^drums_(thread|socket)_")
+# Watched on request (--detail): per-thread and per-socket series, their process's totals in detail,
+# and the scheduler's (context switches, run-queue waits), which echo a change of CPU or traffic
+# already seen and move with the load of the rest of the host.
+DETAIL = re.compile(r"^drums_(thread|socket)_|context_switches|runqueue")
 
 _LABEL = re.compile(r'([a-zA-Z_][a-zA-Z0-9_]*)="((?:[^"\\]|\\.)*)"')
 _ESCAPE = re.compile(r"\\(.)")

@@ -56,6 +56,7 @@ log = logging.getLogger("drums")
 
 OK, WARN, ERROR = 0, 1, 2  # DiagnosticStatus levels
 OWN_NODE = "_drums_diagnostics"
+OWN_ANOMALIES_NODE = "_drums_anomalies"
 INSTALL_HINT = "pip install ros-rclpy ros-diagnostic-msgs (ROS 2 from PyPI)"
 # (section, key) -> (what a message calls the value, its unit, default warn, default error)
 THRESHOLDS = {
@@ -290,12 +291,13 @@ class Diagnostics:
 
 
 class Publisher:
-    """The child that publishes: one JSON array per line on its stdin, one answer per array on its
-    stdout ({} or {"error": why}). A child that exits, or answers nothing for `timeout` s, is
-    replaced, at most once every `timeout` s; each new reason it is not publishing is logged once."""
+    """The child that publishes DiagnosticArrays on `topic` (drums detect's anomalies go out this way
+    too): one JSON array per line on its stdin, one answer per array on its stdout ({} or {"error":
+    why}). A child that exits, or answers nothing for `timeout` s, is replaced, at most once every
+    `timeout` s; each new reason it is not publishing is logged once."""
 
-    def __init__(self, timeout: float = 5.0):
-        self.timeout = timeout
+    def __init__(self, timeout: float = 5.0, topic: str = "/diagnostics"):
+        self.timeout, self.topic = timeout, topic
         self._proc: subprocess.Popen | None = None
         self._reader: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -308,7 +310,7 @@ class Publisher:
         self._reason = ""  # what was logged last; "" while publishing
 
     def _spawn(self) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", "drums.exporters.diagnostics"], stdin=subprocess.PIPE,
+        self._proc = subprocess.Popen([sys.executable, "-m", "drums.exporters.diagnostics", self.topic], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         os.set_blocking(self._proc.stdin.fileno(), False)  # a child that stops reading must not stop us
         with self._lock:
@@ -372,7 +374,7 @@ class Publisher:
         problem = self._problem()
         if problem != self._reason:
             if problem:
-                log.warning("diagnostics: %s; /diagnostics is not published until it works again", problem)
+                log.warning("diagnostics: %s; %s is not published until it works again", problem, self.topic)
             else:
                 log.info("diagnostics: publishing again")
             self._reason = problem
@@ -401,8 +403,8 @@ def _answer(**message) -> None:
     print(json.dumps(message), flush=True)
 
 
-def child() -> int:
-    """The child process: publish each array read on stdin until stdin closes."""
+def child(topic: str) -> int:
+    """The child process: publish each array read on stdin on `topic` until stdin closes."""
     try:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -410,10 +412,11 @@ def child() -> int:
         from drums.graph.ros2 import RCLPY_ARGS
 
         rclpy.init(args=RCLPY_ARGS)
-        node = rclpy.create_node(OWN_NODE, enable_rosout=False, start_parameter_services=False)
-        publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        node = rclpy.create_node(OWN_NODE if topic == "/diagnostics" else OWN_ANOMALIES_NODE, enable_rosout=False,
+                                 start_parameter_services=False)
+        publisher = node.create_publisher(DiagnosticArray, topic, 10)
     except Exception as e:  # no ROS 2, or a DDS that will not start: say why, the agent logs it
-        _answer(error=f"cannot publish /diagnostics: {e} ({INSTALL_HINT})")
+        _answer(error=f"cannot publish {topic}: {e} ({INSTALL_HINT})")
         return 2
     try:
         for line in sys.stdin:
@@ -426,7 +429,7 @@ def child() -> int:
                 array.header.stamp = node.get_clock().now().to_msg()
                 publisher.publish(array)
             except Exception as e:  # one array that cannot go out: say why, take the next
-                _answer(error=f"publishing /diagnostics: {e}")
+                _answer(error=f"publishing {topic}: {e}")
                 continue
             _answer()
     except (KeyboardInterrupt, BrokenPipeError):
@@ -439,4 +442,4 @@ def child() -> int:
 
 if __name__ == "__main__":
     name_helper("diag")
-    sys.exit(child())
+    sys.exit(child(sys.argv[1] if len(sys.argv) > 1 else "/diagnostics"))

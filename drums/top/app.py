@@ -27,6 +27,7 @@ class TopApp(App):
         Binding("e", "view('edges')", "Edges"),
         Binding("c", "view('connections')", "Conns"),
         Binding("h", "view('hosts')", "Hosts"),
+        Binding("a", "view('anomalies')", "Anomalies"),
         # Priority: the app takes it at once, so the keys typed right after it go to the filter.
         Binding("slash", "filter", "Filter", priority=True),
         Binding("greater_than_sign", "sort(1)", "Sort"),

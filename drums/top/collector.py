@@ -9,8 +9,10 @@ jobs that end by themselves; any other end deletes them (close()).
 """
 from __future__ import annotations
 
+import json
 import threading
 import time
+import urllib.request
 
 from drums.client import AgentError, Client
 from drums.exporters.jobs import MAX_LEASE
@@ -30,8 +32,10 @@ def timeout(interval: float) -> float:
 
 
 class Collector:
-    def __init__(self, urls: list[str], token: str, interval: float):
+    def __init__(self, urls: list[str], token: str, interval: float, detector: str = ""):
+        """`detector`: the URL of a `drums detect` whose anomalies the Anomalies view lists."""
         self.interval = interval
+        self.detector = detector.rstrip("/")
         self.lease = min(max(MIN_LEASE, LEASE_INTERVALS * interval), MAX_LEASE)
         self.model = Model(urls, interval)
         self.client = Client(urls, token)
@@ -45,6 +49,8 @@ class Collector:
         for i, agent in enumerate(self.client.agents):
             self._threads.append(threading.Thread(target=self._follow, args=(i,), name=f"top {agent.url}", daemon=True))
         self._threads.append(threading.Thread(target=self._keep_jobs, name="top jobs", daemon=True))
+        if self.detector:
+            self._threads.append(threading.Thread(target=self._detect, name="top detector", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -67,6 +73,19 @@ class Collector:
             except (AgentError, KeyError, TypeError) as e:
                 host = ""  # another agent may answer at that URL next time
                 self.model.failed(index, str(e) if isinstance(e, AgentError) else f"{agent.url}: not a Drums agent")
+            self.stopping.wait(max(0.0, began + self.interval - time.monotonic()))
+
+    def _detect(self) -> None:
+        while not self.stopping.is_set():
+            began = time.monotonic()
+            try:
+                with urllib.request.urlopen(f"{self.detector}/anomalies", timeout=timeout(self.interval)) as answer:
+                    found = json.load(answer)
+                if not isinstance(found, dict) or not isinstance(found.get("incidents"), list):
+                    raise ValueError("not the anomalies of drums detect")
+                self.model.detected(found)
+            except (OSError, ValueError) as e:
+                self.model.detected(None, f"no detector at {self.detector} ({e}): start `drums detect`")
             self.stopping.wait(max(0.0, began + self.interval - time.monotonic()))
 
     def _keep_jobs(self) -> None:

@@ -19,9 +19,11 @@ ONCE_INTERVALS, ONCE_SLACK = 10, 10.0  # how long --once waits for a complete vi
 ENDS = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)  # a closed terminal sends SIGHUP
 
 
-def complete(frame: Frame) -> bool:
+def complete(frame: Frame, view: str = "") -> bool:
     """Whether every agent is down or has given two polls and two host samples (or said why not):
-    every rate of the view is known."""
+    every rate of the view is known; for Anomalies, whether the detector answered or said why not."""
+    if view == "anomalies":
+        return frame.anomalies is not None or bool(frame.detector_error)
     return all(a.failed or (a.before is not None and (a.jobs_error or frame.sample(f"{a.host}:host:")[0] is not None))
                for a in frame.agents)
 
@@ -29,7 +31,7 @@ def complete(frame: Frame) -> bool:
 def _print(collector: Collector, view: str, as_json: bool) -> int:
     """One complete view (the first with every rate, or what is known after a while) for scripts."""
     deadline = time.monotonic() + ONCE_INTERVALS * collector.interval + ONCE_SLACK
-    while not complete(collector.model.frame()) and time.monotonic() < deadline:
+    while not complete(collector.model.frame(), view) and time.monotonic() < deadline:
         collector.stopping.wait(0.05)
     frame = collector.model.frame()
     if all(a.latest is None for a in frame.agents):
@@ -40,14 +42,14 @@ def _print(collector: Collector, view: str, as_json: bool) -> int:
 
 
 def run(urls: list[str], token: str, interval: float, view: str = "nodes", once: bool = False,
-        as_json: bool = False, color: bool = True) -> int:
+        as_json: bool = False, color: bool = True, detector: str = "") -> int:
     for url in urls:
         parts = urlsplit(url)
         if parts.scheme not in ("http", "https") or not parts.hostname:
             raise UsageError(f"--agent {url}: an agent's URL is http://HOST:PORT")
     if not (once or as_json) and not (sys.stdin.isatty() and sys.stdout.isatty()):
         raise UsageError("the live view needs a terminal: --once or --json print one view for scripts")
-    collector = Collector(urls, token, interval)
+    collector = Collector(urls, token, interval, detector)
     app = None
 
     def leave(signum, _frame):

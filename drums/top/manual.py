@@ -2,7 +2,8 @@
 
 KEYS = """\
 Keys
-  n t e c h   views: Nodes, Topics, Edges, Connections, Hosts
+  n t e c h a views: Nodes, Topics, Edges, Connections, Hosts,
+              Anomalies
   < >         sort by the column left or right of the current one
               (or click a column's title; click again to reverse)
   r           reverse the order
@@ -61,6 +62,14 @@ interfaces (lo too) and the hosts it measures the round trip to
   LOAD   1-minute load average
   RX TX  bytes per second (the host's line leaves lo out)
   LATENCY  mean round trip (the host's line: the longest)""",
+    "anomalies": """\
+Anomalies: what `drums detect` (--detector) flags now, an incident
+per group: the anomaly that names it, then the others (+) of it
+  WHAT    the series: what it counts, and its process or thread
+  CHANGE  against the series' median before it started
+  SINCE   when it started
+  CHECKS  how many of the five checks called it anomalous
+  SERIES  anomalous series in the incident""",
 }
 
 

@@ -46,6 +46,8 @@ class Frame:
     interval: float
     agents: list[AgentState]
     samples: dict[str, tuple[Sample | None, Sample]] = field(default_factory=dict)  # stream key -> (before, latest)
+    anomalies: dict | None = None  # the detector's /anomalies, once it answered
+    detector_error: str = ""  # why the detector did not answer
 
     def live(self) -> list[AgentState]:
         """The agents whose rows are shown: up, or stale (their last numbers, marked)."""
@@ -60,6 +62,8 @@ class Model:
         self.interval = interval
         self.agents = [AgentState(url) for url in urls]
         self.samples: dict[str, tuple[Sample | None, Sample]] = {}
+        self.anomalies: dict | None = None
+        self.detector_error = ""
         self.version = 0  # grows with every change, so the screen knows when to draw again
         self._lock = threading.Lock()
 
@@ -98,6 +102,14 @@ class Model:
             self.samples[sample.key] = (before, sample)
             self.version += 1
 
+    def detected(self, anomalies: dict | None, error: str = "") -> None:
+        """The detector's last answer (None and why, when it gave none)."""
+        with self._lock:
+            if anomalies != self.anomalies or error != self.detector_error:
+                self.anomalies, self.detector_error = anomalies, error
+                self.version += 1
+
     def frame(self) -> Frame:
         with self._lock:
-            return Frame(time.time(), self.interval, [replace(a) for a in self.agents], dict(self.samples))
+            return Frame(time.time(), self.interval, [replace(a) for a in self.agents], dict(self.samples),
+                         self.anomalies, self.detector_error)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from drums.top import hosts, views
+from drums.top import anomalies, hosts, views
 from drums.top.losses import Losses
 from drums.top.model import Frame
 from drums.top.table import Row, Table, arrange, cells, fit, line
@@ -26,6 +26,8 @@ class Views:
             return views.edges(frame)
         if view == "connections":
             return hosts.connections(frame)
+        if view == "anomalies":
+            return anomalies.anomalies(frame)
         return hosts.hosts(frame)
 
 

@@ -1,12 +1,15 @@
 """`drums detect` as a process, as the README starts it: over a real Prometheus that scrapes a real
-agent it names a process whose sending jumps, and it stands bad flags and an agent that is down."""
+agent it names a process whose sending jumps, in its log, in `drums top`'s Anomalies view and on
+the ROS 2 topic /drums/anomalies; and it stands bad flags and an agent that is down."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from contextlib import contextmanager
@@ -19,11 +22,27 @@ TRICKLE = 1024  # bytes a second, so that its series exist before the jump
 BURST = 4 << 20  # bytes a second after
 
 
+# A DDS domain of this module's own, apart from the graph tests' and /diagnostics' domains.
+ROS_ENV = {**os.environ, "ROS_DOMAIN_ID": str(1 + (os.getpid() + 25) % 100), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+LISTENER = r"""
+import json, sys, threading, rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+rclpy.init(args=[])
+node = rclpy.create_node("anomaly_listener")
+def heard(array):
+    print(json.dumps([{"name": s.name, "level": s.level[0], "message": s.message, "hardware_id": s.hardware_id,
+                       "values": {v.key: v.value for v in s.values}} for s in array.status]), flush=True)
+node.create_subscription(DiagnosticArray, "/drums/anomalies", heard, 10)
+threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()
+sys.stdin.read()
+"""
+
+
 @contextmanager
 def detector(*argv):
     """`drums detect` running; yields (process, the URL of its own pages)."""
     proc = subprocess.Popen([sys.executable, "-m", "drums", "detect", "--port", "0", *argv],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ROS_ENV)
     line = proc.stderr.readline()
     port = re.search(r"on port (\d+)", line)
     assert port, line + proc.stderr.read() if proc.poll() is not None else line
@@ -63,11 +82,22 @@ def test_a_process_whose_sending_jumps_is_named_through_prometheus_within_ten_se
     log = tmp_path / "events.jsonl"
     with running_agent() as metrics_url, \
             running_prometheus("drums", metrics_url.split("/")[2], {"host": "robot1"}, []) as prometheus:
-        with detector("--prometheus", prometheus, "--log", str(log), "--ignore", "host") as (proc, _):
+        listener = subprocess.Popen([sys.executable, "-c", LISTENER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                    text=True, env=ROS_ENV)
+        arrays = []
+        threading.Thread(target=lambda: arrays.extend(json.loads(line) for line in listener.stdout), daemon=True).start()
+        with detector("--prometheus", prometheus, "--log", str(log), "--ignore", "host", "--ros") as (proc, url):
             sender = subprocess.Popen([sys.executable, "-c", SENDER, str(QUIET), str(TRICKLE), str(BURST)],
                                       stdout=subprocess.PIPE, text=True)
             burst_at = float(sender.stdout.readline().split()[-1])
             assert sender.wait(timeout=QUIET + 40) == 0
+            # drums top's Anomalies view lists it while it lasts (30 s after it was last flagged).
+            top = subprocess.run([sys.executable, "-m", "drums", "top", "--agent", metrics_url.removesuffix("/metrics"),
+                                  "--detector", url, "--view", "anomalies", "--json"],
+                                 capture_output=True, text=True, timeout=60)
+            assert top.returncode == 0, top.stderr
+        listener.stdin.close()
+        listener.wait(timeout=10)
         assert proc.returncode == 0
         assert "Traceback" not in proc.stderr.read()
     events = [json.loads(line) for line in log.read_text().splitlines()]
@@ -77,6 +107,13 @@ def test_a_process_whose_sending_jumps_is_named_through_prometheus_within_ten_se
     assert own, [e["text"] for e in events]
     assert burst_at - 1 <= own[0]["start"] <= burst_at + 10, (own[0]["start"] - burst_at, own[0]["text"])
     assert own[0]["category"] == "network" and own[0]["change"].startswith("+")
+    statuses = [s for array in arrays for s in array if s["name"] == f"drums: process python ({sender.pid})"]
+    assert statuses and {s["hardware_id"] for s in statuses} == {"robot1"} and {s["level"] for s in statuses} == {1}
+    assert any("sent bytes" in s["message"] and s["values"]["category"] == "network" for s in statuses), statuses
+    assert [] in arrays  # calm before the burst: an empty array, so a controller knows all is well
+    rows = json.loads(top.stdout)["rows"]
+    assert any(r["entity"].endswith(f"process python ({sender.pid})") and "sent bytes" in r["what"]
+               and r["host"] == "robot1" and r["checks"] >= 3 for r in rows), rows
 
 
 def test_bad_flags_are_one_line_and_an_agent_that_is_down_is_said_once(tmp_path):
