@@ -28,9 +28,10 @@ HOLD = 30.0  # seconds an anomaly lasts after it was last flagged
 BEFORE = 120.0  # seconds of a series before its anomaly kept with it, for the report's plots
 GRACE = 120.0  # seconds a changed entity's series are expected to move
 UNKNOWN_NODE = "unknown"  # the node the agent sums topic counts under when it can name none (drums.graph.join)
-# What the detector keeps per row besides its history: the change that matters, and a counter's last
-# raw value and when it was read (0: never).
-ROW = np.dtype([("floor", "f8"), ("relative", "f8"), ("last", "f8"), ("last_at", "f8"), ("counter", "?")])
+# What the detector keeps per row besides its history: the change that matters, a counter's last raw
+# value and when it was read (0: never), and whether it was ever called anomalous.
+ROW = np.dtype([("floor", "f8"), ("relative", "f8"), ("last", "f8"), ("last_at", "f8"), ("counter", "?"),
+                ("flagged", "?")])
 
 
 @dataclass
@@ -89,10 +90,6 @@ class Event:
     anomaly: Anomaly | None = None
     change: Change | None = None
 
-    @property
-    def category(self) -> str:
-        return self.anomaly.series.category if self.anomaly else "graph"
-
     def as_dict(self) -> dict:
         out = {"time": self.time, "event": self.kind}
         if self.anomaly is not None:
@@ -122,12 +119,12 @@ class Detector:
         self._index: dict[str, dict[str, int]] = {}  # source -> series text -> row
         self._state = np.zeros(len(self.history.used), ROW)
         self._edges: dict[str, tuple[Entity, tuple[Entity, ...]]] = {}  # key of an edge's series -> its edge, its ends
-        self.graph = Graph()
+        self.graph = Graph(grace)
         self.active: dict[str, Anomaly] = {}  # series key -> its anomaly
         self.incidents = Incidents()
         self.started = Counter()  # (category, entity kind) -> anomalies started
         self.changes = Counter()  # (entity kind, change) -> graph changes
-        self.flagged: set[str] = set()  # every series ever called anomalous
+        self.flagged = 0  # distinct series called anomalous since the start (a series that comes back anew counts again)
         self.tick_seconds = 0.0
 
     @property
@@ -192,7 +189,7 @@ class Detector:
             grown = np.zeros(len(self.history.used), self._state.dtype)
             grown[:len(self._state)] = self._state
             self._state = grown
-        self._state[s.row] = (s.floor, s.relative, 0.0, 0.0, s.counter)
+        self._state[s.row] = (s.floor, s.relative, 0.0, 0.0, s.counter, False)
         self.series[key] = s
         self.by_row[s.row] = s
         if s.name.startswith("drums_edge_"):
@@ -226,10 +223,10 @@ class Detector:
 
     def _settling(self, s: Series, entity: Entity, now: float) -> bool:
         """The entity, or the node its series names, changed in the graph a moment ago."""
-        if self.graph.settling(entity, now, self.grace):
+        if self.graph.settling(entity, now):
             return True
         node = s.labels.get("node") or self.graph.node_of_pid.get(s.source, {}).get(s.labels.get("pid", ""))
-        return bool(node) and self.graph.settling(Entity("node", node, s.source), now, self.grace)
+        return bool(node) and self.graph.settling(Entity("node", node, s.source), now)
 
     def _judge(self, now: float) -> list[Event]:
         new = []
@@ -260,7 +257,9 @@ class Detector:
             a.points = self.history.since(a.series.row, now - BEFORE)
             self.active[a.series.key] = a
             self.started[a.series.category, a.entity.kind] += 1
-            self.flagged.add(a.series.key)
+            if not self._state["flagged"][a.series.row]:
+                self._state["flagged"][a.series.row] = True
+                self.flagged += 1
             near = touches(a.entity, a.series.labels, self.graph.node_of_pid.get(a.series.source, {}))
             incident = self.incidents.place(a, near, now)
             a.incident, a.leads = incident.id, incident.root is a

@@ -56,7 +56,8 @@ class Graph:
     """The nodes (with their processes), edges and hosts seen at the last tick, and when each
     entity last changed."""
 
-    def __init__(self):
+    def __init__(self, grace: float):
+        self.grace = grace
         self.nodes: dict[tuple[str, str], str] = {}  # (source, node) -> pid
         self.edges: set[Entity] = set()
         self.ends: dict[Entity, tuple[Entity, ...]] = {}  # an edge's topic and nodes
@@ -99,18 +100,14 @@ class Graph:
                 if (source, pid) in started:
                     self.changed_at[Entity("node", node, source)] = started[source, pid]
             return []
+        self.changed_at = {e: at for e, at in self.changed_at.items() if now - at < self.grace}
         for c in changes:
             for entity in (c.entity, *self.ends.get(c.entity, ())):
                 self.changed_at[entity] = now
         self.ends = {e: self.ends[e] for e in edges}
         return changes
 
-    def settling(self, entity: Entity, now: float, grace: float) -> bool:
-        """Whether the entity changed less than `grace` seconds ago (its series are expected to move)."""
+    def settling(self, entity: Entity, now: float) -> bool:
+        """Whether the entity changed less than the grace ago (its series are expected to move)."""
         at = self.changed_at.get(entity)
-        if at is None:
-            return False
-        if now - at >= grace:
-            del self.changed_at[entity]
-            return False
-        return True
+        return at is not None and now - at < self.grace

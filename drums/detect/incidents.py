@@ -64,5 +64,8 @@ class Incidents:
         return incident
 
     def close(self, active: dict) -> None:
-        """Forget incidents none of whose anomalies is still active."""
+        """Forget the anomalies that ended (an incident keeps the one that names it) and the incidents
+        none of whose anomalies is still active."""
+        for i in self.open:
+            i.members = [a for n, a in enumerate(i.members) if n == 0 or active.get(a.series.key) is a]
         self.open = [i for i in self.open if any(active.get(a.series.key) is a for a in i.members)]

@@ -140,7 +140,7 @@ class Loop:
             for (kind, change), n in sorted(d.changes.items()):
                 snap.add(CHANGES, (kind, change), n)
             snap.add(WATCHED, (), d.watched)
-            snap.add(FLAGGED, (), len(d.flagged))
+            snap.add(FLAGGED, (), d.flagged)
             snap.add(TICK, (), d.tick_seconds)
         for name in self.up:
             snap.add(UP, (name,), self.up[name])
@@ -150,7 +150,7 @@ class Loop:
     def anomalies(self) -> dict:
         """The live list: entities with anomalies now, the most suspicious first."""
         with self.lock:
-            return {"watched": self.detector.watched, "flagged": len(self.detector.flagged),
+            return {"watched": self.detector.watched, "flagged": self.detector.flagged,
                     "incidents": [{"incident": number,
                                    "entities": [{"entity": {"kind": e.kind, "name": e.name, "host": e.source},
                                                  "anomalies": [a.as_dict() for a in anomalies]}

@@ -87,7 +87,7 @@ def test_an_anomaly_ends_once_calm_for_the_hold_time():
     assert kinds == [("anomaly", "edge /camera -> /processor on /image"), ("ended", "edge /camera -> /processor on /image")]
     ended = next(i for i, e in events if e.kind == "ended")
     assert 115 + 30 <= ended <= 115 + 30 + checks.TAIL + 1
-    assert d.active == {} and len(d.flagged) == 1
+    assert d.active == {} and d.flagged == 1
 
 
 def test_graph_changes_are_reported_and_a_restarted_node_is_left_to_settle():
