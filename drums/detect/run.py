@@ -41,6 +41,7 @@ FLAGGED = Metric("drums_detect_series_flagged", GAUGE, "Distinct series called a
 TICK = Metric("drums_detect_tick_duration_seconds", GAUGE, "How long the detector's last tick took (reads not included)")
 UP = Metric("drums_detect_source_up", GAUGE, "1 if the source answered the last read, else 0", ("source",))
 FAILED = Metric("drums_detect_source_failures_total", COUNTER, "Reads of the source that failed", ("source",))
+METRICS = (STARTED, ACTIVE, CHANGES, WATCHED, FLAGGED, TICK, UP, FAILED)
 
 
 class Loop:

@@ -10,9 +10,11 @@ from dataclasses import dataclass
 
 from drums import units
 
-# Families that say what the agent is and does rather than what the robot does, and families whose
-# value is an identity (a start time) or a histogram's buckets (its count and sum are watched).
-SKIPPED = re.compile(r"drums_(probe|budget|graph|http|agent|self|scrape|job|stream)_|_info$|_bucket$|"
+# Families that say what the agent (or this detector, scraped by the same Prometheus) is and does
+# rather than what the robot does, and families whose value is an identity (a start time) or a
+# histogram's buckets (its count and sum are watched).
+SKIPPED = re.compile(r"drums_(probe|budget|graph|http|agent|self|scrape|job|stream|detect)_|drums_anomal|"
+                     r"_info$|_bucket$|"
                      r"_start_time_seconds$|_total_bytes$|_size_bytes$|_deadline_seconds$|_fill_ratio$|"
                      r"_unattributed_rows$|_connection_limit$")
 

@@ -58,6 +58,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
 def all_metrics():
     """Every metric any probe or the agent declares, for the README table."""
     from drums.agent import SELF_METRICS
+    from drums.detect import run as detect
     from drums.exporters import http
     from drums.graph import join
     from drums.probes.host import HostProbe
@@ -74,3 +75,4 @@ def all_metrics():
         yield cls.name, cls.metrics
     yield "graph", join.METRICS
     yield "agent", SELF_METRICS + http.METRICS
+    yield "detect", detect.METRICS

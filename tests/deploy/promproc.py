@@ -17,20 +17,22 @@ from tests.agentproc import free_port
 PROMETHEUS = "/usr/bin/prometheus"
 
 
-def config(job: str, target: str, labels: dict[str, str], rule_files: list[str]) -> dict:
+def config(job: str, target: str, labels: dict[str, str], rule_files: list[str], also=()) -> dict:
     return {"global": {"scrape_interval": "1s", "scrape_timeout": "1s", "evaluation_interval": "1s"},
             "rule_files": rule_files,
-            "scrape_configs": [{"job_name": job, "static_configs": [{"targets": [target], "labels": labels}]}]}
+            "scrape_configs": [{"job_name": j, "static_configs": [{"targets": [t], "labels": ls}]}
+                               for j, t, ls in ((job, target, labels), *also)]}
 
 
 @contextlib.contextmanager
-def running_prometheus(job: str, target: str, labels: dict[str, str], rule_files: list[str]):
+def running_prometheus(job: str, target: str, labels: dict[str, str], rule_files: list[str], also=()):
     """Yields the base URL of a Prometheus scraping `target` (host:port) as `job` with these
-    target labels; stops it at the end and removes its storage."""
+    target labels, and the (job, target, labels) of `also`; stops it at the end and removes its
+    storage."""
     with tempfile.TemporaryDirectory(prefix="drums-prometheus-") as folder:
         path = f"{folder}/prometheus.yml"
         with open(path, "w") as f:
-            yaml.safe_dump(config(job, target, labels, rule_files), f)
+            yaml.safe_dump(config(job, target, labels, rule_files, also), f)
         port = free_port()
         proc = subprocess.Popen([PROMETHEUS, f"--config.file={path}", f"--storage.tsdb.path={folder}/data",
                                  f"--web.listen-address=127.0.0.1:{port}", "--log.level=warn"],

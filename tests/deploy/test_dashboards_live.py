@@ -14,13 +14,15 @@ import json
 import os
 import re
 import socket
+import subprocess
+import sys
 import threading
 import urllib.request
 
 import pytest
 
 from deploy.mixin import build
-from tests.agentproc import running_agent
+from tests.agentproc import free_port, running_agent
 from tests.conftest import eventually
 from tests.deploy.promproc import api, instant, running_prometheus
 from tests.graph.conftest import RosProcess
@@ -92,9 +94,17 @@ def prometheus():
                                              method="POST")
             urllib.request.urlopen(request, timeout=10).read()
             rules = [os.path.join(build.OUT, name) for name in ("prometheus_rules.yaml", "prometheus_alerts.yaml")]
-            with running_prometheus("drums", agent.removeprefix("http://"), {"robot": ROBOT, "host": HOST},
-                                    rules) as url:
-                yield url
+            detector_port = free_port()  # `drums detect` on the agent: the fleet board's anomaly panel
+            detector = subprocess.Popen([sys.executable, "-m", "drums", "detect", "--agent", agent,
+                                         "--port", str(detector_port)], stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL)
+            try:
+                with running_prometheus("drums", agent.removeprefix("http://"), {"robot": ROBOT, "host": HOST},
+                                        rules, [("drums-detect", f"127.0.0.1:{detector_port}", {"robot": ROBOT})]) as url:
+                    yield url
+            finally:
+                detector.terminate()
+                detector.wait(timeout=10)
     finally:
         starter.join()
         for p in nodes:

@@ -44,6 +44,13 @@ def build(cfg: Config) -> dashboard.Dashboard:
                                      query(s("drums:host_cpu_busy:ratio_rate1m"), legend(robot, host))))
         .with_panel(timeseries_panel("Host memory used", "Share of each host's memory not available to processes.",
                                      "percentunit", query(s("drums:host_memory_used:ratio"), legend(robot, host))))
+        .with_row(dashboard.Row("Anomalies"))
+        .with_panel(timeseries_panel(
+            "Anomalous series by category", "Series `drums detect` calls anomalous now, stacked by category "
+            "(cpu, memory, io, network): a spike is something that changed at once; its incidents are on "
+            "the detector's /anomalies.", "none",
+            query(f"sum by (category) ({s.without_job('drums_anomalous_series')})", legend("category")),
+            width=ROW, stacked=True))
         .with_row(dashboard.Row("Worst nodes and topics"))
         .with_panel(worst("Nodes by CPU", "CPU cores each node's process keeps busy.",
                           s("drums:node_cpu_seconds:rate1m"), "none"))

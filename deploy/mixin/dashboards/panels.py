@@ -83,12 +83,14 @@ def _targets(panel, queries: tuple[prometheus.Dataquery, ...]):
 
 
 def timeseries_panel(title: str, description: str, unit: str, *queries: prometheus.Dataquery,
-                     width: int = ROW // 2) -> timeseries.Panel:
+                     width: int = ROW // 2, stacked: bool = False) -> timeseries.Panel:
     legend = (common_builders.VizLegendOptions().show_legend(True).display_mode(common.LegendDisplayMode.TABLE)
               .placement(common.LegendPlacement.BOTTOM).calcs(["mean", "max", "lastNotNull"]))
     panel = (timeseries.Panel().title(title).description(description).unit(unit).span(width).height(HEIGHT)
              .legend(legend).tooltip(common_builders.VizTooltipOptions().mode(common.TooltipDisplayMode.MULTI)
                                       .sort(common.SortOrder.DESCENDING)))
+    if stacked:
+        panel = panel.stacking(common_builders.StackingConfig().mode(common.StackingMode.NORMAL)).fill_opacity(60)
     return _targets(panel, queries)
 
 
