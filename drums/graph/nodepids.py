@@ -8,8 +8,10 @@ In order:
 2. "cmdline": a process started with `__node:=<name>` (and `__ns:=<namespace>` if not /).
 3. "librcl": when exactly one process with librcl loaded is claimed by no node, the nodes still
    unmapped are in it.
-A Fast DDS node whose GUID prefix names another host (bytes 2-3) is "remote": that host's agent
-maps it. One of this host whose process no longer runs is "gone": DDS forgets a participant that
+A Fast DDS node whose GUID prefix names another host (bytes 2-3) and whose PID bits match no
+process of ours with librcl is "remote": that host's agent maps it. (Fast DDS hashes every address
+of every interface into that host id, once per process: a process started after an interface came
+or went, a VPN, a container bridge, a new DHCP lease, carries another id than ours.) One of this host whose process no longer runs is "gone": DDS forgets a participant that
 was killed only when its lease runs out (20 s by default), /proc knows at once.
 Other RMWs (Cyclone DDS, Connext, Zenoh) carry no PID in their GUIDs: their nodes go by 2 and 3.
 """
@@ -81,7 +83,8 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
               ) -> dict[str, tuple[int | None, str]]:
     """Fully qualified node name -> (pid, how), given each node's participant GUID prefix (None if
     it has no endpoint to read it from) and the prefix of our own participant: Fast DDS puts a
-    host id in bytes 2-3, so a node whose host id differs from ours is "remote"."""
+    host id in bytes 2-3, so a node whose host id differs from ours, and whose PID bits are those
+    of none of our processes with librcl, is "remote"."""
     scan.refresh()
     out: dict[str, tuple[int | None, str]] = {}
     by_bits: dict[int, list[int]] = {}
@@ -92,12 +95,11 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
         bits = pid_bits_from_gid(prefix) if prefix else None
         if bits is None:
             continue
-        if know_host and prefix[2:4] != own_prefix[2:4]:
-            out[node] = (None, "remote")
-            continue
         found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid)]
         if len(found) == 1:
             out[node] = (found[0], "gid")
+        elif know_host and prefix[2:4] != own_prefix[2:4]:
+            out[node] = (None, "remote")
         elif not found and know_host:
             out[node] = (None, "gone")
     unmapped = [n for n in nodes if n not in out]
