@@ -116,7 +116,7 @@ def test_an_agent_that_is_not_there_is_one_line():
 @pytest.mark.parametrize("argv, error", [
     (["--interval", "0"], "argument --interval: 0 s is outside 0.1-3600 s (see drums top --help)"),
     (["--view", "pods"], "argument --view: invalid choice: 'pods' (choose from 'nodes', 'topics', 'edges', "
-                         "'connections', 'hosts') (see drums top --help)"),
+                         "'connections', 'hosts', 'anomalies') (see drums top --help)"),
     (["--once", "--json"], "--once prints text and --json JSON: one of them"),
     (["--once", "--agent", "ftp://127.0.0.1:1"], "--agent ftp://127.0.0.1:1: an agent's URL is http://HOST:PORT"),
     ([], "the live view needs a terminal: --once or --json print one view for scripts"),
