@@ -37,11 +37,14 @@ CHANGES = Metric("drums_graph_changes_total", COUNTER,
                  "Changes of the computation graph the detector saw: nodes started, stopped, restarted; "
                  "edges and hosts that appeared or went", ("kind", "change"))
 WATCHED = Metric("drums_detect_series_watched", GAUGE, "Series the detector holds a history of")
-FLAGGED = Metric("drums_detect_series_flagged", GAUGE, "Distinct series called anomalous at least once since the start")
+FLAGGED = Metric("drums_detect_series_flagged_total", COUNTER,
+                 "Distinct series called anomalous at least once since the start")
 TICK = Metric("drums_detect_tick_duration_seconds", GAUGE, "How long the detector's last tick took (reads not included)")
 UP = Metric("drums_detect_source_up", GAUGE, "1 if the source answered the last read, else 0", ("source",))
 FAILED = Metric("drums_detect_source_failures_total", COUNTER, "Reads of the source that failed", ("source",))
-METRICS = (STARTED, ACTIVE, CHANGES, WATCHED, FLAGGED, TICK, UP, FAILED)
+UNLOGGED = Metric("drums_detect_events_unlogged_total", COUNTER,
+                  "Events that could not be written to the --log file (a full disk, say): said once, then counted")
+METRICS = (STARTED, ACTIVE, CHANGES, WATCHED, FLAGGED, TICK, UP, FAILED, UNLOGGED)
 
 
 class Loop:
@@ -56,6 +59,7 @@ class Loop:
         self.up = {s.address: 0 for s in sources}
         self.failures = {s.address: 0 for s in sources}
         self._said: dict[str, str] = {}  # source address -> the last error said about it
+        self.unlogged = 0
         self._pool = ThreadPoolExecutor(max(1, len(sources)), thread_name_prefix="read")
         try:
             self._log = open(log_path, "a", encoding="utf-8", buffering=1) if log_path else None
@@ -92,10 +96,23 @@ class Loop:
         if statuses is not None:
             self.publisher.send(statuses)
         for e in events:
-            self.echo(str(e))
+            if self.echo is not None:
+                try:
+                    self.echo(str(e))
+                except OSError:  # standard output closed (`drums detect | head`): the rest goes on
+                    self.echo = None
             if self._log is not None:
-                self._log.write(json.dumps(e.as_dict()) + "\n")
+                self._write(e)
         return events
+
+    def _write(self, event: Event) -> None:
+        try:
+            self._log.write(json.dumps(event.as_dict()) + "\n")
+        except OSError as e:
+            if not self.unlogged:
+                log.warning("detect: cannot write to --log (%s); the events that do not fit are counted "
+                            "in drums_detect_events_unlogged_total", e.strerror)
+            self.unlogged += 1
 
     def run(self, done: threading.Event) -> None:
         next_at = time.monotonic()
@@ -146,6 +163,7 @@ class Loop:
         for name in self.up:
             snap.add(UP, (name,), self.up[name])
             snap.add(FAILED, (name,), self.failures[name])
+        snap.add(UNLOGGED, (), self.unlogged)
         return snap
 
     def anomalies(self) -> dict:

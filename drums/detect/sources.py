@@ -115,6 +115,12 @@ class PrometheusSource:
             results = body["data"]["result"]
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise SourceError(f"{self.url}: no answer to the query ({e})") from None
+        try:
+            return self._readings(results)
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise SourceError(f"{self.url}: the query's answer is not Prometheus's vector ({e!r})") from None
+
+    def _readings(self, results: list) -> list[Reading]:
         readings: dict[str, Reading] = {}
         for result in results:
             labels = dict(result["metric"])
