@@ -14,7 +14,7 @@ from tests.agentproc import running_agent, scrape
 # quiet: sends 20 kB over each, says "done", waits for its stdin to close;
 # hog: says "done" and keeps sending about 1 MB/s over each until its stdin closes;
 # riser: is quiet until it reads a line, then sends all it can until its stdin closes.
-WORKER = """
+WORKER = """# drums-budget-worker
 import socket, sys, threading, time
 srv = socket.create_server(("127.0.0.1", 0)); tc = socket.create_connection(srv.getsockname()); ts, _ = srv.accept()
 uc, us = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -41,6 +41,9 @@ sys.stdin.read()
 QUIET_BYTES = 20_000
 
 LIMITS = ("--max-processes", "1", "--max-threads", "1", "--max-sockets", "1", "--max-connections", "1")
+# The agent watches the workers alone: a busier process elsewhere on the host (`make test` runs the
+# demo robot beside this) would take the one slot the hog is meant to hold.
+WORKERS_ONLY = ("--process-name", "drums-budget-worker")
 
 
 def counters(text: str) -> dict[tuple, float]:
@@ -70,7 +73,7 @@ def own_series(page: dict, pid: int) -> bool:
 
 
 def test_every_counter_of_every_kind_only_grows_as_entities_exit_fold_and_get_promoted():
-    with running_agent(*LIMITS) as url:
+    with running_agent(*LIMITS, *WORKERS_ONLY) as url:
         pages, stop = [], threading.Event()
 
         def scraper():
