@@ -52,8 +52,11 @@ def cost_child(n: int, ticks: int, loop: bool) -> None:
     from drums.detect import checks
     from drums.detect.detector import Detector
     from drums.detect.sources import parse_exposition
+    from drums.selfcost import Heap
 
     d = Detector()
+    heap = Heap()
+    heap.trim_every = 0.0
     for t in range(WARM):
         d.tick([parse_exposition("bench", 1e9 + t, exposition(n, t))], now=1e9 + t)
     texts = [exposition(n, t) for t in range(WARM, WARM + ticks)]
@@ -69,6 +72,7 @@ def cost_child(n: int, ticks: int, loop: bool) -> None:
         else:
             d.tick([parse_exposition("bench", 1e9 + t, text)], now=1e9 + t)
     spent = (time.process_time() - began) / ticks
+    heap.trim()  # as `drums detect` does at most every 10 s
     print(json.dumps({"cpu_per_tick": spent, "uss": psutil.Process().memory_full_info().uss,
                       "watched": d.watched}))
 
@@ -174,7 +178,8 @@ def run(args) -> None:
                 [f"series: per-process CPU and bytes counters (watched as rates) and memory and file gauges; "
                  f"{WARM} ticks to fill every history ({checks_width()} points), then {args.ticks} ticks timed "
                  f"({max(3, args.ticks // 10)} for the loop); CPU is process time per tick, parsing included",
-                 "USS of the whole detector process (Python, numpy and the history array) after the timed ticks"])
+                 "USS of the whole detector process (Python, numpy and the history array) after the timed ticks and a "
+                 "malloc_trim, which `drums detect` makes every 10 s"])
 
     progress(f"quality over {args.series_quality} labelled series")
     data = labelled(args.series_quality)

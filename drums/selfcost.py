@@ -26,6 +26,24 @@ def _glibc():
     return libc if hasattr(libc, "malloc_trim") and hasattr(libc, "mallopt") else None
 
 
+class Heap:
+    """Keeps a long-running process's heap lean (glibc only; elsewhere it does nothing): its threads
+    share ARENAS arenas (made before they start), and `trim()` gives the free top of the heaps back
+    at most every TRIM_EVERY seconds. The agent and `drums detect` use it."""
+
+    def __init__(self):
+        self._libc = _glibc()
+        if self._libc is not None:
+            self._libc.mallopt(_M_ARENA_MAX, ARENAS)
+        self._trimmed_at = time.monotonic()
+        self.trim_every = TRIM_EVERY
+
+    def trim(self) -> None:
+        if self._libc is not None and time.monotonic() - self._trimmed_at >= self.trim_every:
+            self._libc.malloc_trim(0)
+            self._trimmed_at = time.monotonic()
+
+
 def memory(pid: int | str = "self") -> tuple[int, int]:
     """(RSS, USS) of a process in bytes, from smaps_rollup; zeros if it is gone."""
     rss = uss = 0
@@ -72,16 +90,11 @@ class TreeCost:
     def __init__(self):
         self._last: dict[int, tuple[str, float]] = {}  # child pid -> (role, CPU seconds) when last seen
         self._ended: dict[str, float] = {}  # role -> CPU seconds of its children that ended
-        self._libc = _glibc()  # made before the agent starts its threads
-        if self._libc is not None:
-            self._libc.mallopt(_M_ARENA_MAX, ARENAS)
-        self._trimmed_at = time.monotonic()
+        self._heap = Heap()  # made before the agent starts its threads
 
     def sample(self) -> dict[str, tuple[float, int, int]]:
         """role -> (CPU seconds, RSS, USS)."""
-        if self._libc is not None and time.monotonic() - self._trimmed_at >= TRIM_EVERY:
-            self._libc.malloc_trim(0)
-            self._trimmed_at = time.monotonic()
+        self._heap.trim()
         times = os.times()
         rss, uss = memory()
         out = {AGENT: [times.user + times.system, rss, uss]}

@@ -73,7 +73,7 @@ class Anomaly:
     def as_dict(self) -> dict:
         s = self.series
         return {"entity": {"kind": self.entity.kind, "name": self.entity.name, "host": self.entity.source},
-                "category": s.category, "series": s.key.split("|", 1)[1], "what": self.what,
+                "category": s.category, "series": s.text, "what": self.what,
                 "start": self.start, "end": self.end, "baseline": self.baseline, "value": self.value,
                 "change": self.change, "checks": list(self.failed), "severity": round(self.severity, 2),
                 "incident": self.incident, "leads": self.leads, "text": str(self)}
@@ -114,13 +114,13 @@ class Detector:
         """`ignore`: kinds of entity whose series are watched but never called anomalous."""
         self.history = History(width)
         self.hold, self.grace, self.ignore = hold, grace, ignore
-        self.series: dict[str, Series] = {}
+        self.series: dict[tuple[str, str], Series] = {}  # (source, series text) -> its series
         self.by_row: dict[int, Series] = {}
         self._index: dict[str, dict[str, int]] = {}  # source -> series text -> row
         self._state = np.zeros(len(self.history.used), ROW)
-        self._edges: dict[str, tuple[Entity, tuple[Entity, ...]]] = {}  # key of an edge's series -> its edge, its ends
+        self._edges: dict[tuple[str, str], tuple[Entity, tuple[Entity, ...]]] = {}  # an edge's series -> edge, ends
         self.graph = Graph(grace)
-        self.active: dict[str, Anomaly] = {}  # series key -> its anomaly
+        self.active: dict[tuple[str, str], Anomaly] = {}  # series key -> its anomaly
         self.incidents = Incidents()
         self.started = Counter()  # (category, entity kind) -> anomalies started
         self.changes = Counter()  # (entity kind, change) -> graph changes
@@ -139,7 +139,7 @@ class Detector:
             s = self.by_row.pop(row)
             del self.series[s.key]
             self._edges.pop(s.key, None)
-            del self._index[s.source][s.key.split("|", 1)[1]]
+            del self._index[s.source][s.text]
         events = [Event(now, "graph", change=c) for c in self._graph(now, readings)]
         events += self._judge(now)
         events += self._expire(now)
@@ -181,9 +181,9 @@ class Detector:
         return np.concatenate(all_rows), np.concatenate(all_values)
 
     def _add(self, r: Reading, text: str) -> int:
-        key = f"{r.source}|{text}"
         brace = text.find("{")
-        s = Series.of(key, r.source, text, (text if brace < 0 else text[:brace]) in r.counters)
+        s = Series.of(r.source, text, (text if brace < 0 else text[:brace]) in r.counters)
+        key = s.key
         s.row = self.history.add()
         if s.row >= len(self._state):
             grown = np.zeros(len(self.history.used), self._state.dtype)
@@ -193,8 +193,9 @@ class Detector:
         self.series[key] = s
         self.by_row[s.row] = s
         if s.name.startswith("drums_edge_"):
-            edge = entity_of(s.source, s.labels, {})
-            self._edges[key] = edge, tuple(e for e in touches(edge, s.labels, {}) if e != edge)
+            labels = s.labels
+            edge = entity_of(s.source, labels, {})
+            self._edges[key] = edge, tuple(e for e in touches(edge, labels, {}) if e != edge)
         self._index.setdefault(r.source, {})[text] = s.row
         return s.row
 
@@ -217,15 +218,17 @@ class Detector:
             return True
         if "process" not in self.ignore:
             return False
-        pid = s.labels.get("pid")
-        return s.labels.get("node") == UNKNOWN_NODE or (
+        labels = s.labels
+        pid = labels.get("pid")
+        return labels.get("node") == UNKNOWN_NODE or (
             bool(pid) and pid not in self.graph.node_of_pid.get(s.source, {}))
 
     def _settling(self, s: Series, entity: Entity, now: float) -> bool:
         """The entity, or the node its series names, changed in the graph a moment ago."""
         if self.graph.settling(entity, now):
             return True
-        node = s.labels.get("node") or self.graph.node_of_pid.get(s.source, {}).get(s.labels.get("pid", ""))
+        labels = s.labels
+        node = labels.get("node") or self.graph.node_of_pid.get(s.source, {}).get(labels.get("pid", ""))
         return bool(node) and self.graph.settling(Entity("node", node, s.source), now)
 
     def _judge(self, now: float) -> list[Event]:

@@ -25,12 +25,13 @@ class History:
 
     def add(self) -> int:
         """A row for a new series."""
-        if not self._free:
+        if not self._free:  # a quarter more: a doubling would leave up to half of the largest array unused
             old = len(self.used)
-            self.points = np.concatenate([self.points, np.zeros_like(self.points)])
-            self.held, self.missed, self.used = (np.concatenate([a, np.zeros_like(a)])
+            more = max(1, old // 4)
+            self.points = np.concatenate([self.points, np.zeros((more, self.width), self.points.dtype)])
+            self.held, self.missed, self.used = (np.concatenate([a, np.zeros(more, a.dtype)])
                                                  for a in (self.held, self.missed, self.used))
-            self._free = list(range(2 * old - 1, old - 1, -1))
+            self._free = list(range(old + more - 1, old - 1, -1))
         row = self._free.pop()
         self.used[row], self.held[row], self.missed[row] = True, 0, 0
         return row

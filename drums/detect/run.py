@@ -18,6 +18,7 @@ from drums.detect.graph import KINDS
 from drums.detect.sources import SourceError
 from drums.errors import UsageError
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.selfcost import Heap
 
 log = logging.getLogger("drums")
 
@@ -51,6 +52,7 @@ class Loop:
     def __init__(self, sources: list, detector: Detector, interval: float, log_path: str = "", echo=print,
                  ros: bool = False):
         self.sources, self.detector, self.interval, self.echo = sources, detector, interval, echo
+        self.heap = Heap()  # each tick frees a page's worth of strings and arrays
         self.publisher = None
         if ros:
             from drums.exporters.diagnostics import Publisher
@@ -95,6 +97,7 @@ class Loop:
             statuses = self.statuses() if self.publisher is not None else None
         if statuses is not None:
             self.publisher.send(statuses)
+        self.heap.trim()
         for e in events:
             if self.echo is not None:
                 try:

@@ -83,10 +83,9 @@ def measure(name: str, labels: dict[str, str]) -> str:
 
 @dataclass(slots=True)
 class Series:
-    key: str  # source and series text, unique
     source: str  # the agent (host) or Prometheus instance it came from
+    text: str  # name{labels}, as the source wrote it
     name: str
-    labels: dict[str, str]
     counter: bool
     category: str
     floor: float
@@ -94,12 +93,22 @@ class Series:
     row: int = -1
 
     @classmethod
-    def of(cls, key: str, source: str, text: str, counter: bool) -> "Series":
+    def of(cls, source: str, text: str, counter: bool) -> "Series":
         brace = text.find("{")
         name = text if brace < 0 else text[:brace]
         floor, relative = floors(name, counter)
         category = next(c for c, pattern in CATEGORIES if pattern.search(name))
-        return cls(key, source, name, labels_of(text), counter, category, floor, relative)
+        return cls(source, text, name, counter, category, floor, relative)
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return self.source, self.text
+
+    @property
+    def labels(self) -> dict[str, str]:
+        """Parsed when asked (for the few series flagged, and edges): ten thousand dicts kept would
+        be most of the detector's memory."""
+        return labels_of(self.text)
 
     @property
     def what(self) -> str:

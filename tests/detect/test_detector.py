@@ -51,11 +51,11 @@ def test_counters_are_watched_as_their_rate_and_a_reset_counts_from_zero():
     d = Detector()
     for t, value in ((0, 1000.0), (2, 1500.0), (3, 1600.0), (4, 40.0)):  # 250/s, 100/s, then a restart
         d.tick([Reading("h", T0 + t, {"drums_x_total": value, "drums_y_bytes": 7.0}, {"drums_x_total"})], T0 + t)
-        rate = d.series["h|drums_x_total"]
+        rate = d.series["h", "drums_x_total"]
         if t:
             assert d.history.points[rate.row, d.history.column] == {2: 250.0, 3: 100.0, 4: 40.0}[t]
-    assert d.history.held[d.series["h|drums_x_total"].row] == 3  # the first read has no rate
-    assert d.history.held[d.series["h|drums_y_bytes"].row] == 4
+    assert d.history.held[d.series["h", "drums_x_total"].row] == 3  # the first read has no rate
+    assert d.history.held[d.series["h", "drums_y_bytes"].row] == 4
 
 
 def test_a_collapsed_edge_is_named_within_ten_seconds_and_nothing_else_is():
@@ -131,7 +131,7 @@ def test_a_series_missing_for_five_reads_is_forgotten():
     run(d, robot, 4)
     assert d.watched == 5
     run(d, robot, 1)
-    assert d.watched == 4 and "robot|" + MEMORY % "/planner" not in d.series
+    assert d.watched == 4 and ("robot", MEMORY % "/planner") not in d.series
 
 
 def test_the_agents_page_is_read_with_its_types_nodes_and_without_its_own_or_detail_series():
