@@ -47,7 +47,8 @@ class Anomaly:
     end: float | None = None
     incident: int = 0  # the incident it belongs to (drums.detect.incidents)
     leads: bool = True  # whether it is its incident's first anomaly, which names the incident
-    points: list = field(default_factory=list)  # [time, value] from BEFORE its start (to its end, once ended)
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # [time, value] from BEFORE its start
+    # (to its end, once ended)
 
     @property
     def change(self) -> str:
@@ -80,7 +81,7 @@ class Anomaly:
 
     def logged(self) -> dict:
         """As the JSON log has it: with its points, for the report's plots."""
-        return {**self.as_dict(), "points": [[round(t, 3), v] for t, v in self.points]}
+        return {**self.as_dict(), "points": [[round(t, 3), v] for t, v in self.points.tolist()]}
 
 
 @dataclass
@@ -273,7 +274,7 @@ class Detector:
         for key, a in list(self.active.items()):
             if now - a.last >= self.hold or key not in self.series:
                 if key in self.series:  # a series that is gone has only its points from before
-                    a.points = a.points + self.history.since(a.series.row, a.start + 1e-6)
+                    a.points = np.concatenate([a.points, self.history.since(a.series.row, a.start + 1e-6)])
                 a.end = now
                 del self.active[key]
                 events.append(Event(now, "ended", a))

@@ -55,13 +55,13 @@ class History:
         self._free.extend(gone.tolist())
         return gone
 
-    def since(self, row: int, since: float) -> list[list[float]]:
-        """[time, value] of the row's points from `since` on, oldest first."""
+    def since(self, row: int, since: float) -> np.ndarray:
+        """(n, 2) array of [time, value] of the row's points from `since` on, oldest first."""
         length = int(self.held[row])
         columns = (self.column - length + 1 + np.arange(length)) % self.width
         times = self.times[columns]
         keep = times >= since
-        return np.column_stack([times[keep], self.points[row, columns[keep]].astype(np.float64)]).tolist()
+        return np.column_stack([times[keep], self.points[row, columns[keep]].astype(np.float64)])
 
     def cohorts(self, least: int):
         """(rows, window) for each group of rows holding the same number of points, at least
