@@ -17,8 +17,9 @@
 #   throttle  the camera computer's link drops to 4 Mbit/s (a faulty router): /camera/image
 #             collapses and is repaired over and over (DrumsEdgeRetransmitsHigh on /camera ->
 #             /processor within two minutes; DrumsEdgeBandwidthCollapsed needs an hour of history)
-#   all       the three in turn, each for a while: the leak at $DRUMS_DEMO_FAULT_AFTER s (default 20)
-#             for 20 s, the flood 40 s later for 20 s, the throttle 40 s after that for 30 s
+#   all       the three in turn, each for a while: the leak at $DRUMS_DEMO_FAULT_AFTER s (default 150,
+#             after the nodes' first 2 minutes, which the detector leaves alone) for 20 s, the flood
+#             40 s later for 20 s, the throttle 40 s after that for 30 s
 #
 # `drums detect` watches the agent too (http://127.0.0.1:19971/anomalies, its events in
 # .demo/detect.jsonl): each fault is named there within seconds, on its node, topic or edge.
@@ -126,6 +127,7 @@ yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
   local env=(env DRUMS_DEMO_FAULT="$fault" DRUMS_DEMO_FAULT_AFTER="$FAULT_AFTER")
   local throttle_after=$THROTTLE_AFTER throttle_for=infinity
   if [ "$fault" = all ]; then  # each node its own fault, in turn
+    FAULT_AFTER=${DRUMS_DEMO_FAULT_AFTER:-150}
     env=(env DRUMS_DEMO_FAULT_FOR=20)
     throttle_after=$((FAULT_AFTER + 80)) throttle_for=30
   fi
