@@ -83,7 +83,8 @@ def _pin_flag(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from drums.exporters.prometheus import DEFAULT_PORT
     from drums.exporters.stream import DEFAULT_PORT as STREAM_PORT
-    from drums.detect.run import DEFAULT_PORT as DETECT_PORT
+    from drums.detect import DEFAULT_PORT as DETECT_PORT
+    from drums.detect import GRACE
     from drums.graph.export import FORMATS
     from drums.probes.registry import PROBES
 
@@ -205,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--ignore", action="append", choices=("host", "process", "connection", "link"), default=[],
                         help="do not flag series of this kind of entity (repeatable): host for the host's own "
                              "totals, as the paper did; process for processes that run no node")
+    detect.add_argument("--grace", type=float, default=GRACE, metavar="SECONDS",
+                        help=f"how long the series of a node that started, restarted or gained an edge are left "
+                             f"alone while it settles (default {GRACE:g})")
     detect.add_argument("--ros", action="store_true",
                         help="also publish the anomalies now on the ROS 2 topic /drums/anomalies "
                              "(diagnostic_msgs/DiagnosticArray, a WARN status per anomaly), every interval")
@@ -502,7 +506,9 @@ def run_detect(args) -> int:
     sources = [AgentSource(url, token, args.detail) for url in urls]
     if args.prometheus:
         sources.append(PrometheusSource(args.prometheus, args.detail))
-    loop = Loop(sources, Detector(ignore=set(args.ignore)), args.interval, args.log,
+    if not 0 <= args.grace <= 3600:
+        raise UsageError(f"--grace {args.grace:g}: seconds from 0 to 3600")
+    loop = Loop(sources, Detector(grace=args.grace, ignore=set(args.ignore)), args.interval, args.log,
                 echo=lambda line: print(line, flush=True), ros=args.ros)
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drums.detect import checks
+from drums.detect import GRACE, checks
 from drums.detect.graph import KINDS, Change, Entity, Graph, entity_of
 from drums.detect.history import History
 from drums.detect.incidents import Incidents, touches
@@ -26,7 +26,6 @@ from drums.detect.sources import Reading
 WIDTH = 240  # points of history per series: 4 minutes at 1 s
 HOLD = 30.0  # seconds an anomaly lasts after it was last flagged
 BEFORE = 120.0  # seconds of a series before its anomaly kept with it, for the report's plots
-GRACE = 120.0  # seconds a changed entity's series are expected to move
 UNKNOWN_NODE = "unknown"  # the node the agent sums topic counts under when it can name none (drums.graph.join)
 # What the detector keeps per row besides its history: the change that matters, a counter's last raw
 # value and when it was read (0: never), and whether it was ever called anomalous.
@@ -196,7 +195,7 @@ class Detector:
         if s.name.startswith("drums_edge_"):
             labels = s.labels
             edge = entity_of(s.source, labels, {})
-            self._edges[key] = edge, tuple(e for e in touches(edge, labels, {}) if e != edge)
+            self._edges[key] = edge, tuple(e for e in touches(edge, labels, {}) if e != edge and e.source)
         self._index.setdefault(r.source, {})[text] = s.row
         return s.row
 

@@ -17,8 +17,12 @@ from drums.detect.graph import Entity
 GAP = 10.0  # seconds after an incident's last new anomaly that a connected one still joins it
 
 
+GRAPH_WIDE = ("node", "topic", "edge")  # one graph across hosts: the same name on two agents is one entity
+
+
 def touches(entity: Entity, labels: dict[str, str], node_of_pid: dict[str, str]) -> frozenset[Entity]:
-    """The entity and the entities of the graph its series names besides it."""
+    """The entity and the entities of the graph its series names besides it; nodes, topics and edges
+    also without the host that measured them, so that the two ends of a link on two hosts touch."""
     near = {entity}
     source = entity.source
     for key in ("node", "publisher", "subscriber"):
@@ -28,7 +32,7 @@ def touches(entity: Entity, labels: dict[str, str], node_of_pid: dict[str, str])
         near.add(Entity("topic", labels["topic"], source))
     if node_of_pid.get(labels.get("pid", "")):
         near.add(Entity("node", node_of_pid[labels["pid"]], source))
-    return frozenset(near)
+    return frozenset(near | {Entity(e.kind, e.name, "") for e in near if e.kind in GRAPH_WIDE})
 
 
 @dataclass

@@ -22,7 +22,6 @@ from drums.selfcost import Heap
 
 log = logging.getLogger("drums")
 
-DEFAULT_PORT = 9971
 ROS_TOPIC = "/drums/anomalies"
 WARN = 1  # DiagnosticStatus level of an anomaly
 

@@ -213,3 +213,25 @@ def test_a_node_that_started_just_before_the_detector_settles_first():
             r.memory["/planner"] = r.memory["/processor"] = 90e6
     flagged = {str(e.anomaly.entity): i for i, e in run(d, robot, 140, leaks) if e.kind == "anomaly"}
     assert flagged.keys() == {"node /processor"}  # the planner is within its first 2 minutes
+
+
+def test_the_two_ends_of_a_link_on_two_hosts_are_one_incident():
+    """The publisher's host repairs more of /image as the link to the subscriber's host chokes."""
+    rng = np.random.default_rng(9)
+    d = Detector()
+    sent, received = 'drums_topic_sent_wire_bytes_total{topic="/image",node="/producer"}', \
+        'drums_edge_received_bytes_total{topic="/image",publisher="/producer",subscriber="/viewer3"}'
+    totals = {sent: 0.0, received: 0.0}
+    events = []
+    for i in range(150):
+        choked = i >= 120
+        totals[sent] += (3e5 if choked else 2e5) * rng.normal(1, 0.02)
+        totals[received] += (4e4 if choked else 2e5) * rng.normal(1, 0.02)
+        t = T0 + i
+        events += d.tick([Reading("robot1", t, {sent: totals[sent]}, {"drums_topic_sent_wire_bytes_total"}),
+                          Reading("robot3", t, {received: totals[received]}, {"drums_edge_received_bytes_total"})],
+                         now=t)
+    started = [e.anomaly for e in events if e.kind == "anomaly"]
+    assert [(str(a.entity), a.entity.source) for a in started] == [
+        ("edge /producer -> /viewer3 on /image", "robot3"), ("topic /image", "robot1")]
+    assert started[0].incident == started[1].incident and started[0].leads and not started[1].leads

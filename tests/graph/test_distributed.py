@@ -2,11 +2,15 @@
 fourth that routes between them (veth pairs); the test itself sits behind the router as an
 operator's laptop would. Each host runs its own agent (in its own network and UTS namespace, so it
 has its own addresses and host name) and its own ROS 2 nodes, which find each other over UDP
-through the router (static peers: multicast does not cross a router).
+through the router (static peers: multicast does not cross a router). `drums detect` watches the
+three agents from the operator's side, as the paper's detector watched its robots, and must name
+the edge that a faulty router (a tc tbf throttle on one link) chokes.
 """
 import contextlib
+import json
 import os
 import subprocess
+import sys
 import time
 
 import pytest
@@ -26,6 +30,7 @@ TOKEN = "distributed-test-token"
 BURST = 40
 IMAGE = 20_000  # bytes of each /image message, 10 a second: 1.6 Mbit/s to each viewer
 THROTTLE = "400kbit"
+GRACE = 30  # seconds the detector leaves a new node alone: the lab's nodes settle within it
 PLACES = {"talker": "robot1", "producer": "robot1", "listener2": "robot2", "viewer2": "robot2",
           "listener3": "robot3", "viewer3": "robot3"}
 
@@ -99,7 +104,15 @@ def lab(network, tmp_path_factory):
                 nodes[name] = RosProcess(role, name, env=extra, under=on_host(i))
                 stack.callback(nodes[name].stop)
             client = stack.enter_context(Client(list(urls.values()), token=TOKEN))
-            yield urls, nodes, client
+            detections = tmp_path_factory.mktemp("detect") / "events.jsonl"
+            detector = subprocess.Popen(
+                [sys.executable, "-m", "drums", "detect", *(a for url in urls.values() for a in ("--agent", url)),
+                 "--token-file", str(token), "--port", "0", "--log", str(detections), "--grace", str(GRACE),
+                 "--ignore", "host", "--ignore", "process", "--ignore", "connection", "--ignore", "link"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stack.callback(detector.wait, 10)
+            stack.callback(detector.terminate)
+            yield urls, nodes, client, (time.monotonic(), detections)
     finally:
         os.environ.clear()
         os.environ.update(saved)
@@ -125,7 +138,7 @@ def wait_for(what: str, check, within: float = 30, seen: dict | None = None):
 
 
 def test_the_client_sees_every_node_on_its_host_and_every_edge_with_its_bytes(lab):
-    urls, nodes, client = lab
+    urls, nodes, client, _ = lab
 
     seen = {}
 
@@ -157,7 +170,7 @@ def test_the_client_sees_every_node_on_its_host_and_every_edge_with_its_bytes(la
 
 
 def test_the_client_follows_every_node_on_its_own_host_in_one_stream(lab):
-    _, nodes, client = lab
+    _, nodes, client, _ = lab
     jobs = client.watch_nodes(interval=0.5)
     ours = {f"/{name}": f"robot{PLACES[name][-1]}:pid:{n.pid}" for name, n in nodes.items()}
     assert {name: job["stream"]["key"] for name, job in jobs.items() if name in ours} == ours
@@ -173,7 +186,7 @@ def test_the_client_follows_every_node_on_its_own_host_in_one_stream(lab):
 
 
 def test_each_agent_reports_only_its_own_host(lab):
-    urls, nodes, _ = lab
+    urls, nodes, _, _ = lab
     for i in HOSTS:
         inode = os.stat(f"/run/netns/{PREFIX}h{i}").st_ino
         pids = set()
@@ -191,7 +204,7 @@ def test_each_agent_reports_only_its_own_host(lab):
 
 
 def test_the_api_off_loopback_needs_the_token_and_the_stream_is_encrypted(lab):
-    urls, _, client = lab
+    urls, _, client, _ = lab
     agent = client.agents[0]
     with pytest.raises(Exception, match="401 a valid token is needed"):
         type(agent)(agent.url).start("host")  # the same agent without the token
@@ -225,7 +238,7 @@ def test_the_api_off_loopback_needs_the_token_and_the_stream_is_encrypted(lab):
 
 
 def test_a_host_that_ignores_ping_is_measured_by_tcp_connects(lab):
-    _, _, client = lab
+    _, _, client, _ = lab
     agent = client.agents[0]  # robot1, whose mesh probes robot2
 
     def last_round(method):
@@ -242,8 +255,10 @@ def test_a_host_that_ignores_ping_is_measured_by_tcp_connects(lab):
 
 
 def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, network):
-    urls, nodes, client = lab
+    urls, nodes, client, (detecting_since, detections) = lab
     wait_for("both viewers receiving", lambda: nodes["viewer2"].count() > 20 and nodes["viewer3"].count() > 20)
+    # The detector's warm-up (30 points) and the nodes' grace are over before the router fails.
+    time.sleep(max(0.0, detecting_since + 35 + GRACE - time.monotonic()))
     names = [("/image", "producer", "viewer2"), ("/image", "producer", "viewer3"),
              ("/chatter", "talker", "listener2"), ("/chatter", "talker", "listener3")]
 
@@ -260,6 +275,7 @@ def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, netwo
     before = [interval() for _ in range(3)]
     run("ip", "netns", "exec", network, "tc", "qdisc", "add", "dev", f"{PREFIX}r3", "root", "tbf",
         "rate", THROTTLE, "burst", "16kb", "latency", "100ms")
+    throttled_at = time.time()
     after = [interval() for _ in range(2)]
     usual = {e: sorted(b[e] for b in before)[1] for e in names}  # the median: one slow second is no rule
     # 10 messages of IMAGE bytes a second, to each viewer, before: within 20%.
@@ -273,3 +289,20 @@ def test_throttling_one_link_shows_on_exactly_the_edges_that_cross_it(lab, netwo
     # The edge to viewer2 keeps most of its rate; the publisher now also repairs what the throttled
     # link loses, which cost viewer2 up to 28% for a second in one run of five.
     assert after[1][names[0]] >= 0.6 * usual[names[0]]
+
+    # drums detect names the choked edge within 10 s, on the host that receives it, and flags little
+    # else around it: the fault's incident aside, at most 10 series.
+    def named():
+        events = [json.loads(line) for line in detections.read_text().splitlines()] if detections.exists() else []
+        anomalies = [e for e in events if e["event"] == "anomaly" and e["start"] >= throttled_at - 1]
+        own = [e for e in anomalies if (e["entity"]["kind"], e["entity"]["name"]) == (
+            "edge", "/producer -> /viewer3 on /image") and e["start"] <= throttled_at + 10]
+        return own and (own, anomalies)
+    own, anomalies = wait_for("the detector to name the throttled edge", named, within=15,
+                              seen={"log": detections.read_text() if detections.exists() else ""})
+    assert own[0]["entity"]["host"] == "robot3" and own[0]["change"].startswith("-")
+    time.sleep(max(0.0, throttled_at + 30 - time.time()))
+    events = [json.loads(line) for line in detections.read_text().splitlines()]
+    window = {e["series"] for e in events if e["event"] == "anomaly"
+              and throttled_at - 1 <= e["start"] <= throttled_at + 30 and e["incident"] != own[0]["incident"]}
+    assert len(window) <= 10, sorted(window)
