@@ -8,10 +8,11 @@ In order:
 2. "cmdline": a process started with `__node:=<name>` (and `__ns:=<namespace>` if not /).
 3. "librcl": when exactly one process with librcl loaded is claimed by no node, the nodes still
    unmapped are in it.
-A Fast DDS node whose GUID prefix names another host (bytes 2-3) and whose PID bits match no
-process of ours with librcl is "remote": that host's agent maps it. (Fast DDS hashes every address
-of every interface into that host id, once per process: a process started after an interface came
-or went, a VPN, a container bridge, a new DHCP lease, carries another id than ours.) One of this host whose process no longer runs is "gone": DDS forgets a participant that
+A Fast DDS node whose GUID prefix names another host (bytes 2-3) is "remote": that host's agent
+maps it; unless its PID bits are those of one process with librcl in our network namespace. Fast
+DDS hashes every address of every interface into that host id, once per process: a process started
+after an interface came or went (a VPN, a container bridge, a new DHCP lease) carries another id
+than ours, though it runs beside us; one in another network namespace is another host. One of this host whose process no longer runs is "gone": DDS forgets a participant that
 was killed only when its lease runs out (20 s by default), /proc knows at once.
 Other RMWs (Cyclone DDS, Connext, Zenoh) carry no PID in their GUIDs: their nodes go by 2 and 3.
 """
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import os
 
-from drums.proctable import ProcessTable, mapped_libraries, process_start
+from drums.proctable import ProcessTable, mapped_libraries, netns, process_start
 
 FASTDDS_VENDOR = b"\x01\x0f"
 RCL_LIBRARY = "librcl.so"
@@ -49,6 +50,10 @@ class ProcScan:
 
     def pids(self) -> list[int]:
         return sorted(self.table.pids())
+
+    def beside_us(self, pid: int) -> bool:
+        """Whether the process shares our network namespace (has our interfaces)."""
+        return netns(self.proc, pid) == netns(self.proc, "self")
 
     def name(self, pid: int) -> str:
         return self.table.name(pid)
@@ -84,7 +89,7 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
     """Fully qualified node name -> (pid, how), given each node's participant GUID prefix (None if
     it has no endpoint to read it from) and the prefix of our own participant: Fast DDS puts a
     host id in bytes 2-3, so a node whose host id differs from ours, and whose PID bits are those
-    of none of our processes with librcl, is "remote"."""
+    of no process with librcl in our network namespace, is "remote"."""
     scan.refresh()
     out: dict[str, tuple[int | None, str]] = {}
     by_bits: dict[int, list[int]] = {}
@@ -96,9 +101,10 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
         if bits is None:
             continue
         found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid)]
-        if len(found) == 1:
+        foreign = know_host and prefix[2:4] != own_prefix[2:4]
+        if len(found) == 1 and (not foreign or scan.beside_us(found[0])):
             out[node] = (found[0], "gid")
-        elif know_host and prefix[2:4] != own_prefix[2:4]:
+        elif foreign:
             out[node] = (None, "remote")
         elif not found and know_host:
             out[node] = (None, "gone")
