@@ -73,13 +73,12 @@ class Graph:
         first tick everything is simply there: nothing changed, but a node whose process `started`
         (source, pid -> Unix time) a moment ago is still settling. A host that did not answer keeps
         its nodes and edges until it answers again."""
-        answered = hosts
         changes = [Change(Entity("host", h, h), "joined") for h in sorted(hosts - self.hosts)]
         changes += [Change(Entity("host", h, h), "left", "its agent does not answer")
                     for h in sorted(self.hosts - hosts)]
-        nodes = {**{k: v for k, v in self.nodes.items() if k[0] not in answered}, **nodes}
+        nodes = {**{k: v for k, v in self.nodes.items() if k[0] not in hosts}, **nodes}
         self.ends.update(edges)
-        edges = {e for e in self.edges if e.source not in answered} | set(edges)
+        edges = {e for e in self.edges if e.source not in hosts} | set(edges)
         for (source, node), pid in sorted(nodes.items()):
             before = self.nodes.get((source, node))
             if before is None:

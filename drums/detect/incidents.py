@@ -15,8 +15,6 @@ from dataclasses import dataclass, field
 from drums.detect.graph import Entity
 
 GAP = 10.0  # seconds after an incident's last new anomaly that a connected one still joins it
-
-
 GRAPH_WIDE = ("node", "topic", "edge")  # one graph across hosts: the same name on two agents is one entity
 
 
