@@ -28,7 +28,8 @@ mixin: setup-test
 	$(PY) -m deploy.mixin.build
 
 # A small robot on this machine, watched by Drums, Prometheus and drums top (demo/demo.sh);
-# FAULT=leak|flood|throttle injects one of the paper's faults. demo-stop ends all of it.
+# FAULT=leak|flood|throttle injects one of the paper's faults, FAULT=all the three in turn, with drums
+# detect watching. demo-stop ends all of it.
 demo: setup-test
 	@demo/demo.sh start $(FAULT)
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# `make demo [FAULT=leak|flood|throttle]` and `make demo-stop`: a small robot on this machine,
+# `make demo [FAULT=leak|flood|throttle|all]` and `make demo-stop`: a small robot on this machine,
 # watched by Drums as an operator would watch it.
 #
 # Two "computers": the camera's (a network namespace, reached over a veth link) and the main one
@@ -162,5 +162,5 @@ yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
 case "${1:-}" in
   start) start "${2:-}" ;;
   stop) stop ;;
-  *) echo "usage: demo/demo.sh start [leak|flood|throttle] | stop" >&2; exit 2 ;;
+  *) echo "usage: demo/demo.sh start [leak|flood|throttle|all] | stop" >&2; exit 2 ;;
 esac
