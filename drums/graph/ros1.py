@@ -93,14 +93,15 @@ def parse_info(text) -> tuple[int, str, int] | None:
 
 class _Transport(xmlrpc.client.Transport):
     """XML-RPC over HTTP that trusts nothing it reads: defusedxml parses, compression is refused
-    (a gzip bomb), answers are capped at MAX_ANSWER, and each call ends by `deadline`."""
+    (a gzip bomb), answers are capped at MAX_ANSWER, reading stops at the first value past
+    MAX_VALUES, and each call ends by `deadline`."""
 
     accept_gzip_encoding = False
 
     def __init__(self, deadline: float):
         super().__init__()
         self.deadline = deadline
-        self.cut = 0  # values of the answer past MAX_VALUES, dropped
+        self.cut = False  # the answer had more than MAX_VALUES values; the rest was not read
 
     def _left(self) -> float:
         left = self.deadline - time.monotonic()
@@ -142,18 +143,24 @@ class _Transport(xmlrpc.client.Transport):
             if size > MAX_ANSWER:
                 raise ValueError(f"an answer over {MAX_ANSWER >> 20} MiB")
             parser.feed(chunk)
+            if unmarshaller.cut:
+                unmarshaller.close_open()  # what is open ends here, as if the answer did
+                self.cut = True
+                return unmarshaller.close()
         parser.close()
-        self.cut = unmarshaller.cut
         return unmarshaller.close()
 
 
 class _Capped(xmlrpc.client.Unmarshaller):
-    """An unmarshaller that keeps the first MAX_VALUES values of an answer and counts the rest
-    (`cut`) instead of building them: lists past the limit come out short or empty."""
+    """An unmarshaller that keeps the first MAX_VALUES values of an answer and notes (`cut`) that
+    there are more, whose reading then stops: a hostile master's 17 MB cost what 10,000 values do.
+    Lists past the limit come out short or empty."""
 
     def __init__(self):
         super().__init__()
-        self.kept = self.cut = 0
+        self.kept = 0
+        self.cut = False
+        self._open: list[str] = []  # the elements open now, outermost first
         keep = self._stack.append
 
         def append(value) -> None:
@@ -161,8 +168,22 @@ class _Capped(xmlrpc.client.Unmarshaller):
                 self.kept += 1
                 keep(value)
             else:
-                self.cut += 1
+                self.cut = True
         self.append = append
+
+    def start(self, tag, attrs):
+        self._open.append(tag)
+        super().start(tag, attrs)
+
+    def end(self, tag):
+        if self._open:
+            self._open.pop()
+        super().end(tag)
+
+    def close_open(self) -> None:
+        """End every element still open, innermost first."""
+        while self._open:
+            self.end(self._open[-1])
 
 
 def _pairs(value, what: str, cut: bool = False) -> list[tuple[str, object]]:
@@ -316,7 +337,7 @@ class Ros1Adapter(Adapter):
         if answer[0] != 1:
             raise GraphError(f"{who} refused {method}: {_line(answer[1])}")
         if transport.cut:
-            self._cuts.append(f"{who} answered {method} with {transport.cut + MAX_VALUES:,} values; "
+            self._cuts.append(f"{who} answered {method} with more than {MAX_VALUES:,} values; "
                               f"the first {MAX_VALUES:,} were kept")
         return answer[2]
 

@@ -21,9 +21,11 @@ ENDS = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)  # a closed terminal sends
 
 def complete(frame: Frame, view: str = "") -> bool:
     """Whether every agent is down or has given two polls and two host samples (or said why not):
-    every rate of the view is known; for Anomalies, whether the detector answered or said why not."""
+    every rate of the view is known; for Anomalies, whether the detector answered or said why not
+    and every agent answered once or failed (the view names the agents' hosts)."""
     if view == "anomalies":
-        return frame.anomalies is not None or bool(frame.detector_error)
+        return (frame.anomalies is not None or bool(frame.detector_error)) and \
+            all(a.failed or a.latest is not None for a in frame.agents)
     return all(a.failed or (a.before is not None and (a.jobs_error or frame.sample(f"{a.host}:host:")[0] is not None))
                for a in frame.agents)
 

@@ -11,6 +11,7 @@ published or received so far (a line "go" starts a burst instead: see DRUMS_TEST
 $DRUMS_TEST_IMPORT_DELAY=S it waits S seconds before it loads ROS 2, as a program that imports
 rclpy late does.
 """
+import collections
 import os
 import sys
 import threading
@@ -52,6 +53,25 @@ def publishes(pub, msg):
     return tick
 
 
+def forwards(node, pub):
+    """A subscription callback that publishes what it takes; in a burst, what is taken before the
+    publisher's own subscribers matched waits for them (DDS discovery is pairwise: the graph may
+    show the edge before this publisher knows of it)."""
+    waiting = collections.deque()
+
+    def flush():
+        while waiting and (not burst or pub.get_subscription_count() >= burst_subscribers):
+            pub.publish(waiting.popleft())
+    if burst:
+        node.create_timer(0.01, flush)
+
+    def take(msg):
+        counted[0] += 1
+        waiting.append(msg)
+        flush()
+    return take
+
+
 def qos():
     """Depth 10, and the Deadline QoS $DRUMS_TEST_DEADLINE_MS if set."""
     from rclpy.duration import Duration
@@ -73,8 +93,7 @@ def make(role: str, name: str) -> Node:
         node.create_subscription(UInt8MultiArray, "image", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
     elif role == "processor":
         pub = node.create_publisher(UInt8MultiArray, "processed", 10)
-        node.create_subscription(UInt8MultiArray, "image",
-                                 lambda m: (pub.publish(m), counted.__setitem__(0, counted[0] + 1)), 10)
+        node.create_subscription(UInt8MultiArray, "image", forwards(node, pub), 10)
     elif role == "sink":
         node.create_subscription(UInt8MultiArray, "processed", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
     elif role == "leaker":

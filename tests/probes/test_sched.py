@@ -652,9 +652,10 @@ def test_a_thread_that_keeps_its_cpu_is_counted_up_to_now(sched_probe, collect, 
     gaps = []
     for _ in range(6):
         drums = value(collect(sched_probe), PROCESS_CPU, pid=str(child.pid))
-        gaps.append(process_cpu_clock(child.pid) - drums)
+        kernel = process_cpu_clock(child.pid)
+        gaps.append((kernel - drums, kernel))
         time.sleep(0.25)
     # The probe's clock runs on through interrupts and time the hypervisor steals, which the
-    # kernel's does not count (seen: the probe 1-5 ms ahead over a second); without the running
-    # slice it lagged by up to a whole slice (hundreds of ms here).
-    assert all(abs(g) < 0.02 for g in gaps), gaps
+    # kernel's does not count (seen: the probe 1-5 ms ahead over a second, 14 ms on a busier
+    # host); without the running slice it lagged by up to a whole slice (hundreds of ms here).
+    assert all(abs(gap) < 0.01 + 0.02 * kernel for gap, kernel in gaps), gaps

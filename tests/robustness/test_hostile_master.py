@@ -51,6 +51,6 @@ def test_a_master_that_lists_a_hundred_thousand_topics_is_truncated_and_costs_li
     # as many topics, whose publishers are as many nodes, of which the first MAX_NODES are kept.
     assert MAX_VALUES // 2 - 10 <= topics <= MAX_VALUES // 2 and nodes == MAX_NODES
     assert health["status"] == "degraded" and health["graph"]["truncated"] == (
-        f"the ROS master at {master.uri} answered getSystemState with 200,002 values; the first {MAX_VALUES:,} were kept; "
-        f"the ROS master at {master.uri} answered getTopicTypes with 200,002 values; the first {MAX_VALUES:,} were kept; "
+        f"the ROS master at {master.uri} answered getSystemState with more than {MAX_VALUES:,} values; the first {MAX_VALUES:,} were kept; "
+        f"the ROS master at {master.uri} answered getTopicTypes with more than {MAX_VALUES:,} values; the first {MAX_VALUES:,} were kept; "
         f"the ROS master at {master.uri} listed {MAX_VALUES // 2 - 1:,} nodes; the first {MAX_NODES:,} were asked")
