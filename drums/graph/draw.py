@@ -15,13 +15,15 @@ import subprocess
 import threading
 import time
 from collections import defaultdict
-
-import networkx as nx
+from typing import TYPE_CHECKING
 
 from drums import units
 from drums.errors import UsageError
 from drums.graph import join
 from drums.metrics import COUNTER, Snapshot
+
+if TYPE_CHECKING:  # the graph modules load networkx only when a graph is made (model.snapshot)
+    import networkx as nx
 
 HIDDEN_TOPICS = ("/rosout", "/parameter_events")
 OWN_PREFIX = "/_drums"  # Drums' own nodes: the graph reader and the /diagnostics publisher

@@ -9,13 +9,15 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from dataclasses import asdict
-
-import networkx as nx
+from typing import TYPE_CHECKING
 
 from drums.errors import UsageError
 from drums.graph import draw, join
 from drums.graph.model import Graph
 from drums.metrics import INFO, Histogram, Snapshot
+
+if TYPE_CHECKING:  # the graph modules load networkx only when a graph is made (model.snapshot)
+    import networkx as nx
 
 FORMATS = ("text", "json", "dot", "svg", "graphml")
 PICTURES = ("dot", "svg")
@@ -72,6 +74,7 @@ def _attributes(data: dict, metrics: dict, flat: bool) -> dict:
 def plain(g: nx.MultiDiGraph, metrics: dict | None = None, flat: bool = False) -> nx.MultiDiGraph:
     """A copy whose attributes are plain values; `metrics` maps a vertex id or an edge
     (u, v, key) to extra attributes."""
+    import networkx as nx
     metrics = metrics or {}
     out = nx.MultiDiGraph()
     for vid, data in g.nodes(data=True):
@@ -90,6 +93,7 @@ def render(g: nx.MultiDiGraph, fmt: str, metrics: dict | None = None, stale: str
     if fmt in PICTURES:
         text = draw.dot(g, everything=everything)
         return draw.svg(text) if fmt == "svg" else text
+    import networkx as nx
     if fmt == "json":
         data = nx.node_link_data(plain(g, metrics), edges="edges")
         data["stale"] = stale

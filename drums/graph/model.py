@@ -1,6 +1,7 @@
 """The computation graph (the paper's section II-A, extended): hosts, processes, middleware nodes,
-topics, endpoints and the connections between nodes, in one networkx MultiDiGraph, with a stream
-of timestamped changes.
+topics, endpoints and the connections between nodes, with a stream of timestamped changes. It is
+kept as two dicts (vertices, edges); `snapshot()` hands readers a networkx MultiDiGraph of it,
+imported then: an agent that is never asked for its graph does not carry networkx (15 MB).
 
 Adapters do not edit the graph: each poll hands over a whole `GraphState` (what the middleware
 says now), and `Graph.update` works out what was added, removed or changed. That keeps adapters
@@ -12,8 +13,6 @@ import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
-
-import networkx as nx
 
 from drums.errors import GraphError
 
@@ -173,9 +172,8 @@ class Graph:
     """The live graph. Readers take `snapshot()` (a copy); one adapter thread calls `update`."""
 
     def __init__(self, history: int = 10000, stale_after: float = 5.0):
-        self._g = nx.MultiDiGraph()
-        self._vertices: dict = {}
-        self._edges: dict = {}
+        self._vertices: dict = {}  # id -> (kind, entity)
+        self._edges: dict = {}  # (u, v, key) -> (kind, entity)
         self._lock = threading.Lock()
         self.changes: deque[Change] = deque(maxlen=history)  # the newest changes, oldest dropped
         self.change_count = 0  # changes ever made: a reader's cursor into `changes`
@@ -191,25 +189,19 @@ class Graph:
         with self._lock:
             for vid in self._vertices.keys() - vertices.keys():
                 kind, obj = self._vertices[vid]
-                self._g.remove_node(vid)  # removes its edges too
                 changes.append(Change(at, "removed", kind, vid, obj))
             for vid, (kind, obj) in vertices.items():
                 old = self._vertices.get(vid)
                 if old is None or old[1] != obj:
-                    self._g.add_node(vid, kind=kind, entity=obj)
                     changes.append(Change(at, "added" if old is None else "changed", kind, vid, obj))
             for key in self._edges.keys() - edges.keys():
                 kind, obj = self._edges[key]
-                if self._g.has_edge(*key):
-                    self._g.remove_edge(*key)
                 if kind == "connection":
                     changes.append(Change(at, "removed", kind, _edge_id(key), obj))
             for key, (kind, obj) in edges.items():
                 old = self._edges.get(key)
-                if old is None or old[1] != obj or not self._g.has_edge(*key):
-                    self._g.add_edge(key[0], key[1], key=key[2], kind=kind, entity=obj)
-                    if kind == "connection" and old != (kind, obj):
-                        changes.append(Change(at, "added" if old is None else "changed", kind, _edge_id(key), obj))
+                if kind == "connection" and old != (kind, obj):
+                    changes.append(Change(at, "added" if old is None else "changed", kind, _edge_id(key), obj))
             self._vertices, self._edges = vertices, edges
             self.changes.extend(changes)
             self.change_count += len(changes)
@@ -234,9 +226,16 @@ class Graph:
         now = time.time() if now is None else now
         return bool(self.error) or now - self.updated_at > self.stale_after
 
-    def snapshot(self) -> nx.MultiDiGraph:
+    def snapshot(self):
+        """The graph now, as a networkx MultiDiGraph of its own: vertices with `kind` and `entity`,
+        edges keyed by their relation ("runs", "hosts", ...) or a connection's topic."""
+        import networkx as nx
         with self._lock:
-            return self._g.copy()
+            vertices, edges = self._vertices, self._edges  # replaced whole by update, never edited
+        g = nx.MultiDiGraph()
+        g.add_nodes_from((vid, {"kind": kind, "entity": obj}) for vid, (kind, obj) in vertices.items())
+        g.add_edges_from((u, v, key, {"kind": kind, "entity": obj}) for (u, v, key), (kind, obj) in edges.items())
+        return g
 
     def entities(self, kind: str) -> list:
         with self._lock:

@@ -4,6 +4,8 @@ Needs no BPF and no privileges, so it is the probe that still reports when every
 """
 from __future__ import annotations
 
+import time
+
 import psutil
 
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
@@ -47,15 +49,38 @@ LOAD = Metric("drums_host_load", GAUGE, "Run queue load average over a period", 
 # Linux counts guest time inside user and guest_nice inside nice; exporting them as modes too would
 # make the modes add up to more than the elapsed CPU time.
 _CPU_MODES = ("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal")
+# A device that is gone this long is forgotten: Prometheus has long since called its series stale.
+FORGET_AFTER = 600.0
 
 
-def _cpu(snap: Snapshot) -> None:
+class Carry:
+    """Keeps a device's counters going forward when the device is made again under its name (a
+    veth or USB disk removed and re-added restarts at 0): what it had counted is carried on."""
+
+    def __init__(self):
+        self._kept: dict[tuple, list] = {}  # (metric, device) -> [carried, last value, last seen]
+        self._now = 0.0
+
+    def start(self) -> None:
+        """Before a collect: forget the devices gone longer than FORGET_AFTER."""
+        self._now = time.monotonic()
+        self._kept = {k: e for k, e in self._kept.items() if self._now - e[2] < FORGET_AFTER}
+
+    def __call__(self, metric: Metric, device: str, value: float) -> float:
+        entry = self._kept.setdefault((metric, device), [0, 0, 0.0])
+        if value < entry[1]:
+            entry[0] += entry[1]
+        entry[1], entry[2] = value, self._now
+        return entry[0] + value
+
+
+def _cpu(snap: Snapshot, _carry: Carry) -> None:
     times = psutil.cpu_times()
     for mode in _CPU_MODES:
         snap.add(CPU_SECONDS, (mode,), getattr(times, mode))
 
 
-def _memory(snap: Snapshot) -> None:
+def _memory(snap: Snapshot, _carry: Carry) -> None:
     mem, swap = psutil.virtual_memory(), psutil.swap_memory()
     snap.add(MEMORY_TOTAL, (), mem.total)
     snap.add(MEMORY_AVAILABLE, (), mem.available)
@@ -64,7 +89,7 @@ def _memory(snap: Snapshot) -> None:
     snap.add(SWAP_USED, (), swap.used)
 
 
-def _filesystems(snap: Snapshot) -> None:
+def _filesystems(snap: Snapshot, _carry: Carry) -> None:
     # all=False leaves out filesystems without a device (proc, sysfs, tmpfs, cgroup...). A mountpoint
     # mounted over is listed twice; statvfs sees the top one, which is listed last.
     for part in {p.mountpoint: p for p in psutil.disk_partitions(all=False)}.values():
@@ -77,28 +102,28 @@ def _filesystems(snap: Snapshot) -> None:
         snap.add(FS_FREE, labels, usage.free)
 
 
-def _disks(snap: Snapshot) -> None:
+# Counter -> the psutil field it is read from, per disk and per network interface.
+_DISK = {DISK_READ_BYTES: "read_bytes", DISK_WRITTEN_BYTES: "write_bytes", DISK_READS: "read_count",
+         DISK_WRITES: "write_count"}
+_NIC = {NET_RECEIVED_BYTES: "bytes_recv", NET_SENT_BYTES: "bytes_sent", NET_RECEIVED_PACKETS: "packets_recv",
+        NET_SENT_PACKETS: "packets_sent", NET_RECEIVE_ERRORS: "errin", NET_TRANSMIT_ERRORS: "errout",
+        NET_RECEIVE_DROPS: "dropin", NET_TRANSMIT_DROPS: "dropout"}
+
+
+def _disks(snap: Snapshot, carry: Carry) -> None:
     # Partitions are listed next to their disk, so summing over devices counts their I/O twice.
     for device, io in psutil.disk_io_counters(perdisk=True).items():
-        snap.add(DISK_READ_BYTES, (device,), io.read_bytes)
-        snap.add(DISK_WRITTEN_BYTES, (device,), io.write_bytes)
-        snap.add(DISK_READS, (device,), io.read_count)
-        snap.add(DISK_WRITES, (device,), io.write_count)
+        for metric, field in _DISK.items():
+            snap.add(metric, (device,), carry(metric, device, getattr(io, field)))
 
 
-def _network(snap: Snapshot) -> None:
+def _network(snap: Snapshot, carry: Carry) -> None:
     for nic, io in psutil.net_io_counters(pernic=True).items():
-        snap.add(NET_RECEIVED_BYTES, (nic,), io.bytes_recv)
-        snap.add(NET_SENT_BYTES, (nic,), io.bytes_sent)
-        snap.add(NET_RECEIVED_PACKETS, (nic,), io.packets_recv)
-        snap.add(NET_SENT_PACKETS, (nic,), io.packets_sent)
-        snap.add(NET_RECEIVE_ERRORS, (nic,), io.errin)
-        snap.add(NET_TRANSMIT_ERRORS, (nic,), io.errout)
-        snap.add(NET_RECEIVE_DROPS, (nic,), io.dropin)
-        snap.add(NET_TRANSMIT_DROPS, (nic,), io.dropout)
+        for metric, field in _NIC.items():
+            snap.add(metric, (nic,), carry(metric, nic, getattr(io, field)))
 
 
-def _load(snap: Snapshot) -> None:
+def _load(snap: Snapshot, _carry: Carry) -> None:
     for period, value in zip(("1m", "5m", "15m"), psutil.getloadavg()):
         snap.add(LOAD, (period,), value)
 
@@ -134,14 +159,16 @@ class HostProbe(Probe):
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
+        self._carry = Carry()
 
     def collect(self, snap: Snapshot) -> None:
         # One unreadable source (no disks, a /proc file hidden by a container) must not cost the
         # others; what was skipped is kept in status.reason so it stays visible.
         failed = []
+        self._carry.start()
         for read in _READERS:
             try:
-                read(snap)
+                read(snap, self._carry)
             except (OSError, NotImplementedError, psutil.Error) as exc:
                 failed.append(f"{read.__name__[1:]}: {exc}")
         self.status.reason = "; ".join(failed)

@@ -24,6 +24,7 @@ from tests.graph.conftest import RosProcess
 from tests.graph.rosnodes import payload
 from tests.graph.test_hosts import named
 
+pytestmark = pytest.mark.lane2  # two minutes of its own lab: make test runs it beside the rest
 PREFIX = f"dd{os.getpid() % 10000}"  # names of this session's namespaces and links
 HOSTS = (1, 2, 3)
 TOKEN = "distributed-test-token"

@@ -2,7 +2,9 @@
 import mmap
 import os
 import socket
+import subprocess
 import threading
+import time
 
 import psutil
 import pytest
@@ -213,3 +215,48 @@ def test_unreadable_sources_are_skipped_and_named(probe, tmp_path, monkeypatch):
     }
     failed = [part.split(":")[0] for part in probe.status.reason.split("; ")]
     assert failed == ["cpu", "memory", "filesystems", "network"]
+
+
+NS, NIC, PEER = "drums-host-test", "drumshost0", "drumshost1"
+
+
+def _link_with_traffic(datagrams: int) -> None:
+    """NIC, a veth whose peer is in the namespace NS, made anew, and `datagrams` UDP datagrams sent
+    across it (the peer answers each with an ICMP port unreachable)."""
+    run = lambda *cmd: subprocess.run(cmd, check=True, capture_output=True)  # noqa: E731
+    run("ip", "link", "add", NIC, "type", "veth", "peer", "name", PEER, "netns", NS)
+    run("ip", "addr", "add", "10.251.0.1/30", "dev", NIC)
+    run("ip", "link", "set", NIC, "up")
+    run("ip", "netns", "exec", NS, "ip", "addr", "add", "10.251.0.2/30", "dev", PEER)
+    run("ip", "netns", "exec", NS, "ip", "link", "set", PEER, "up")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for _ in range(datagrams):
+            s.sendto(b"x" * 100, ("10.251.0.2", 9))
+            time.sleep(0.1)
+
+
+@pytest.fixture
+def namespace():
+    subprocess.run(["ip", "netns", "del", NS], capture_output=True)
+    subprocess.run(["ip", "netns", "add", NS], check=True)
+    yield
+    subprocess.run(["ip", "link", "del", NIC], capture_output=True)
+    subprocess.run(["ip", "netns", "del", NS], capture_output=True)
+
+
+def test_an_interface_made_again_under_its_name_counts_on(probe, namespace):
+    """A veth deleted and made again restarts its counters at 0 in the kernel: the probe's go on
+    from what the first one had counted, so no counter goes backwards."""
+    _link_with_traffic(3)
+    first = collect(probe)
+    subprocess.run(["ip", "link", "del", NIC], check=True)
+    assert (NIC,) not in collect(probe).values(host.NET_SENT_BYTES)
+    _link_with_traffic(2)
+    before = net_dev()[NIC]
+    again = collect(probe)
+    after = net_dev()[NIC]
+    assert before[NET_COLUMNS[host.NET_SENT_PACKETS]] >= 2  # the datagrams, and what IPv6 sends on its own
+    for metric, column in NET_COLUMNS.items():
+        carried = first.values(metric)[(NIC,)]
+        assert carried + before[column] <= again.values(metric)[(NIC,)] <= carried + after[column], metric.name
+    assert again.values(host.NET_SENT_BYTES)[(NIC,)] > first.values(host.NET_SENT_BYTES)[(NIC,)] > 0
