@@ -18,6 +18,10 @@ _TICKS = os.sysconf("SC_CLK_TCK")
 TRIM_EVERY = 10.0
 ARENAS = 2
 _M_ARENA_MAX = -8  # mallopt's parameter, from glibc's malloc.h
+# Reading smaps_rollup walks a process's page tables: a millisecond or two for the agent itself,
+# whose memory moves slowly once it runs. The agent reads its own at most this often (seconds), as
+# the process probe reads the processes it watches; its helpers', which start and grow, each time.
+MEMORY_EVERY = 5.0
 
 
 def _glibc():
@@ -91,12 +95,15 @@ class TreeCost:
         self._last: dict[int, tuple[str, float]] = {}  # child pid -> (role, CPU seconds) when last seen
         self._ended: dict[str, float] = {}  # role -> CPU seconds of its children that ended
         self._heap = Heap()  # made before the agent starts its threads
+        self._memory: tuple[float, tuple[int, int]] | None = None  # (when read, the agent's (RSS, USS))
 
     def sample(self) -> dict[str, tuple[float, int, int]]:
         """role -> (CPU seconds, RSS, USS)."""
         self._heap.trim()
-        times = os.times()
-        rss, uss = memory()
+        now, times = time.monotonic(), os.times()
+        if self._memory is None or now - self._memory[0] >= MEMORY_EVERY:
+            self._memory = now, memory()
+        rss, uss = self._memory[1]
         out = {AGENT: [times.user + times.system, rss, uss]}
         seen = {}
         for pid in _children():
