@@ -47,10 +47,11 @@ AGENT_COLLECT = Metric("drums_agent_collect_duration_seconds", GAUGE,
 AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER,
                    "CPU time used by the agent's processes: the agent and each helper it started, by role", ("role",))
 AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE,
-                   "Resident memory of the agent's processes, by role (the agent's own read at most every 5 s)", ("role",))
+                   "Resident memory of the agent's processes, by role (each read at most every 5 s after its "
+                   "first 30 s)", ("role",))
 AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
                    "Memory only the agent's processes use, by role (private pages: what stopping them would "
-                   "free; the agent's own read at most every 5 s)",
+                   "free; each read at most every 5 s after its first 30 s)",
                    ("role",))
 GRAPH_STALE = Metric("drums_graph_stale", GAUGE,
                      "1 while the graph adapter fails (the last good graph is kept), else 0", ("adapter",))

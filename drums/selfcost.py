@@ -18,10 +18,12 @@ _TICKS = os.sysconf("SC_CLK_TCK")
 TRIM_EVERY = 10.0
 ARENAS = 2
 _M_ARENA_MAX = -8  # mallopt's parameter, from glibc's malloc.h
-# Reading smaps_rollup walks a process's page tables: a millisecond or two for the agent itself,
-# whose memory moves slowly once it runs. The agent reads its own at most this often (seconds), as
-# the process probe reads the processes it watches; its helpers', which start and grow, each time.
+# Reading smaps_rollup walks a process's page tables: a millisecond or two for the agent and for
+# an rclpy helper. Memory moves slowly once a process runs: each of the tree is read at every
+# sample for its first SETTLE seconds (while it loads and grows), then at most every MEMORY_EVERY,
+# as the process probe reads the processes it watches.
 MEMORY_EVERY = 5.0
+SETTLE = 30.0
 
 
 def _glibc():
@@ -95,15 +97,21 @@ class TreeCost:
         self._last: dict[int, tuple[str, float]] = {}  # child pid -> (role, CPU seconds) when last seen
         self._ended: dict[str, float] = {}  # role -> CPU seconds of its children that ended
         self._heap = Heap()  # made before the agent starts its threads
-        self._memory: tuple[float, tuple[int, int]] | None = None  # (when read, the agent's (RSS, USS))
+        # pid ("self": the agent) -> (when first seen, when read, (RSS, USS))
+        self._memory: dict[int | str, tuple[float, float, tuple[int, int]]] = {}
+
+    def _memory_of(self, pid: int | str, now: float) -> tuple[int, int]:
+        first, read_at, rss_uss = self._memory.get(pid, (now, 0.0, (0, 0)))
+        if now - first < SETTLE or now - read_at >= MEMORY_EVERY:
+            read_at, rss_uss = now, memory(pid)
+        self._memory[pid] = first, read_at, rss_uss
+        return rss_uss
 
     def sample(self) -> dict[str, tuple[float, int, int]]:
         """role -> (CPU seconds, RSS, USS)."""
         self._heap.trim()
         now, times = time.monotonic(), os.times()
-        if self._memory is None or now - self._memory[0] >= MEMORY_EVERY:
-            self._memory = now, memory()
-        rss, uss = self._memory[1]
+        rss, uss = self._memory_of("self", now)
         out = {AGENT: [times.user + times.system, rss, uss]}
         seen = {}
         for pid in _children():
@@ -112,7 +120,7 @@ class TreeCost:
                 continue
             cpu, role = got
             seen[pid] = (role, cpu)
-            rss, uss = memory(pid)
+            rss, uss = self._memory_of(pid, now)
             row = out.setdefault(role, [0.0, 0, 0])
             row[0] += cpu
             row[1] += rss
@@ -121,6 +129,8 @@ class TreeCost:
             role, cpu = self._last[pid]
             self._ended[role] = self._ended.get(role, 0.0) + cpu
         self._last = seen
+        for pid in self._memory.keys() - seen.keys() - {"self"}:
+            del self._memory[pid]
         for role, cpu in self._ended.items():
             out.setdefault(role, [0.0, 0, 0])[0] += cpu
         return {role: tuple(row) for role, row in out.items()}
