@@ -75,6 +75,9 @@ class _Group:
         self.rows_of: dict = {}  # entity -> labels of its rows
         self.folded: dict = {}  # labels -> the values of that row summed into `other` so far
         self._other: dict = {}  # dimension values -> (metrics, labels of the `other` row)
+        self._touched: set = set()  # entities with rows new, changed or gone at this collect
+        self._emitted: list = []  # the rows emit() gave last, and for which entities
+        self._emitted_for: set | None = None
 
     def other_key(self, labels: tuple) -> tuple:
         dimvals = tuple([labels[i] for i in self.dims])
@@ -105,14 +108,18 @@ class _Group:
                     into[entity] = into.get(entity, 0.0) + d
         gone = last.keys() - now.keys()
         rows_of = self.rows_of
+        touched = self._touched = set()
         for labels in gone:
             entity = entity_of(labels)
+            touched.add(entity)
             rows_of[entity].discard(labels)
             if not rows_of[entity]:
                 del rows_of[entity]
         for labels, _ in changed:
+            entity = entity_of(labels)
+            touched.add(entity)
             if labels not in last:
-                rows_of.setdefault(entity_of(labels), set()).add(labels)
+                rows_of.setdefault(entity, set()).add(labels)
         self.last = now
         return changed, gone
 
@@ -121,11 +128,14 @@ class _Group:
         values = (self.last if rows is None else rows).get(labels)
         return (values,) if self.single and values is not None else values
 
-    def emit(self, out: Snapshot, entities) -> None:
-        """The rows of these entities, as they came."""
-        own = out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)
-        for entity in entities:
-            own.extend((labels, self.last[labels]) for labels in self.rows_of.get(entity, ()))
+    def emit(self, out: Snapshot, entities: set) -> None:
+        """The rows of these entities, as they came: those of the last collect when neither the
+        entities nor their rows changed (on an idle host, most collects)."""
+        if entities != self._emitted_for or not self._touched.isdisjoint(entities):
+            last, rows_of = self.last, self.rows_of
+            self._emitted = [(labels, last[labels]) for entity in entities for labels in rows_of.get(entity, ())]
+            self._emitted_for = set(entities)
+        (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(self._emitted)
 
 
 @dataclass
