@@ -13,8 +13,12 @@ import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 from drums.errors import GraphError
+
+if TYPE_CHECKING:  # imported by snapshot(), when a graph is made
+    import networkx as nx
 
 
 @dataclass(frozen=True)
@@ -226,7 +230,7 @@ class Graph:
         now = time.time() if now is None else now
         return bool(self.error) or now - self.updated_at > self.stale_after
 
-    def snapshot(self):
+    def snapshot(self) -> nx.MultiDiGraph:
         """The graph now, as a networkx MultiDiGraph of its own: vertices with `kind` and `entity`,
         edges keyed by their relation ("runs", "hosts", ...) or a connection's topic."""
         import networkx as nx

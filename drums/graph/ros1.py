@@ -134,20 +134,19 @@ class _Transport(xmlrpc.client.Transport):
             raise ValueError("a compressed answer, not asked for")
         parser, unmarshaller = self.getparser()
         size = 0
-        while True:
+        while not unmarshaller.cut:
             self._sock.settimeout(self._left())  # a peer that trickles still ends on time
             chunk = response.read1(1 << 16)
             if not chunk:
+                parser.close()
                 break
             size += len(chunk)
             if size > MAX_ANSWER:
                 raise ValueError(f"an answer over {MAX_ANSWER >> 20} MiB")
             parser.feed(chunk)
-            if unmarshaller.cut:
-                unmarshaller.close_open()  # what is open ends here, as if the answer did
-                self.cut = True
-                return unmarshaller.close()
-        parser.close()
+        self.cut = unmarshaller.cut
+        if self.cut:
+            unmarshaller.close_open()  # what is open ends here, as if the answer did
         return unmarshaller.close()
 
 
