@@ -55,22 +55,30 @@ FORGET_AFTER = 600.0
 
 class Carry:
     """Keeps a device's counters going forward when the device is made again under its name (a
-    veth or USB disk removed and re-added restarts at 0): what it had counted is carried on."""
+    veth or USB disk removed and re-added starts again from 0): what it had counted is carried
+    on. A device is another one when its counter went down, or when it was missing from a listing
+    of its kind that came after it was last seen (a listing that failed lists nothing)."""
 
     def __init__(self):
-        self._kept: dict[tuple, list] = {}  # (metric, device) -> [carried, last value, last seen]
+        self._kept: dict[tuple, list] = {}  # (metric, device) -> [carried, last value, collect, time last seen]
+        self._collect = 0
+        self._listed: dict[Metric, tuple[int, int]] = {}  # metric -> (the last collect that read it, the one before)
         self._now = 0.0
 
     def start(self) -> None:
         """Before a collect: forget the devices gone longer than FORGET_AFTER."""
+        self._collect += 1
         self._now = time.monotonic()
-        self._kept = {k: e for k, e in self._kept.items() if self._now - e[2] < FORGET_AFTER}
+        self._kept = {k: e for k, e in self._kept.items() if self._now - e[3] < FORGET_AFTER}
 
     def __call__(self, metric: Metric, device: str, value: float) -> float:
-        entry = self._kept.setdefault((metric, device), [0, 0, 0.0])
-        if value < entry[1]:
+        last, before = self._listed.get(metric, (0, 0))
+        if last != self._collect:
+            last, before = self._listed[metric] = self._collect, last
+        entry = self._kept.setdefault((metric, device), [0, 0, self._collect, 0.0])
+        if value < entry[1] or entry[2] < before:
             entry[0] += entry[1]
-        entry[1], entry[2] = value, self._now
+        entry[1:] = value, self._collect, self._now
         return entry[0] + value
 
 
