@@ -12,8 +12,10 @@ A Fast DDS node whose GUID prefix names another host (bytes 2-3) is "remote": th
 maps it; unless its PID bits are those of one process with librcl in our network namespace. Fast
 DDS hashes every address of every interface into that host id, once per process: a process started
 after an interface came or went (a VPN, a container bridge, a new DHCP lease) carries another id
-than ours, though it runs beside us; one in another network namespace is another host. One of this host whose process no longer runs is "gone": DDS forgets a participant that
-was killed only when its lease runs out (20 s by default), /proc knows at once.
+than ours, though it runs beside us; one in another network namespace is another host. One of
+this host whose process no longer runs is "gone": DDS forgets a participant that was killed only
+when its lease runs out (20 s by default), /proc knows at once. So is one once mapped to a process
+of ours that no longer runs, whatever host id it carries (a test lab's veths come and go).
 Other RMWs (Cyclone DDS, Connext, Zenoh) carry no PID in their GUIDs: their nodes go by 2 and 3.
 """
 from __future__ import annotations
@@ -42,6 +44,8 @@ class ProcScan:
         self.table = ProcessTable(proc)  # the listing and the names
         self._rcl: dict[tuple[int, int | None], bool] = {}
         self._cmdline: dict[tuple[int, int | None], list[str]] = {}
+        # Participant GUID prefix -> (pid, start) of the process of ours it was mapped to.
+        self.participants: dict[bytes, tuple[int, int | None]] = {}
 
     def refresh(self) -> None:
         self.table.refresh()
@@ -63,6 +67,20 @@ class ProcScan:
         if key not in self._rcl:
             self._rcl[key] = bool(mapped_libraries(self.proc, pid, (RCL_LIBRARY,)))
         return self._rcl[key]
+
+    def runs(self, pid: int, start: int | None) -> bool:
+        """Whether the process that had this PID and start time still runs."""
+        return self.table.alive(pid) and process_start(self.proc, pid) == start
+
+    def remember(self, mapping: dict[str, tuple[int | None, str]], prefixes: dict[str, bytes | None]) -> None:
+        """Keep which participants the nodes seen now were mapped to, and forget the others."""
+        seen = {prefix: self.participants.get(prefix) for prefix in prefixes.values() if prefix}
+        for node, (pid, how) in mapping.items():
+            prefix = prefixes[node]
+            known = seen.get(prefix)
+            if how in ("gid", "cmdline") and prefix and (known is None or known[0] != pid):  # not a "librcl" guess
+                seen[prefix] = (pid, process_start(self.proc, pid))
+        self.participants = {prefix: owner for prefix, owner in seen.items() if owner is not None}
 
     def cmdline(self, pid: int) -> list[str]:
         key = (pid, process_start(self.proc, pid))
@@ -101,6 +119,10 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
         if bits is None:
             continue
         found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid)]
+        owner = scan.participants.get(prefix)
+        if owner is not None and owner[0] not in found and not scan.runs(*owner):
+            out[node] = (None, "gone")
+            continue
         foreign = know_host and prefix[2:4] != own_prefix[2:4]
         if len(found) == 1 and (not foreign or scan.beside_us(found[0])):
             out[node] = (found[0], "gid")
@@ -122,4 +144,5 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
             out.update({n: (free[0], "librcl") for n in unmapped})
     for n in nodes:
         out.setdefault(n, (None, "unmapped"))
+    scan.remember(out, nodes)
     return out

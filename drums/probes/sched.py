@@ -6,7 +6,6 @@ Process totals include threads that exited, so they never go backwards while the
 from __future__ import annotations
 
 import struct
-import time
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
@@ -20,7 +19,8 @@ _EXPORTED_SLOTS = tuple(range(1, 22, 2))
 RUNQ_BUCKETS = tuple((2 ** (j + 1)) * 1e-6 for j in _EXPORTED_SLOTS)
 
 PROCESS_CPU = Metric("drums_process_cpu_seconds_total", COUNTER,
-                     "Time the process's threads spent on a CPU, from sched_switch", ("pid", "process"))
+                     "Time the process's threads spent on a CPU, as the kernel accounts it for /proc "
+                     "(without time stolen by a hypervisor), from sched_switch", ("pid", "process"))
 PROCESS_RUNQ = Metric("drums_process_runqueue_latency_seconds", HISTOGRAM,
                       "Time the process's threads waited on a run queue between becoming runnable "
                       "and running", ("pid", "process"), RUNQ_BUCKETS)
@@ -37,7 +37,7 @@ THREAD_SWITCHES = Metric("drums_thread_context_switches_total", COUNTER, "Contex
                          ("pid", "tid", "thread", "kind"))
 
 _SCHED = "5Q24I"  # struct sched_t
-_THREAD_VALUE = struct.Struct("<IIQQ16s" + _SCHED)
+_THREAD_VALUE = struct.Struct("<IIQQQ16s" + _SCHED)
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -85,6 +85,7 @@ class SchedProbe(BpfProbe):
         d = offset_defines(btf, {
             **TASK_IDENTITY_FIELDS,
             "TASK_COMM_OFF": ("task_struct", "comm"),
+            "TASK_RUNTIME_OFF": ("task_struct", "se.sum_exec_runtime"),
         })
         args = btf.tracepoint_args("sched_switch") or []
         if len(args) >= 4:
@@ -108,16 +109,23 @@ class SchedProbe(BpfProbe):
         return {tgid for (tgid,) in _U32.iter_unpack(keys)}
 
     def _running(self) -> dict[int, int]:
-        """Thread id -> nanoseconds it has been on its CPU, for the thread each CPU runs now."""
-        now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock; taken first,
-        # so that a slice that ends after the read below is never counted past its end
+        """Thread id -> its runtime now, for the thread each CPU runs: a thread may keep its CPU for
+        seconds without a switch to count it. From /proc/TID/schedstat (one file a CPU, up to date
+        at the last tick; the exact CPU clock of a thread is its own process's alone). Read after
+        the threads' entries, so it is never behind them. Without CONFIG_SCHED_INFO the running
+        slice waits for the thread's next switch."""
         _, values, _ = self.read("oncpu")
         stride = self.opened["oncpu"].value_size
         out = {}
         for cpu in range(len(values) // stride):
-            since, tid, _pad = _ONCPU.unpack_from(values, cpu * stride)
-            if tid and 0 < since <= now:
-                out[tid] = now - since
+            _, tid, _pad = _ONCPU.unpack_from(values, cpu * stride)
+            if not tid:
+                continue
+            try:
+                with open(f"/proc/{tid}/schedstat", "rb") as f:
+                    out[tid] = int(f.read().split(None, 1)[0])
+            except (OSError, ValueError, IndexError):
+                pass  # gone, or no schedstat: its time is what its switches counted
         return out
 
     def collect(self, snap: Snapshot) -> None:
@@ -134,13 +142,13 @@ class SchedProbe(BpfProbe):
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
         m = self._monotonic
         keys, values, _ = self.read("thread_sched")
-        running = self._running()  # read after the threads: a slice that ended meanwhile is in neither
+        running = self._running()
         for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
-            tgid, _pad, _enqueued, start, comm, *s = v
+            tgid, _pad, _enqueued, start, base, comm, *s = v
             if not pt.alive(tgid):
                 continue
             if tid in running:
-                s[0] += running[tid]
+                s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))

@@ -72,7 +72,7 @@ def test_node_without_gid_is_mapped_by_its_command_line(ros2_graph, ros_nodes):
     assert map_nodes({"/quiet": None}, ProcScan()) == {"/quiet": (p.pid, "cmdline")}
 
 
-def test_a_node_with_another_host_id_is_ours_when_its_pid_bits_are_one_of_our_processes(ros2_graph, ros_nodes):
+def test_a_node_with_another_host_id_is_ours_while_its_pid_bits_are_one_of_our_processes(ros2_graph, ros_nodes):
     """Fast DDS hashes every interface address into the host id of a process, once: a node started
     after an interface came (a VPN, a veth, a new lease) carries another id than the agent's reader."""
     from drums.graph.nodepids import FASTDDS_VENDOR, ProcScan, map_nodes
@@ -84,6 +84,10 @@ def test_a_node_with_another_host_id_is_ours_when_its_pid_bits_are_one_of_our_pr
     prefixes = {"/renumbered": theirs + (p.pid & 0xFFFF).to_bytes(2, "little") + bytes(6),
                 "/elsewhere": theirs + unused.to_bytes(2, "little") + bytes(6)}
     assert map_nodes(prefixes, scan, ours) == {"/renumbered": (p.pid, "gid"), "/elsewhere": (None, "remote")}
+    # Killed, it is gone at once, though its host id is not ours: it was mapped to a process of ours
+    # (DDS would list it for its 20 s lease).
+    p.kill()
+    assert map_nodes(prefixes, scan, ours) == {"/renumbered": (None, "gone"), "/elsewhere": (None, "remote")}
 
 
 def test_new_node_appears_and_killed_node_leaves_within_two_seconds(ros2_graph, ros_nodes):
