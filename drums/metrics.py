@@ -28,19 +28,37 @@ class Metric:
 
 @dataclass
 class Histogram:
-    """Cumulative bucket counts matching Metric.buckets (without +Inf), sum and count."""
+    """Cumulative bucket counts (without +Inf), sum and count. The buckets are Metric.buckets, or
+    this row's own `bounds` (a histogram whose buckets follow its data, as the publish periods'
+    do); rows with different bounds add and subtract on the union of their bounds."""
 
     cumulative: list[int]
     sum: float
     count: int
+    bounds: tuple[float, ...] | None = None
 
     def __add__(self, other: "Histogram") -> "Histogram":
-        return Histogram([a + b for a, b in zip(self.cumulative, other.cumulative)], self.sum + other.sum,
-                         self.count + other.count)
+        return self._combine(other, 1)
 
     def __sub__(self, other: "Histogram") -> "Histogram":
-        return Histogram([a - b for a, b in zip(self.cumulative, other.cumulative)], self.sum - other.sum,
-                         self.count - other.count)
+        return self._combine(other, -1)
+
+    def _combine(self, other: "Histogram", sign: int) -> "Histogram":
+        if self.bounds == other.bounds:
+            cumulative = [a + sign * b for a, b in zip(self.cumulative, other.cumulative)]
+            return Histogram(cumulative, self.sum + sign * other.sum, self.count + sign * other.count, self.bounds)
+        bounds = tuple(sorted(set(self.bounds or ()) | set(other.bounds or ())))
+        cumulative = [a + sign * b for a, b in zip(self._at(bounds), other._at(bounds))]
+        return Histogram(cumulative, self.sum + sign * other.sum, self.count + sign * other.count, bounds)
+
+    def _at(self, bounds: tuple[float, ...]) -> list[int]:
+        """The cumulative count at each of `bounds`: that of the highest own bound not above it."""
+        out, i, mine = [], -1, self.bounds or ()
+        for b in bounds:
+            while i + 1 < len(mine) and mine[i + 1] <= b:
+                i += 1
+            out.append(self.cumulative[i] if i >= 0 else 0)
+        return out
 
 
 class Snapshot:

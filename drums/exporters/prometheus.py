@@ -69,7 +69,8 @@ def _family(metric: Metric, rows, known: dict, kept: dict) -> str:
     if metric.kind == HISTOGRAM:
         bounds = ['le="' + _number(b) + '"' for b in metric.buckets]
         for values, h in rows:
-            for bound, count in zip(bounds, h.cumulative):
+            own = bounds if h.bounds is None else ['le="' + _number(b) + '"' for b in h.bounds]
+            for bound, count in zip(own, h.cumulative):
                 lines.append(f"{name}_bucket{_labels(names, values, bound)} {count}\n")
             lines.append(f"{name}_bucket{_labels(names, values, _INF)} {h.count}\n")
             lines.append(f"{name}_sum{_labels(names, values)} {_number(h.sum)}\n")

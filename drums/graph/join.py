@@ -16,7 +16,7 @@ from __future__ import annotations
 from collections import defaultdict
 
 from drums.graph.model import Connection, Endpoint, Node
-from drums.metrics import COUNTER, GAUGE, HISTOGRAM, INFO, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, INFO, Histogram, Metric, Snapshot
 from drums.probes import process, rcl, rtps, sched, sockets, tcp
 
 NODE = ("node",)
@@ -36,6 +36,9 @@ TOPIC_PUBLISHED = Metric("drums_topic_messages_published_total", COUNTER,
                          "Messages the node published on the topic (rcl_publish)", TOPIC)
 TOPIC_TAKEN = Metric("drums_topic_messages_taken_total", COUNTER,
                      "Messages the node took from the topic (rcl_take)", TOPIC)
+TOPIC_PUBLISH_PERIOD = Metric("drums_topic_publish_period_seconds", HISTOGRAM,
+                              "Time between two messages the node published on the topic (rcl_publish); "
+                              "buckets as in drums_ros_publish_period_seconds", TOPIC, additive=False)
 TOPIC_SAMPLES_SENT = Metric("drums_topic_samples_sent_total", COUNTER,
                             "Samples of the node's writer on the topic sent over UDP", TOPIC)
 TOPIC_SENT_BYTES = Metric("drums_topic_sent_bytes_total", COUNTER,
@@ -66,7 +69,7 @@ UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
                       "nodes on the topic and no endpoint GID", ("kind",))
 UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
-           TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
+           TOPIC_PUBLISH_PERIOD, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
            EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
 INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
@@ -120,14 +123,14 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
             out.add(TOPIC_DEADLINE, (e.topic, e.node), deadline / 1e9)
     unknown: dict[str, int] = defaultdict(int)
 
-    def owner(pid: str, kind: str, topic: str, gid: str = "") -> str:
+    def owner(pid: str, kind: str, topic: str, gid: str = "", counted: bool = True) -> str:
         e = by_gid.get(gid) if gid else None
         if e is not None and e.kind == kind:
             return e.node
         nodes = members.get((pid, kind, topic), ())
         if len(nodes) == 1:
             return nodes[0]
-        unknown[kind] += 1
+        unknown[kind] += counted
         return UNKNOWN
 
     # Rows that name the same entity are summed: counts no node is known for, a node with two
@@ -151,6 +154,12 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
                 sums[metric][e.topic, e.node, owner(pid, "subscriber", e.topic)] += value
     for metric, rows in sums.items():
         out.rows(metric).extend(rows.items())
+    # A node's publishers on one topic (rarely more than one) share its histogram.
+    periods: dict[tuple[str, str], Histogram] = {}
+    for (pid, _, topic, gid), h in raw.of(rcl.PERIOD):
+        key = (topic, owner(pid, "publisher", topic, gid, counted=False))  # counted with its messages
+        periods[key] = periods[key] + h if key in periods else h
+    out.rows(TOPIC_PUBLISH_PERIOD).extend(periods.items())
     for kind in ("publisher", "subscriber"):
         out.add(UNATTRIBUTED, (kind,), unknown[kind])
     _socket_edges(connections, raw, out)

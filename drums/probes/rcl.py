@@ -1,5 +1,6 @@
-"""Messages published and taken per ROS 2 process and topic, from uprobes on librcl
-(bpf/rcl.bpf.c): counts that shared memory hides from every socket.
+"""Messages published and taken per ROS 2 process and topic, and the time between two publishes
+of each publisher, from uprobes on librcl (bpf/rcl.bpf.c): what shared memory hides from every
+socket.
 
 The programs are loaded once; each librcl.so file that a process maps is found in
 /proc/<pid>/maps (as soon as it is mapped: drums.probes.loads) and gets its own pinned uprobe
@@ -15,10 +16,12 @@ import glob
 import os
 import struct
 
+import numpy as np
+
 from drums.errors import ProbeError
 from drums.kernel import bpffs, perflink
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, Metric, Snapshot
+from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
 from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
 from drums.proctable import MappedLibraries, ProcessTable, mapped_file
 
@@ -43,6 +46,21 @@ PUBLISHED = Metric("drums_ros_messages_published_total", COUNTER,
                    "Messages this process published on the topic (rcl_publish), whatever the transport", LABELS)
 TAKEN = Metric("drums_ros_messages_taken_total", COUNTER,
                "Messages this process took from the topic (rcl_take), whatever the transport", LABELS)
+PERIOD_HELP = ("Time between two messages of the publisher (rcl_publish): its buckets are the edges of "
+               "the kernel's slots (1.6% wide, 128 us to 16.8 s) that counted any, so a quantile is within 1%")
+PERIOD = Metric("drums_ros_publish_period_seconds", HISTOGRAM, PERIOD_HELP, LABELS)
+
+# bpf/rcl.bpf.c's period slots: 2^SUB_LOG2 a power of two of microseconds from 2^MIN_LOG2, one
+# under and one over.
+SUB_LOG2, MIN_LOG2, OCTAVES = 6, 7, 17
+SLOTS = (OCTAVES << SUB_LOG2) + 2
+_OCTAVE_OF = MIN_LOG2 + np.arange(OCTAVES << SUB_LOG2) // (1 << SUB_LOG2)
+_LOWER_US = np.concatenate(([0.0], 2.0 ** _OCTAVE_OF * (1 + (np.arange(OCTAVES << SUB_LOG2) % (1 << SUB_LOG2))
+                                                     / (1 << SUB_LOG2)), [2.0 ** (MIN_LOG2 + OCTAVES)]))
+SLOT_LOWER = _LOWER_US / 1e6  # seconds; slot i holds periods in [SLOT_LOWER[i], SLOT_UPPER[i])
+SLOT_UPPER = np.append(SLOT_LOWER[1:], np.inf)
+MAX_SLOTS = 32  # slots shown per publisher: beyond, neighbours are merged (its buckets get coarser)
+_PERIOD_VALUE = np.dtype([("last", "<u8"), ("sum", "<u8"), ("slots", "<u4", SLOTS)])
 
 _KEY = struct.Struct("<IIQ")
 _U64 = struct.Struct("<Q")
@@ -108,11 +126,33 @@ def _gid(mem: int, data: int, identifier: int) -> str:
     return ""
 
 
+def period_histogram(slots: np.ndarray, total_ns: int) -> Histogram:
+    """A publisher's periods, from its kernel slots: a bucket at each edge of each slot that holds
+    counts, so the quantiles are as fine as the slots. Past MAX_SLOTS such slots, neighbours within a
+    power of two are merged, in pairs, then fours, until no more than that hold counts."""
+    counts, lower, upper = slots.astype(np.int64), SLOT_LOWER, SLOT_UPPER
+    step = 1
+    while np.count_nonzero(counts) > MAX_SLOTS and step < 1 << SUB_LOG2:
+        step *= 2
+        counts = np.concatenate(([slots[0]], slots[1:-1].reshape(-1, step).sum(axis=1), [slots[-1]]))
+        lower = np.concatenate(([SLOT_LOWER[0]], SLOT_LOWER[1:-1:step], [SLOT_LOWER[-1]]))
+        upper = np.concatenate(([SLOT_UPPER[0]], SLOT_UPPER[step:-1:step], [SLOT_UPPER[-1]]))
+    used = np.flatnonzero(counts)
+    cumulative = np.cumsum(counts[used])
+    edges = np.column_stack((lower[used], upper[used])).ravel()
+    at = np.column_stack((cumulative - counts[used], cumulative)).ravel()
+    keep = (edges > 0) & np.isfinite(edges)
+    edges, at = edges[keep], at[keep]
+    first = np.concatenate(([True], np.diff(edges) > 0))  # neighbouring slots share an edge
+    total = int(cumulative[-1]) if len(used) else 0
+    return Histogram(at[first].tolist(), total_ns / 1e9, total, tuple(edges[first].tolist()))
+
+
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
-    maps = ("handles", "dropped")
-    metrics = (PUBLISHED, TAKEN)
+    maps = ("handles", "periods", "dropped")
+    metrics = (PUBLISHED, TAKEN, PERIOD)
     paths = (
         AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
                    "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
@@ -126,6 +166,7 @@ class RclProbe(BpfProbe):
         self._programs: dict[str, int] = {}
         self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
         self._endpoints: dict[tuple[int, int], tuple[str, str]] = {}  # (pid, handle) -> (topic, GID)
+        self._periods: dict[tuple[int, int], tuple[int, Histogram]] = {}  # (pid, handle) -> (count, histogram)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         return {}  # only user memory, through the registers of the calling convention
@@ -181,19 +222,43 @@ class RclProbe(BpfProbe):
         keys, values, _ = self.read("handles")
         totals: dict[tuple[int, int, str, str], int] = {}
         for i, (pid, op, handle) in enumerate(_KEY.iter_unpack(keys)):
-            if pid not in processes:
-                # Counted before its map was read again (it just loaded librcl), or ended.
-                if not self.proctable.belongs(pid):
-                    self.opened["handles"].delete(keys[i * _KEY.size:(i + 1) * _KEY.size])
-                continue
-            endpoint = self._endpoints.get((pid, handle))
-            if endpoint is None:
-                endpoint = endpoint_of(pid, handle)
-                if endpoint is not None:
-                    self._endpoints[(pid, handle)] = endpoint
-            key = (pid, op) + (endpoint or (UNKNOWN_TOPIC, ""))
-            totals[key] = totals.get(key, 0) + _U64.unpack_from(values, i * 8)[0]
-        self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
+            endpoint = self._endpoint(pid, handle, processes, "handles", keys[i * _KEY.size:(i + 1) * _KEY.size])
+            if endpoint is not None:
+                key = (pid, op) + endpoint
+                totals[key] = totals.get(key, 0) + _U64.unpack_from(values, i * 8)[0]
         for (pid, op, topic, gid), count in totals.items():
             snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
+        self._collect_periods(snap, processes)
+        self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
         self.read_dropped()
+
+    def _endpoint(self, pid: int, handle: int, processes: dict, map_name: str, key: bytes) -> tuple[str, str] | None:
+        """The (topic, GID) of a handle, (UNKNOWN_TOPIC, "") while it cannot be read; None for a
+        process not followed yet (it just loaded librcl) or gone, whose entry is then deleted."""
+        if pid not in processes:
+            if not self.proctable.belongs(pid):
+                self.opened[map_name].delete(key)
+            return None
+        endpoint = self._endpoints.get((pid, handle))
+        if endpoint is None:
+            endpoint = endpoint_of(pid, handle)
+            if endpoint is not None:
+                self._endpoints[(pid, handle)] = endpoint
+        return endpoint or (UNKNOWN_TOPIC, "")
+
+    def _collect_periods(self, snap: Snapshot, processes: dict) -> None:
+        """One histogram per publisher, made again only for publishers that published since."""
+        keys, values, n = self.read("periods")
+        table = np.frombuffer(values, _PERIOD_VALUE, count=n)
+        counts = table["slots"].sum(axis=1, dtype=np.int64) if n else ()
+        kept = {}
+        for i, (pid, _, handle) in enumerate(_KEY.iter_unpack(keys)):
+            endpoint = self._endpoint(pid, handle, processes, "periods", keys[i * _KEY.size:(i + 1) * _KEY.size])
+            if endpoint is None or not counts[i]:
+                continue
+            known = self._periods.get((pid, handle))
+            if known is None or known[0] != counts[i]:
+                known = (int(counts[i]), period_histogram(table["slots"][i], int(table["sum"][i])))
+            kept[(pid, handle)] = known
+            snap.add(PERIOD, (str(pid), self.proctable.name(pid)) + endpoint, known[1])
+        self._periods = kept

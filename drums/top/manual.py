@@ -31,8 +31,9 @@ and every process that holds none
 Topics: every topic of the graph
   PUBS SUBS  publishing and subscribing nodes
   RATE       messages published per second by its publishers
-  JITTER     needs a histogram of publish periods, which the agent
-             does not export yet: -
+  JITTER     how much later than usual its late messages came:
+             p99 less p50 of the time between two messages of a
+             publisher over the last interval, its worst publisher
   BANDWIDTH  serialized bytes per second sent over UDP
              (shared memory carries none that can be counted)
   LOST       messages published to a subscriber and not taken

@@ -12,14 +12,15 @@ from dataclasses import dataclass, field
 from drums.client import Agent, AgentError
 from drums.top import exposition
 
-# From /metrics: processes (those without a node too), sockets, and the run-queue histograms
-# (the graph carries a histogram's count and sum only, and a percentile needs its buckets).
+# From /metrics: processes (those without a node too), sockets, and the run-queue and publish
+# period histograms (the graph carries a histogram's count and sum only, and a percentile needs
+# its buckets).
 METRICS = (
     "drums_process_cpu_seconds_total", "drums_process_resident_memory_bytes",
     "drums_process_socket_sent_bytes_total", "drums_process_socket_received_bytes_total",
     "drums_process_runqueue_latency_seconds_bucket", "drums_node_runqueue_latency_seconds_bucket",
     "drums_socket_sent_bytes_total", "drums_socket_received_bytes_total",
-    "drums_tcp_connection_smoothed_rtt_seconds",
+    "drums_tcp_connection_smoothed_rtt_seconds", "drums_topic_publish_period_seconds_bucket",
 )
 
 

@@ -13,7 +13,6 @@ from drums.top.poll import Poll
 from drums.top.rates import quantile, rate, total
 from drums.top.table import Column, Row, Table
 
-JITTER_NOTE = "JITTER: needs a histogram of publish periods, which the agent does not export yet"
 
 
 def host_column(frame: Frame) -> Column:
@@ -40,6 +39,30 @@ def histograms(poll: Poll | None, name: str, label: str) -> dict[str, dict[float
     out: dict[str, dict[float, float]] = defaultdict(dict)
     for labels, value in poll.metrics.get(name, ()) if poll else ():
         out[labels[label]][float(labels["le"])] = value
+    return out
+
+
+def jitters(frame: Frame) -> dict[str, float]:
+    """topic -> how much later than usual its late messages came over the last interval: p99 less
+    p50 of the time between two messages of a publisher, the worst of the topic's publishers (each
+    from the agent of its node's host)."""
+    mine = owners(frame)
+    out: dict[str, float] = {}
+    for agent in frame.live():
+        if agent.before is None:
+            continue
+        by_pair: list[dict[tuple[str, str], dict[float, float]]] = []
+        for poll in (agent.latest, agent.before):
+            pairs: dict[tuple[str, str], dict[float, float]] = defaultdict(dict)
+            for labels, value in poll.metrics.get("drums_topic_publish_period_seconds_bucket", ()):
+                if mine.get(labels["node"]) is agent:
+                    pairs[labels["topic"], labels["node"]][float(labels["le"])] = value
+            by_pair.append(pairs)
+        for (topic, node), now in by_pair[0].items():
+            before = by_pair[1].get((topic, node), {})
+            p99, p50 = quantile(0.99, now, before), quantile(0.5, now, before)
+            if p99 is not None and p50 is not None:
+                out[topic] = max(out.get(topic, 0.0), p99 - p50)
     return out
 
 
@@ -207,10 +230,11 @@ TOPIC_COLUMNS = [
 def topics(frame: Frame, losses: Losses) -> Table:
     """Each topic: its publishing and subscribing nodes, messages published per second (all its
     publishers), serialized bytes sent per second over UDP, and messages lost since top saw both
-    ends (losses.py). Jitter needs a period histogram the agent does not have yet."""
+    ends (losses.py), and the jitter of its publishers' periods (jitters)."""
     published = topic_counters(frame, "messages_published_total")
     taken = topic_counters(frame, "messages_taken_total")
     sent = topic_counters(frame, "sent_bytes_total")
+    jitter = jitters(frame)
     names: dict[str, dict] = {}
     ends: dict[str, dict[str, set]] = defaultdict(lambda: {"publisher": set(), "subscriber": set()})
     links: dict[str, set] = defaultdict(set)
@@ -228,11 +252,11 @@ def topics(frame: Frame, losses: Losses) -> Table:
         rows.append(Row(f"topic|{name}", {
             "name": name, "type": ", ".join(v.get("types") or ()) or None,
             "publishers": len(ends[name]["publisher"]), "subscribers": len(ends[name]["subscriber"]),
-            "rate_hz": total(rates(pubs).values()), "jitter_seconds": None,
+            "rate_hz": total(rates(pubs).values()), "jitter_seconds": jitter.get(name),
             "bytes_per_second": total(rates(sent.get(name, {})).values()),
             "lost": losses.lost(name, read, sorted(links[name]), {n: c[0] for n, c in pubs.items()},
                                 {n: c[0] for n, c in taken.get(name, {}).items()})}))
-    return Table("topics", TOPIC_COLUMNS, rows, sort="rate_hz", spark="rate_hz", note=JITTER_NOTE)
+    return Table("topics", TOPIC_COLUMNS, rows, sort="rate_hz", spark="rate_hz")
 
 
 EDGE_COLUMNS = [

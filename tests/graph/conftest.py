@@ -40,6 +40,12 @@ class RosProcess:
         self.proc.stdin.flush()
         return int(self.proc.stdout.readline().split()[1])
 
+    def periods(self) -> list[float]:
+        """Seconds between the metronome's publishes, as it measured them."""
+        self.proc.stdin.write("periods\n")
+        self.proc.stdin.flush()
+        return [int(ns) / 1e9 for ns in self.proc.stdout.readline().split()[1:]]
+
     def go(self) -> None:
         """Start the burst of a publisher run with DRUMS_TEST_BURST."""
         self.proc.stdin.write("go\n")

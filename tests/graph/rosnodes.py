@@ -4,7 +4,9 @@ Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), pro
 image-like message on /image at 10 Hz; $DRUMS_TEST_IMAGE_BYTES sets another size), viewer
 (subscribes /image), processor (/image -> /processed), sink (subscribes /processed), idle (a node
 with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory, default 100 kB,
-every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout). Several NAMEs
+every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
+"go", publishes $DRUMS_TEST_BURST messages on /beat, 20 ms apart but every tenth 40 ms, and on a line
+"periods" prints the times between its publishes as it measured them). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
 "ready <pid>" once its nodes exist, and on each line of input "count <n>" with the messages it
 published or received so far (a line "go" starts a burst instead: see DRUMS_TEST_BURST). With
@@ -101,11 +103,31 @@ def make(role: str, name: str) -> Node:
         kept = []
         # b"x" * n writes every page, so the memory is resident at once
         node.create_timer(0.1, lambda: kept.append(b"x" * leak_bytes))
+    elif role == "metronome":
+        pub = node.create_publisher(String, "beat", 10)
+        threading.Thread(target=beat, args=(pub,), daemon=True).start()
     elif role == "flooder":
         node.create_timer(0.01, lambda: node.get_logger().info("flooding /rosout"))
     elif role != "idle":
         raise SystemExit(f"unknown role {role}")
     return node
+
+
+started = threading.Event()
+beats = []  # time.monotonic_ns() right before each publish of the metronome
+
+
+def beat(pub) -> None:
+    """Publish on an absolute schedule, so that a late wakeup does not shift the ones after it."""
+    msg = String(data="beat")
+    started.wait()
+    due = time.monotonic_ns()
+    for i in range(burst):
+        time.sleep(max(0, due - time.monotonic_ns()) / 1e9)
+        beats.append(time.monotonic_ns())
+        pub.publish(msg)
+        counted[0] += 1
+        due += 40_000_000 if i % 10 == 9 else 20_000_000
 
 
 def main() -> None:
@@ -122,6 +144,10 @@ def main() -> None:
             if line.strip() == "go":
                 for left in bursts:
                     left[0] = burst
+                started.set()
+                continue
+            if line.strip() == "periods":
+                print("periods", *(b - a for a, b in zip(beats, beats[1:])), flush=True)
                 continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us

@@ -94,7 +94,10 @@ def test_each_view_shows_what_the_nodes_count(agent, ros_nodes):
             assert seen["sender"]["NAME"] == "python" and seen["sender"]["PUB"] == "-", seen["sender"]
             close(number(seen["sender"]["TX"]), sent, "process bytes sent")
             chatter, = [r for r in seen["topics"] if r["TOPIC"] == "/chatter"]
-            assert (chatter["PUBS"], chatter["SUBS"], chatter["JITTER"], chatter["LOST"]) == ("1", "1", "-", "0")
+            assert (chatter["PUBS"], chatter["SUBS"], chatter["LOST"]) == ("1", "1", "0")
+            # A 10 Hz timer: its late messages come a few ms late, not a period (the quantiles
+            # themselves are checked against a publisher's own clock in test_topic_timing).
+            assert 0 <= number(chatter["JITTER"]) < 0.02, chatter
             close(number(chatter["RATE"]), published, "topic rate")
             close(number(chatter["BANDWIDTH"]), published * size, "topic bandwidth")
             edge, = [r for r in seen["edges"] if r["TOPIC"] == "/chatter"]
