@@ -32,11 +32,16 @@ BPF_HASH(handles, struct handle_key_t, u64, 16384);
 struct period_t {
     u64 last_ns;  // when the publisher last published
     u64 sum_ns;
+    u64 missed;   // deadlines that passed between two messages, for a publisher in `deadlines`
     u32 slots[PERIOD_SLOTS];
 };
 // Allocated as publishers first publish (4.4 KB each), not for all of them up front.
 BPF_F_TABLE("hash", struct handle_key_t, struct period_t, periods, 4096, BPF_F_NO_PREALLOC);
 BPF_PERCPU_ARRAY(period_zero, struct period_t, 1);  // never written: what a new entry starts as
+// The Deadline QoS of publishers that offer one, in ns, written by the agent from the graph: a
+// period of n deadlines or more counts n missed, as the kernel saw the messages (not as the
+// application's QoS events say).
+BPF_HASH(deadlines, struct handle_key_t, u64, 4096);
 // The subscription a thread passed to rcl_take, kept until it returns. Task-local storage, not a
 // hash keyed by thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
 BPF_TASK_STORAGE(takes, u64);
@@ -93,6 +98,9 @@ static __always_inline void period(struct handle_key_t *key, u64 now)
     if (!last || now <= last)
         return;
     __sync_fetch_and_add(&p->sum_ns, now - last);
+    u64 *deadline = deadlines.lookup(key);
+    if (deadline && *deadline)
+        __sync_fetch_and_add(&p->missed, (now - last) / *deadline);
     u64 slot = period_slot(now - last);  // 64 bits: the verifier follows the bound to the access
     if (slot < PERIOD_SLOTS)
         __sync_fetch_and_add(&p->slots[slot], 1);

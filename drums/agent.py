@@ -16,7 +16,7 @@ from typing import Callable
 from drums import linear_re
 from drums.budget import Budget
 from drums.errors import DrumsError, UsageError
-from drums.graph.join import join
+from drums.graph.join import GID_HEX, INFINITE_NS, join
 from drums.graph.model import ENTITIES, Graph
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.probes.base import Probe
@@ -181,6 +181,7 @@ class Agent:
         """The snapshot to export: every probe, joined onto the graph, selected and budgeted."""
         began = time.perf_counter()
         self._want_rtt()
+        self._want_deadlines()
         raw = self._read({p.name for p in self.probes})
         joined = Snapshot()
         if self.graph is not None:
@@ -202,6 +203,18 @@ class Agent:
         for probe in self.probes:
             if hasattr(probe, "want_rtt"):
                 probe.want_rtt(pairs)
+
+    def _want_deadlines(self) -> None:
+        """The Deadline QoS of the graph's publishers, for the probe that counts their misses."""
+        deadlines = {}
+        if self.graph is not None:
+            for e in self.graph.entities("endpoint"):
+                ns = e.qos.get("deadline_ns", 0)
+                if e.kind == "publisher" and 0 < ns < INFINITE_NS:
+                    deadlines[e.id[:GID_HEX]] = ns
+        for probe in self.probes:
+            if hasattr(probe, "want_deadlines"):
+                probe.want_deadlines(deadlines)
 
     def _read(self, names: set[str]) -> Snapshot:
         """The rows of the probes called `names`."""

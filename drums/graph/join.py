@@ -39,6 +39,9 @@ TOPIC_TAKEN = Metric("drums_topic_messages_taken_total", COUNTER,
 TOPIC_PUBLISH_PERIOD = Metric("drums_topic_publish_period_seconds", HISTOGRAM,
                               "Time between two messages the node published on the topic (rcl_publish); "
                               "buckets as in drums_ros_publish_period_seconds", TOPIC, additive=False)
+TOPIC_DEADLINES_MISSED = Metric("drums_topic_deadlines_missed_total", COUNTER,
+                                "Deadlines the node's publisher on the topic offers (Deadline QoS) that passed "
+                                "without a message from it, as the kernel saw its messages", TOPIC)
 TOPIC_SAMPLES_SENT = Metric("drums_topic_samples_sent_total", COUNTER,
                             "Samples of the node's writer on the topic sent over UDP", TOPIC)
 TOPIC_SENT_BYTES = Metric("drums_topic_sent_bytes_total", COUNTER,
@@ -69,7 +72,7 @@ UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
                       "nodes on the topic and no endpoint GID", ("kind",))
 UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
-           TOPIC_PUBLISH_PERIOD, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
+           TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
            EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
 INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
@@ -140,6 +143,8 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
                                  (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
         for (pid, _, topic, gid), value in raw.of(source):
             sums[metric][topic, owner(pid, kind, topic, gid)] += value
+    for (pid, _, topic, gid), value in raw.of(rcl.MISSED):  # counted with its messages
+        sums[TOPIC_DEADLINES_MISSED][topic, owner(pid, "publisher", topic, gid, counted=False)] += value
     for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES),
                            (TOPIC_SENT_WIRE_BYTES, rtps.SENT_WIRE_BYTES)):
         for (_, _, writer), value in raw.of(source):

@@ -15,13 +15,14 @@ from __future__ import annotations
 import glob
 import os
 import struct
+import time
 
 import numpy as np
 
 from drums.errors import ProbeError
 from drums.kernel import bpffs, perflink
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
+from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
 from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
 from drums.proctable import MappedLibraries, ProcessTable, mapped_file
 
@@ -49,6 +50,10 @@ TAKEN = Metric("drums_ros_messages_taken_total", COUNTER,
 PERIOD_HELP = ("Time between two messages of the publisher (rcl_publish): its buckets are the edges of "
                "the kernel's slots (1.6% wide, 128 us to 16.8 s) that counted any, so a quantile is within 1%")
 PERIOD = Metric("drums_ros_publish_period_seconds", HISTOGRAM, PERIOD_HELP, LABELS)
+MISSED = Metric("drums_ros_deadlines_missed_total", COUNTER,
+                "Deadlines (the Deadline QoS the publisher offers) that passed without a message from it, as "
+                "the kernel saw its messages; counted while the silence lasts; only publishers with a deadline",
+                LABELS)
 
 # bpf/rcl.bpf.c's period slots: 2^SUB_LOG2 a power of two of microseconds from 2^MIN_LOG2, one
 # under and one over.
@@ -60,7 +65,7 @@ _LOWER_US = np.concatenate(([0.0], 2.0 ** _OCTAVE_OF * (1 + (np.arange(OCTAVES <
 SLOT_LOWER = _LOWER_US / 1e6  # seconds; slot i holds periods in [SLOT_LOWER[i], SLOT_UPPER[i])
 SLOT_UPPER = np.append(SLOT_LOWER[1:], np.inf)
 MAX_SLOTS = 32  # slots shown per publisher: beyond, neighbours are merged (its buckets get coarser)
-_PERIOD_VALUE = np.dtype([("last", "<u8"), ("sum", "<u8"), ("slots", "<u4", SLOTS)])
+_PERIOD_VALUE = np.dtype([("last", "<u8"), ("sum", "<u8"), ("missed", "<u8"), ("slots", "<u4", SLOTS)])
 
 _KEY = struct.Struct("<IIQ")
 _U64 = struct.Struct("<Q")
@@ -151,8 +156,8 @@ def period_histogram(slots: np.ndarray, total_ns: int) -> Histogram:
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
-    maps = ("handles", "periods", "dropped")
-    metrics = (PUBLISHED, TAKEN, PERIOD)
+    maps = ("handles", "periods", "deadlines", "dropped")
+    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED)
     paths = (
         AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
                    "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
@@ -167,6 +172,9 @@ class RclProbe(BpfProbe):
         self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
         self._endpoints: dict[tuple[int, int], tuple[str, str]] = {}  # (pid, handle) -> (topic, GID)
         self._periods: dict[tuple[int, int], tuple[int, Histogram]] = {}  # (pid, handle) -> (count, histogram)
+        self._deadlines: dict[str, int] = {}  # endpoint GID -> the Deadline QoS it offers, ns
+        self._written: dict[tuple[int, int], tuple[bytes, int]] = {}  # (pid, handle) -> (map key, deadline)
+        self._missed = Monotonic()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         return {}  # only user memory, through the registers of the calling convention
@@ -246,19 +254,46 @@ class RclProbe(BpfProbe):
                 self._endpoints[(pid, handle)] = endpoint
         return endpoint or (UNKNOWN_TOPIC, "")
 
+    def want_deadlines(self, deadlines: dict[str, int]) -> None:
+        """The Deadline QoS (ns) of the graph's publishers that offer one, by endpoint GID."""
+        self._deadlines = deadlines
+
     def _collect_periods(self, snap: Snapshot, processes: dict) -> None:
-        """One histogram per publisher, made again only for publishers that published since."""
+        """One histogram per publisher, made again only for publishers that published since, and
+        the deadlines it missed: those the kernel counted between two messages, and those that
+        passed since its last."""
         keys, values, n = self.read("periods")
+        now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock
         table = np.frombuffer(values, _PERIOD_VALUE, count=n)
         counts = table["slots"].sum(axis=1, dtype=np.int64) if n else ()
-        kept = {}
+        kept, written = {}, {}
         for i, (pid, _, handle) in enumerate(_KEY.iter_unpack(keys)):
-            endpoint = self._endpoint(pid, handle, processes, "periods", keys[i * _KEY.size:(i + 1) * _KEY.size])
-            if endpoint is None or not counts[i]:
+            key = keys[i * _KEY.size:(i + 1) * _KEY.size]
+            endpoint = self._endpoint(pid, handle, processes, "periods", key)
+            if endpoint is None:
+                continue
+            labels = (str(pid), self.proctable.name(pid)) + endpoint
+            deadline = self._deadlines.get(endpoint[1], 0) if endpoint[1] else 0
+            if self._written.get((pid, handle), (key, 0))[1] != deadline:
+                if deadline:
+                    self.opened["deadlines"].update(key, _U64.pack(deadline))
+                else:
+                    self.opened["deadlines"].delete(key)
+            if deadline:
+                written[(pid, handle)] = (key, deadline)
+                # Read with the entry, in which the kernel moves last_ns before it adds to missed: a
+                # read between the two sees a smaller sum, which Monotonic holds back.
+                silent = (now - int(table["last"][i])) // deadline if table["last"][i] else 0
+                snap.add(MISSED, labels, self._missed((pid, handle), int(table["missed"][i]) + max(0, silent)))
+            if not counts[i]:
                 continue
             known = self._periods.get((pid, handle))
             if known is None or known[0] != counts[i]:
                 known = (int(counts[i]), period_histogram(table["slots"][i], int(table["sum"][i])))
             kept[(pid, handle)] = known
-            snap.add(PERIOD, (str(pid), self.proctable.name(pid)) + endpoint, known[1])
-        self._periods = kept
+            snap.add(PERIOD, labels, known[1])
+        for handle, (key, _) in self._written.items():
+            if handle not in written:
+                self.opened["deadlines"].delete(key)  # its process ended, or it offers no deadline now
+        self._periods, self._written = kept, written
+        self._missed.next_collect()

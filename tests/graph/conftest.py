@@ -40,11 +40,11 @@ class RosProcess:
         self.proc.stdin.flush()
         return int(self.proc.stdout.readline().split()[1])
 
-    def periods(self) -> list[float]:
-        """Seconds between the metronome's publishes, as it measured them."""
-        self.proc.stdin.write("periods\n")
+    def beats(self) -> list[int]:
+        """CLOCK_MONOTONIC (ns) right before each of the metronome's publishes."""
+        self.proc.stdin.write("beats\n")
         self.proc.stdin.flush()
-        return [int(ns) / 1e9 for ns in self.proc.stdout.readline().split()[1:]]
+        return [int(ns) for ns in self.proc.stdout.readline().split()[1:]]
 
     def go(self) -> None:
         """Start the burst of a publisher run with DRUMS_TEST_BURST."""

@@ -5,8 +5,9 @@ image-like message on /image at 10 Hz; $DRUMS_TEST_IMAGE_BYTES sets another size
 (subscribes /image), processor (/image -> /processed), sink (subscribes /processed), idle (a node
 with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory, default 100 kB,
 every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
-"go", publishes $DRUMS_TEST_BURST messages on /beat, 20 ms apart but every tenth 40 ms, and on a line
-"periods" prints the times between its publishes as it measured them). Several NAMEs
+"go", publishes $DRUMS_TEST_BURST messages on /beat (with $DRUMS_TEST_DEADLINE_MS), the times between
+them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but every tenth 40 ms;
+on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
 "ready <pid>" once its nodes exist, and on each line of input "count <n>" with the messages it
 published or received so far (a line "go" starts a burst instead: see DRUMS_TEST_BURST). With
@@ -104,7 +105,7 @@ def make(role: str, name: str) -> Node:
         # b"x" * n writes every page, so the memory is resident at once
         node.create_timer(0.1, lambda: kept.append(b"x" * leak_bytes))
     elif role == "metronome":
-        pub = node.create_publisher(String, "beat", 10)
+        pub = node.create_publisher(String, "beat", qos())
         threading.Thread(target=beat, args=(pub,), daemon=True).start()
     elif role == "flooder":
         node.create_timer(0.01, lambda: node.get_logger().info("flooding /rosout"))
@@ -117,9 +118,18 @@ started = threading.Event()
 beats = []  # time.monotonic_ns() right before each publish of the metronome
 
 
+def schedule() -> list[int]:
+    """$DRUMS_TEST_PERIODS_MS ("20x9,40": nine of 20 ms, then one of 40) in ns."""
+    out = []
+    for part in os.environ.get("DRUMS_TEST_PERIODS_MS", "20x9,40").split(","):
+        ms, _, times = part.partition("x")
+        out += [int(float(ms) * 1_000_000)] * int(times or 1)
+    return out
+
+
 def beat(pub) -> None:
     """Publish on an absolute schedule, so that a late wakeup does not shift the ones after it."""
-    msg = String(data="beat")
+    msg, periods = String(data="beat"), schedule()
     started.wait()
     due = time.monotonic_ns()
     for i in range(burst):
@@ -127,7 +137,7 @@ def beat(pub) -> None:
         beats.append(time.monotonic_ns())
         pub.publish(msg)
         counted[0] += 1
-        due += 40_000_000 if i % 10 == 9 else 20_000_000
+        due += periods[i % len(periods)]
 
 
 def main() -> None:
@@ -146,8 +156,8 @@ def main() -> None:
                     left[0] = burst
                 started.set()
                 continue
-            if line.strip() == "periods":
-                print("periods", *(b - a for a, b in zip(beats, beats[1:])), flush=True)
+            if line.strip() == "beats":
+                print("beats", *beats, flush=True)
                 continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us
