@@ -139,10 +139,11 @@ def topic_alerts(cfg: Config) -> list[dict]:
             f"publishers, below the {least:g}/s expected of it (deploy/mixin/expected_rates.yaml).", topic=topic))
     rules += [
         alert(cfg, "DrumsTopicDeadlineMissed",
-              f"{published}\n< {1 - cfg.deadline_tolerance:g} / {cfg.series('drums_topic_deadline_seconds')}",
+              f"drums:topic_deadlines_missed:increase1m >= {cfg.deadline_misses:g}",
               cfg.deadline_missed_for, "warning", f"Deadline QoS missed: {w.topic_node}",
-              f"{w.topic_node} publishes {{{{ $value | humanize }}}} messages/s, fewer than the one per deadline "
-              f"its Deadline QoS offers (drums_topic_deadline_seconds): its subscribers see deadline misses."),
+              f"{w.topic_node} let {{{{ $value | humanize }}}} of the deadlines its Deadline QoS offers "
+              f"(drums_topic_deadline_seconds) pass without a message in the last minute, for "
+              f"{cfg.deadline_missed_for}: its subscribers see deadline-missed events."),
         alert(cfg, "DrumsTopicMessagesLost",
               f"drums:topic_messages_lost:ratio_rate1m > {cfg.topic_loss_ratio:g}", cfg.topic_loss_for, "warning",
               f"Messages lost on {cfg.label('topic')}: {cfg.label('node')} ({w.host})",

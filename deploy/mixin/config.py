@@ -50,7 +50,7 @@ class Config:
     topic_stalled_for: Duration
     topic_stalled_ignore: list
     topic_below_expected_for: Duration
-    deadline_tolerance: float
+    deadline_misses: float
     deadline_missed_for: Duration
     topic_loss_ratio: float
     topic_loss_for: Duration

@@ -60,6 +60,12 @@ def topic_rules(cfg: Config) -> list[dict]:
         record("drums:topic_messages_taken:rate1m", rate(cfg, "drums_topic_messages_taken_total")),
         record("drums:topic_sent_bytes:rate1m", rate(cfg, "drums_topic_sent_bytes_total")),
         record("drums:topic_sent_wire_bytes:rate1m", rate(cfg, "drums_topic_sent_wire_bytes_total")),
+        # Each publisher's buckets are its own (the edges of the kernel's slots that counted any).
+        *(record(f"drums:topic_publish_period_seconds:p{round(q * 100)}_rate1m",
+                 f"histogram_quantile({q}, {rate(cfg, 'drums_topic_publish_period_seconds_bucket')})")
+          for q in (0.5, 0.99)),
+        record("drums:topic_deadlines_missed:increase1m",
+               f"increase({cfg.series('drums_topic_deadlines_missed_total')}[{WINDOW}])"),
         # Publishers and subscribers of one topic may sit on different hosts of the robot.
         record(robot_published, f"sum by ({robot}, topic) ({published})"),
         # Per subscribing node: what the robot's publishers published that the node did not take.

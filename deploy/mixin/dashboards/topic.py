@@ -25,13 +25,17 @@ def build(cfg: Config) -> dashboard.Dashboard:
         .with_panel(timeseries_panel("Taken", "Messages per second each subscribing node took (rcl_take).",
                                      MESSAGES_PER_SECOND,
                                      query(s("drums:topic_messages_taken:rate1m"), legend("node", host))))
-        .with_panel(timeseries_panel("Publish period and deadline", "Mean time between two messages of each "
-                                     "publisher, beside the Deadline QoS it offers (DrumsTopicDeadlineMissed).", "s",
-                                     query(f"1 / {s('drums:topic_messages_published:rate1m')}",
-                                           legend("node") + " period"),
+        .with_panel(timeseries_panel("Publish period and deadline", "Time between two messages of each "
+                                     "publisher, p50 and p99 over a minute, beside the Deadline QoS it offers "
+                                     "(DrumsTopicDeadlineMissed).", "s",
+                                     query(s("drums:topic_publish_period_seconds:p50_rate1m"), legend("node") + " p50"),
+                                     query(s("drums:topic_publish_period_seconds:p99_rate1m"), legend("node") + " p99"),
                                      # every agent of the ROS domain reports every publisher's QoS
                                      query(f"max by ({cfg.robot_label}, topic, node) "
                                            f"({s('drums_topic_deadline_seconds')})", legend("node") + " deadline")))
+        .with_panel(timeseries_panel("Deadlines missed", "Deadlines each publisher let pass without a message "
+                                     "in the last minute, as the kernel saw its messages (DrumsTopicDeadlineMissed).",
+                                     "short", query(s("drums:topic_deadlines_missed:increase1m"), legend("node"))))
         .with_panel(timeseries_panel("Lost", "Share of the topic's messages on the robot each subscriber did not "
                                      "take (DrumsTopicMessagesLost).", "percentunit",
                                      query(s("drums:topic_messages_lost:ratio_rate1m"), legend("node", host))))
