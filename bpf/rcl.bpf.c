@@ -1,6 +1,7 @@
 // Messages published and taken per ROS 2 publisher and subscription, counted by uprobes on
-// librcl's rcl_publish* and rcl_take* functions, and the time between two publishes of each
-// publisher. On one host Fast DDS moves samples over shared
+// librcl's rcl_publish* and rcl_take* functions; the time between two publishes of each publisher;
+// and each node's reaction time: from a thread's take of a message to its publishes before it
+// waits again (rcl_wait) or runs a timer (rcl_timer_call), per input and output. On one host Fast DDS moves samples over shared
 // memory, where no socket sees them; every ROS 2 client library still goes through rcl.
 //
 // The agent attaches these programs to each librcl.so it finds in processes' memory maps, and
@@ -20,32 +21,46 @@ struct handle_key_t {
 
 BPF_HASH(handles, struct handle_key_t, u64, 16384);
 
-// Time between two publishes of one publisher, in log-linear slots: 2^PERIOD_SUB_LOG2 slots per
-// power of two of microseconds (each under 1.6% wide) from 2^PERIOD_MIN_LOG2 us (128 us) to
-// 2^24 us (16.8 s), one slot under and one over. The agent exports the edges of the slots that
-// hold counts as Prometheus buckets: a quantile within 1% of the truth at any rate, where a fixed
-// set of buckets would be off by up to a whole bucket.
-#define PERIOD_SUB_LOG2 6
-#define PERIOD_MIN_LOG2 7
-#define PERIOD_OCTAVES 17
-#define PERIOD_SLOTS ((PERIOD_OCTAVES << PERIOD_SUB_LOG2) + 2)
-struct period_t {
-    u64 last_ns;  // when the publisher last published
+// Times in log-linear slots: 2^SUB_LOG2 slots per power of two of nanoseconds (each under 1.6%
+// wide) over OCTAVES powers of two from 2^min_log2 ns, one slot under and one over. The agent
+// exports the edges of the slots that hold counts as Prometheus buckets: a quantile within 1% of
+// the truth at any rate, where a fixed set of buckets would be off by up to a whole bucket.
+#define SUB_LOG2 6
+#define OCTAVES 17
+#define SLOTS ((OCTAVES << SUB_LOG2) + 2)
+#define PERIOD_MIN_LOG2 17    // periods: 131 us to 17.2 s
+#define REACTION_MIN_LOG2 14  // reactions: 16 us to 2.1 s
+struct timing_t {
+    u64 last_ns;  // when the publisher last published (periods)
     u64 sum_ns;
     u64 missed;   // deadlines that passed between two messages, for a publisher in `deadlines`
-    u32 slots[PERIOD_SLOTS];
+    u32 slots[SLOTS];
 };
 // Allocated as publishers first publish (4.4 KB each), not for all of them up front.
-BPF_F_TABLE("hash", struct handle_key_t, struct period_t, periods, 4096, BPF_F_NO_PREALLOC);
-BPF_PERCPU_ARRAY(period_zero, struct period_t, 1);  // never written: what a new entry starts as
+BPF_F_TABLE("hash", struct handle_key_t, struct timing_t, periods, 4096, BPF_F_NO_PREALLOC);
+// A node's reaction: the subscription a thread took from and the publisher it then published on.
+struct reaction_key_t {
+    u32 tgid;
+    u32 pad;
+    u64 input;
+    u64 output;
+};
+BPF_F_TABLE("hash", struct reaction_key_t, struct timing_t, reactions, 4096, BPF_F_NO_PREALLOC);
+BPF_PERCPU_ARRAY(timing_zero, struct timing_t, 1);  // never written: what a new entry starts as
 // The Deadline QoS of publishers that offer one, in ns, written by the agent from the graph: a
 // period of n deadlines or more counts n missed, as the kernel saw the messages (not as the
 // application's QoS events say).
 BPF_HASH(deadlines, struct handle_key_t, u64, 4096);
-// The subscription a thread passed to rcl_take, kept until it returns. Task-local storage, not a
-// hash keyed by thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
-BPF_TASK_STORAGE(takes, u64);
-BPF_ARRAY(dropped, u64, 3);
+// Per thread: the subscription it passed to rcl_take, kept until it returns, and the last one it
+// took a message from and when, until it waits again. Task-local storage, not a hash keyed by
+// thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
+struct took_t {
+    u64 pending;
+    u64 input;
+    u64 at;
+};
+BPF_TASK_STORAGE(takes, struct took_t);
+BPF_ARRAY(dropped, u64, 4);
 
 static __always_inline void count_drop(int which)
 {
@@ -64,33 +79,43 @@ static __always_inline void count(struct handle_key_t *key)
         count_drop(1);
 }
 
-static __always_inline u64 period_slot(u64 ns)
+static __always_inline u64 log_slot(u64 ns, u64 min_log2)
 {
-    u64 us = ns / 1000;
-    if (us < (1ULL << PERIOD_MIN_LOG2))
+    if (ns < (1ULL << min_log2))
         return 0;
-    u64 octave = bpf_log2l(us) - 1;  // 2^octave <= us < 2^(octave + 1)
-    if (octave >= PERIOD_MIN_LOG2 + PERIOD_OCTAVES)
-        return PERIOD_SLOTS - 1;
-    u64 sub = (us >> (octave - PERIOD_SUB_LOG2)) & ((1 << PERIOD_SUB_LOG2) - 1);
-    return 1 + ((octave - PERIOD_MIN_LOG2) << PERIOD_SUB_LOG2) + sub;
+    u64 octave = bpf_log2l(ns) - 1;  // 2^octave <= ns < 2^(octave + 1)
+    if (octave >= min_log2 + OCTAVES)
+        return SLOTS - 1;
+    u64 sub = (ns >> (octave - SUB_LOG2)) & ((1 << SUB_LOG2) - 1);
+    return 1 + ((octave - min_log2) << SUB_LOG2) + sub;
+}
+
+// 64 bits: the verifier follows the bound to the access.
+static __always_inline void count_slot(struct timing_t *t, u64 slot)
+{
+    if (slot < SLOTS)
+        __sync_fetch_and_add(&t->slots[slot], 1);
+}
+
+// What a new entry of `periods` or `reactions` starts as (bcc names each map in its calls, so each
+// makes its own entries). Inserting fails if the map is full, or if another thread made it first.
+static __always_inline struct timing_t *zero_timing(void)
+{
+    int zero = 0;
+    return timing_zero.lookup(&zero);
 }
 
 static __always_inline void period(struct handle_key_t *key, u64 now)
 {
-    struct period_t *p = periods.lookup(key);
-    if (!p) {
-        int zero = 0;
-        struct period_t *fresh = period_zero.lookup(&zero);
-        if (!fresh)
-            return;
-        periods.insert(key, fresh);  // fails only if full, or if another thread made it first
+    struct timing_t *p = periods.lookup(key), *fresh;
+    if (!p && (fresh = zero_timing())) {
+        periods.insert(key, fresh);
         p = periods.lookup(key);
-        if (!p) {
+        if (!p)
             count_drop(2);
-            return;
-        }
     }
+    if (!p)
+        return;
     // Threads publishing at once on one publisher may both measure from the same last publish:
     // rare, and no count is lost.
     u64 last = p->last_ns;
@@ -101,9 +126,26 @@ static __always_inline void period(struct handle_key_t *key, u64 now)
     u64 *deadline = deadlines.lookup(key);
     if (deadline && *deadline)
         __sync_fetch_and_add(&p->missed, (now - last) / *deadline);
-    u64 slot = period_slot(now - last);  // 64 bits: the verifier follows the bound to the access
-    if (slot < PERIOD_SLOTS)
-        __sync_fetch_and_add(&p->slots[slot], 1);
+    count_slot(p, log_slot(now - last, PERIOD_MIN_LOG2));
+}
+
+static __always_inline void reaction(u32 tgid, u64 output, u64 now)
+{
+    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    if (!took || !took->input || now < took->at)
+        return;
+    struct reaction_key_t key = {.tgid = tgid, .input = took->input, .output = output};
+    struct timing_t *r = reactions.lookup(&key), *fresh;
+    if (!r && (fresh = zero_timing())) {
+        reactions.insert(&key, fresh);
+        r = reactions.lookup(&key);
+        if (!r)
+            count_drop(3);
+    }
+    if (!r)
+        return;
+    __sync_fetch_and_add(&r->sum_ns, now - took->at);
+    count_slot(r, log_slot(now - took->at, REACTION_MIN_LOG2));
 }
 
 int on_publish(struct pt_regs *ctx)
@@ -113,15 +155,16 @@ int on_publish(struct pt_regs *ctx)
                                .handle = PT_REGS_PARM1(ctx)};
     count(&key);
     period(&key, now);
+    reaction(key.tgid, key.handle, now);
     return 0;
 }
 
 // rcl_take returns RCL_RET_OK (0) only when it took a message: that needs the return probe too.
 int on_take(struct pt_regs *ctx)
 {
-    u64 *handle = takes.task_storage_get(bpf_get_current_task_btf(), 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
-    if (handle)
-        *handle = PT_REGS_PARM1(ctx);
+    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
+    if (took)
+        took->pending = PT_REGS_PARM1(ctx);
     else
         count_drop(0);
     return 0;
@@ -129,14 +172,26 @@ int on_take(struct pt_regs *ctx)
 
 int on_take_return(struct pt_regs *ctx)
 {
-    u64 *handle = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
-    if (!handle || !*handle)
+    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    if (!took || !took->pending)
         return 0;
-    u64 h = *handle;
-    *handle = 0;
+    u64 h = took->pending;
+    took->pending = 0;
     if (PT_REGS_RC(ctx) == 0) {
         struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = TAKEN, .handle = h};
         count(&key);
+        took->input = h;
+        took->at = bpf_ktime_get_ns();
     }
+    return 0;
+}
+
+// rcl_wait and rcl_timer_call: the thread is done with what it took (an executor waits again, or
+// runs a timer, whose publishes react to no message).
+int on_idle(struct pt_regs *ctx)
+{
+    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    if (took)
+        took->input = 0;
     return 0;
 }

@@ -32,28 +32,30 @@ def test_render_parses_back_with_prometheus_client_including_hostile_label_value
 def test_a_histogram_with_buckets_of_its_own_renders_them_and_adds_on_their_union():
     import numpy as np
 
-    from drums.probes.rcl import MAX_SLOTS, PERIOD, SLOT_LOWER, SLOT_UPPER, SLOTS, period_histogram
+    from drums.probes.rcl import MAX_SLOTS, PERIOD, PERIOD_EDGES, SLOTS, timing_histogram
+    lower, upper = PERIOD_EDGES
     slots = np.zeros(SLOTS, np.uint32)
-    at = np.searchsorted(SLOT_LOWER, [0.020, 0.0401], side="right") - 1  # 20 ms: slot [19.968, 20.224) ms
+    at = np.searchsorted(lower, [0.020, 0.0401], side="right") - 1
+    assert upper[at[0]] - lower[at[0]] < 0.016 * 0.020  # slots 1.6% wide at most
     slots[at] = (9, 1)
-    h = period_histogram(slots, 220_100_000)
-    assert h.bounds == (SLOT_LOWER[at[0]], SLOT_UPPER[at[0]], SLOT_LOWER[at[1]], SLOT_UPPER[at[1]])
-    assert (h.cumulative, h.count, h.sum) == ([0, 9, 9, 10], 10, 0.2201)
+    h = timing_histogram(slots, 220_100_000, PERIOD_EDGES)
+    edges = (lower[at[0]], upper[at[0]], lower[at[1]], upper[at[1]])
+    assert h.bounds == edges and (h.cumulative, h.count, h.sum) == ([0, 9, 9, 10], 10, 0.2201)
     snap = Snapshot()
     snap.add(PERIOD, ("1", "a", "/beat", ""), h)
     [family] = text_string_to_metric_families(render(snap).decode())
-    buckets = [(s.labels["le"], s.value) for s in family.samples if s.name.endswith("_bucket")]
-    assert buckets == [("0.019968", 0), ("0.020224", 9), ("0.039936", 9), ("0.040448", 10), ("+Inf", 10)]
+    buckets = [(float(s.labels["le"]), s.value) for s in family.samples if s.name.endswith("_bucket")]
+    assert buckets == list(zip(edges + (float("inf"),), (0, 9, 9, 10, 10)))
 
-    other = Histogram([0, 2], 0.5, 2, (0.019968, 0.5))  # a bucket in common, one not
+    other = Histogram([0, 2], 0.5, 2, (edges[0], 0.5))  # a bucket in common, one not
     both = h + other
-    assert both.bounds == (0.019968, 0.020224, 0.039936, 0.040448, 0.5)
+    assert both.bounds == edges + (0.5,)
     assert both.cumulative == [0, 9, 9, 10, 12] and both.count == 12
     assert (both - other).cumulative == [0, 9, 9, 10, 10]
 
     # Spread over more than MAX_SLOTS slots, neighbours merge: the buckets get coarser, the count stays.
     slots[1:-1:3] = 1
-    wide = period_histogram(slots, 0)
+    wide = timing_histogram(slots, 0, PERIOD_EDGES)
     assert len(wide.bounds) <= 2 * MAX_SLOTS and wide.count == int(slots.sum())
     assert list(wide.cumulative) == sorted(wide.cumulative)
 

@@ -53,6 +53,8 @@ def graph_metrics(snap: Snapshot) -> dict:
                 attrs[f"node:{labels[1]}", f"node:{labels[2]}", labels[0]][name] = value
             elif metric.labels[:2] == join.TOPIC:
                 attrs[f"topic:{labels[0]}"].setdefault(name, {})[labels[1]] = value
+            elif len(labels) > 2:  # a reaction, by its input and output topics
+                attrs[f"node:{labels[0]}"].setdefault(name, {})[f"{labels[1]} -> {labels[2]}"] = value
             elif len(labels) > 1:  # by kind of context switch
                 attrs[f"node:{labels[0]}"].setdefault(name, {})[labels[1]] = value
             else:

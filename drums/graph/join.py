@@ -32,6 +32,10 @@ NODE_SWITCHES = Metric("drums_node_context_switches_total", COUNTER,
                        "Context switches of the node's process, voluntary or involuntary", NODE + ("kind",))
 NODE_RUNQ = Metric("drums_node_runqueue_latency_seconds", HISTOGRAM,
                    "Run-queue waits of the node's process's threads", NODE, sched.RUNQ_BUCKETS)
+NODE_REACTION = Metric("drums_node_reaction_seconds", HISTOGRAM,
+                       "Time from the node's take of a message on the input topic to its publish on the output "
+                       "topic, in the same thread before it waits again or runs a timer (rcl_take to rcl_publish)",
+                       NODE + ("input", "output"), additive=False)
 TOPIC_PUBLISHED = Metric("drums_topic_messages_published_total", COUNTER,
                          "Messages the node published on the topic (rcl_publish)", TOPIC)
 TOPIC_TAKEN = Metric("drums_topic_messages_taken_total", COUNTER,
@@ -71,7 +75,7 @@ UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
                       "(summed under node \"unknown\"): a process the graph does not know yet, or several of its "
                       "nodes on the topic and no endpoint GID", ("kind",))
 UNKNOWN = "unknown"
-METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, TOPIC_PUBLISHED, TOPIC_TAKEN,
+METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, NODE_REACTION, TOPIC_PUBLISHED, TOPIC_TAKEN,
            TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
            EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
@@ -159,12 +163,19 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
                 sums[metric][e.topic, e.node, owner(pid, "subscriber", e.topic)] += value
     for metric, rows in sums.items():
         out.rows(metric).extend(rows.items())
-    # A node's publishers on one topic (rarely more than one) share its histogram.
-    periods: dict[tuple[str, str], Histogram] = {}
+    # A node's publishers on one topic (rarely more than one) share its histograms.
+    timings: dict[Metric, dict[tuple[str, ...], Histogram]] = defaultdict(dict)
+
+    def merge(metric: Metric, key: tuple[str, ...], h: Histogram) -> None:
+        rows = timings[metric]
+        rows[key] = rows[key] + h if key in rows else h
+    # Named as their messages are, and counted with them if no node could be.
     for (pid, _, topic, gid), h in raw.of(rcl.PERIOD):
-        key = (topic, owner(pid, "publisher", topic, gid, counted=False))  # counted with its messages
-        periods[key] = periods[key] + h if key in periods else h
-    out.rows(TOPIC_PUBLISH_PERIOD).extend(periods.items())
+        merge(TOPIC_PUBLISH_PERIOD, (topic, owner(pid, "publisher", topic, gid, counted=False)), h)
+    for (pid, _, taken, published, gid), h in raw.of(rcl.REACTION):
+        merge(NODE_REACTION, (owner(pid, "publisher", published, gid, counted=False), taken, published), h)
+    for metric, rows in timings.items():
+        out.rows(metric).extend(rows.items())
     for kind in ("publisher", "subscriber"):
         out.add(UNATTRIBUTED, (kind,), unknown[kind])
     _socket_edges(connections, raw, out)

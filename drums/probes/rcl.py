@@ -38,8 +38,10 @@ UPROBES = (
     ("rcl_take_serialized_message", "on_take_return", True),
     ("rcl_take_loaned_message", "on_take", False),
     ("rcl_take_loaned_message", "on_take_return", True),
+    ("rcl_wait", "on_idle", False),
+    ("rcl_timer_call", "on_idle", False),
 )
-PROGRAMS = ("on_publish", "on_take", "on_take_return")
+PROGRAMS = ("on_publish", "on_take", "on_take_return", "on_idle")
 UNKNOWN_TOPIC = "unknown"  # a handle whose topic could not be read (yet: it is tried again)
 
 LABELS = ("pid", "process", "topic", "endpoint")  # endpoint: the publisher's or subscription's GID
@@ -48,24 +50,36 @@ PUBLISHED = Metric("drums_ros_messages_published_total", COUNTER,
 TAKEN = Metric("drums_ros_messages_taken_total", COUNTER,
                "Messages this process took from the topic (rcl_take), whatever the transport", LABELS)
 PERIOD_HELP = ("Time between two messages of the publisher (rcl_publish): its buckets are the edges of "
-               "the kernel's slots (1.6% wide, 128 us to 16.8 s) that counted any, so a quantile is within 1%")
+               "the kernel's slots (1.6% wide, 131 us to 17.2 s) that counted any, so a quantile is within 1%")
 PERIOD = Metric("drums_ros_publish_period_seconds", HISTOGRAM, PERIOD_HELP, LABELS)
 MISSED = Metric("drums_ros_deadlines_missed_total", COUNTER,
                 "Deadlines (the Deadline QoS the publisher offers) that passed without a message from it, as "
                 "the kernel saw its messages; counted while the silence lasts; only publishers with a deadline",
                 LABELS)
+REACTION = Metric("drums_ros_reaction_seconds", HISTOGRAM,
+                  "Time from a thread's take of a message on the input topic to its publish on the output topic "
+                  "before it waits again or runs a timer: the node's reaction (buckets as the periods', 16 us to "
+                  "2.1 s); endpoint is the output's publisher", ("pid", "process", "input", "output", "endpoint"))
 
-# bpf/rcl.bpf.c's period slots: 2^SUB_LOG2 a power of two of microseconds from 2^MIN_LOG2, one
-# under and one over.
-SUB_LOG2, MIN_LOG2, OCTAVES = 6, 7, 17
+# bpf/rcl.bpf.c's time slots: 2^SUB_LOG2 a power of two of nanoseconds over OCTAVES powers of two
+# from 2^min_log2, one slot under and one over.
+SUB_LOG2, OCTAVES = 6, 17
 SLOTS = (OCTAVES << SUB_LOG2) + 2
-_OCTAVE_OF = MIN_LOG2 + np.arange(OCTAVES << SUB_LOG2) // (1 << SUB_LOG2)
-_LOWER_US = np.concatenate(([0.0], 2.0 ** _OCTAVE_OF * (1 + (np.arange(OCTAVES << SUB_LOG2) % (1 << SUB_LOG2))
-                                                     / (1 << SUB_LOG2)), [2.0 ** (MIN_LOG2 + OCTAVES)]))
-SLOT_LOWER = _LOWER_US / 1e6  # seconds; slot i holds periods in [SLOT_LOWER[i], SLOT_UPPER[i])
-SLOT_UPPER = np.append(SLOT_LOWER[1:], np.inf)
-MAX_SLOTS = 32  # slots shown per publisher: beyond, neighbours are merged (its buckets get coarser)
-_PERIOD_VALUE = np.dtype([("last", "<u8"), ("sum", "<u8"), ("missed", "<u8"), ("slots", "<u4", SLOTS)])
+PERIOD_MIN_LOG2, REACTION_MIN_LOG2 = 17, 14  # periods from 131 us, reactions from 16 us
+MAX_SLOTS = 32  # slots shown per series: beyond, neighbours are merged (its buckets get coarser)
+
+
+def slot_edges(min_log2: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lower and upper edge of each slot, in seconds: slot i holds [lower[i], upper[i])."""
+    j = np.arange(OCTAVES << SUB_LOG2)
+    lower = 2.0 ** (min_log2 + j // (1 << SUB_LOG2)) * (1 + (j % (1 << SUB_LOG2)) / (1 << SUB_LOG2))
+    lower = np.concatenate(([0.0], lower, [2.0 ** (min_log2 + OCTAVES)])) / 1e9
+    return lower, np.append(lower[1:], np.inf)
+
+
+PERIOD_EDGES, REACTION_EDGES = slot_edges(PERIOD_MIN_LOG2), slot_edges(REACTION_MIN_LOG2)
+_TIMING = np.dtype([("last", "<u8"), ("sum", "<u8"), ("missed", "<u8"), ("slots", "<u4", SLOTS)])  # struct timing_t
+_REACTION_KEY = struct.Struct("<IIQQ")
 
 _KEY = struct.Struct("<IIQ")
 _U64 = struct.Struct("<Q")
@@ -131,17 +145,19 @@ def _gid(mem: int, data: int, identifier: int) -> str:
     return ""
 
 
-def period_histogram(slots: np.ndarray, total_ns: int) -> Histogram:
-    """A publisher's periods, from its kernel slots: a bucket at each edge of each slot that holds
-    counts, so the quantiles are as fine as the slots. Past MAX_SLOTS such slots, neighbours within a
-    power of two are merged, in pairs, then fours, until no more than that hold counts."""
-    counts, lower, upper = slots.astype(np.int64), SLOT_LOWER, SLOT_UPPER
+def timing_histogram(slots: np.ndarray, total_ns: int, edges: tuple[np.ndarray, np.ndarray]) -> Histogram:
+    """Times counted in the kernel's slots (with these edges) as a histogram with a bucket at each
+    edge of each slot that holds counts, so the quantiles are as fine as the slots. Past MAX_SLOTS
+    such slots, neighbours within a power of two are merged, in pairs, then fours, until no more
+    than that hold counts."""
+    (first_lower, first_upper), counts = edges, slots.astype(np.int64)
+    lower, upper = first_lower, first_upper
     step = 1
     while np.count_nonzero(counts) > MAX_SLOTS and step < 1 << SUB_LOG2:
         step *= 2
         counts = np.concatenate(([slots[0]], slots[1:-1].reshape(-1, step).sum(axis=1), [slots[-1]]))
-        lower = np.concatenate(([SLOT_LOWER[0]], SLOT_LOWER[1:-1:step], [SLOT_LOWER[-1]]))
-        upper = np.concatenate(([SLOT_UPPER[0]], SLOT_UPPER[step:-1:step], [SLOT_UPPER[-1]]))
+        lower = np.concatenate(([first_lower[0]], first_lower[1:-1:step], [first_lower[-1]]))
+        upper = np.concatenate(([first_upper[0]], first_upper[step:-1:step], [first_upper[-1]]))
     used = np.flatnonzero(counts)
     cumulative = np.cumsum(counts[used])
     edges = np.column_stack((lower[used], upper[used])).ravel()
@@ -156,8 +172,8 @@ def period_histogram(slots: np.ndarray, total_ns: int) -> Histogram:
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
-    maps = ("handles", "periods", "deadlines", "dropped")
-    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED)
+    maps = ("handles", "periods", "deadlines", "reactions", "dropped")
+    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, REACTION)
     paths = (
         AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
                    "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
@@ -175,6 +191,7 @@ class RclProbe(BpfProbe):
         self._deadlines: dict[str, int] = {}  # endpoint GID -> the Deadline QoS it offers, ns
         self._written: dict[tuple[int, int], tuple[bytes, int]] = {}  # (pid, handle) -> (map key, deadline)
         self._missed = Monotonic()
+        self._reactions: dict[tuple[int, int, int], tuple[int, Histogram]] = {}  # (pid, input, output) -> as periods
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         return {}  # only user memory, through the registers of the calling convention
@@ -237,6 +254,7 @@ class RclProbe(BpfProbe):
         for (pid, op, topic, gid), count in totals.items():
             snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
         self._collect_periods(snap, processes)
+        self._collect_reactions(snap, processes)
         self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
         self.read_dropped()
 
@@ -264,7 +282,7 @@ class RclProbe(BpfProbe):
         passed since its last."""
         keys, values, n = self.read("periods")
         now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock
-        table = np.frombuffer(values, _PERIOD_VALUE, count=n)
+        table = np.frombuffer(values, _TIMING, count=n)
         counts = table["slots"].sum(axis=1, dtype=np.int64) if n else ()
         kept, written = {}, {}
         for i, (pid, _, handle) in enumerate(_KEY.iter_unpack(keys)):
@@ -289,7 +307,7 @@ class RclProbe(BpfProbe):
                 continue
             known = self._periods.get((pid, handle))
             if known is None or known[0] != counts[i]:
-                known = (int(counts[i]), period_histogram(table["slots"][i], int(table["sum"][i])))
+                known = (int(counts[i]), timing_histogram(table["slots"][i], int(table["sum"][i]), PERIOD_EDGES))
             kept[(pid, handle)] = known
             snap.add(PERIOD, labels, known[1])
         for handle, (key, _) in self._written.items():
@@ -297,3 +315,22 @@ class RclProbe(BpfProbe):
                 self.opened["deadlines"].delete(key)  # its process ended, or it offers no deadline now
         self._periods, self._written = kept, written
         self._missed.next_collect()
+
+    def _collect_reactions(self, snap: Snapshot, processes: dict) -> None:
+        """One histogram per node's input and output, made again only where it reacted since."""
+        keys, values, n = self.read("reactions")
+        table = np.frombuffer(values, _TIMING, count=n)
+        counts = table["slots"].sum(axis=1, dtype=np.int64) if n else ()
+        kept = {}
+        for i, (pid, _, taken, published) in enumerate(_REACTION_KEY.iter_unpack(keys)):
+            key = keys[i * _REACTION_KEY.size:(i + 1) * _REACTION_KEY.size]
+            ends = [self._endpoint(pid, h, processes, "reactions", key) for h in (taken, published)]
+            if None in ends or not counts[i]:
+                continue
+            known = self._reactions.get((pid, taken, published))
+            if known is None or known[0] != counts[i]:
+                known = (int(counts[i]), timing_histogram(table["slots"][i], int(table["sum"][i]), REACTION_EDGES))
+            kept[(pid, taken, published)] = known
+            (input_topic, _), (output_topic, gid) = ends
+            snap.add(REACTION, (str(pid), self.proctable.name(pid), input_topic, output_topic, gid), known[1])
+        self._reactions = kept

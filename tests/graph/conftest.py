@@ -40,9 +40,10 @@ class RosProcess:
         self.proc.stdin.flush()
         return int(self.proc.stdout.readline().split()[1])
 
-    def beats(self) -> list[int]:
-        """CLOCK_MONOTONIC (ns) right before each of the metronome's publishes."""
-        self.proc.stdin.write("beats\n")
+    def times(self, what: str) -> list[int]:
+        """The metronome's "beats" (CLOCK_MONOTONIC, ns, right before each publish) or the reactor's
+        "reactions" (ns from the start of each callback to its publish)."""
+        self.proc.stdin.write(what + "\n")
         self.proc.stdin.flush()
         return [int(ns) for ns in self.proc.stdout.readline().split()[1:]]
 

@@ -7,7 +7,9 @@ with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory,
 every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
 "go", publishes $DRUMS_TEST_BURST messages on /beat (with $DRUMS_TEST_DEADLINE_MS), the times between
 them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but every tenth 40 ms;
-on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish). Several NAMEs
+on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish), reactor
+(takes /beat, sleeps 15 ms and publishes /reaction; a timer publishes /status every 50 ms; on a line
+"reactions" it prints how long each callback took from its start to its publish, in ns). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
 "ready <pid>" once its nodes exist, and on each line of input "count <n>" with the messages it
 published or received so far (a line "go" starts a burst instead: see DRUMS_TEST_BURST). With
@@ -107,6 +109,17 @@ def make(role: str, name: str) -> Node:
     elif role == "metronome":
         pub = node.create_publisher(String, "beat", qos())
         threading.Thread(target=beat, args=(pub,), daemon=True).start()
+    elif role == "reactor":
+        out = node.create_publisher(String, "reaction", 10)
+
+        def react(msg):
+            began = time.monotonic_ns()
+            time.sleep(0.015)
+            reactions.append(time.monotonic_ns() - began)
+            out.publish(msg)
+        node.create_subscription(String, "beat", react, 10)
+        status = node.create_publisher(String, "status", 10)
+        node.create_timer(0.05, lambda: status.publish(String(data="ok")))
     elif role == "flooder":
         node.create_timer(0.01, lambda: node.get_logger().info("flooding /rosout"))
     elif role != "idle":
@@ -116,6 +129,7 @@ def make(role: str, name: str) -> Node:
 
 started = threading.Event()
 beats = []  # time.monotonic_ns() right before each publish of the metronome
+reactions = []  # ns from the start of each of the reactor's callbacks to its publish
 
 
 def schedule() -> list[int]:
@@ -156,8 +170,8 @@ def main() -> None:
                     left[0] = burst
                 started.set()
                 continue
-            if line.strip() == "beats":
-                print("beats", *beats, flush=True)
+            if line.strip() in ("beats", "reactions"):
+                print(line.strip(), *(beats if line.strip() == "beats" else reactions), flush=True)
                 continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us

@@ -7,7 +7,7 @@ import urllib.request
 
 from drums.graph.ros1 import MAX_NODES, MAX_VALUES
 from tests.agentproc import assert_monotonic, running_agent, samples, scrape
-from tests.conftest import eventually
+from tests.conftest import wait_until
 from tests.graph.test_ros1 import Wire
 from tests.robustness.test_http import MB, agent_process, timed_scrape
 
@@ -16,20 +16,25 @@ def value(url: str, name: str, **labels) -> float:
     return samples(scrape(url), name)[tuple(sorted(labels.items()))]
 
 
+def truncated(url: str) -> float | None:
+    """drums_graph_truncated of the ROS 1 adapter, None before its first graph."""
+    return samples(scrape(url), "drums_graph_truncated").get((("adapter", "ros1"),))
+
+
 def test_a_master_that_lists_a_hundred_thousand_topics_is_truncated_and_costs_little(monkeypatch):
     master = Wire("master")
     monkeypatch.setenv("ROS_MASTER_URI", master.uri)
     try:
         with running_agent("--graph", "ros1", "--probe", "host", bpf=False) as url:
             agent = agent_process(url)
-            eventually(lambda: value(url, "drums_graph_truncated", adapter="ros1") == 0, timeout=10)
+            wait_until(lambda: truncated(url) == 0, "the small graph read whole", timeout=10)
             for _ in range(3):  # a few polls of the small graph: the baseline
                 time.sleep(1)
                 scrape(url)
             before = peak = agent.memory_full_info().uss
             texts = [scrape(url)]
             master.say("mode huge")
-            eventually(lambda: value(url, "drums_graph_truncated", adapter="ros1") == 1, timeout=30)
+            wait_until(lambda: truncated(url) == 1, "the huge graph said truncated", timeout=30)
             times = []
             for _ in range(10):  # ten more polls of it
                 times.append(timed_scrape(url))
