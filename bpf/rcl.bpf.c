@@ -1,7 +1,8 @@
 // Messages published and taken per ROS 2 publisher and subscription, counted by uprobes on
 // librcl's rcl_publish* and rcl_take* functions; the time between two publishes of each publisher;
-// and each node's reaction time: from a thread's take of a message to its publishes before it
-// waits again (rcl_wait) or runs a timer (rcl_timer_call), per input and output. On one host Fast DDS moves samples over shared
+// each message's delivery, from the stamps the RMW gives rcl_take; and each node's reaction time:
+// from a thread's take of a message to its publishes before it waits again (rcl_wait) or runs a
+// timer (rcl_timer_call), per input and output. On one host Fast DDS moves samples over shared
 // memory, where no socket sees them; every ROS 2 client library still goes through rcl.
 //
 // The agent attaches these programs to each librcl.so it finds in processes' memory maps, and
@@ -30,6 +31,7 @@ BPF_HASH(handles, struct handle_key_t, u64, 16384);
 #define SLOTS ((OCTAVES << SUB_LOG2) + 2)
 #define PERIOD_MIN_LOG2 17    // periods: 131 us to 17.2 s
 #define REACTION_MIN_LOG2 14  // reactions: 16 us to 2.1 s
+#define DELIVERY_MIN_LOG2 12  // deliveries: 4 us to 537 ms
 struct timing_t {
     u64 last_ns;  // when the publisher last published (periods)
     u64 sum_ns;
@@ -47,6 +49,30 @@ struct reaction_key_t {
 };
 BPF_F_TABLE("hash", struct reaction_key_t, struct timing_t, reactions, 4096, BPF_F_NO_PREALLOC);
 BPF_PERCPU_ARRAY(timing_zero, struct timing_t, 1);  // never written: what a new entry starts as
+
+// rmw_message_info_t (rmw/types.h, Humble and later): source_timestamp and received_timestamp
+// (ns of the realtime clock), two sequence numbers, then publisher_gid: its identifier pointer and
+// the GUID's 16 bytes.
+#define MESSAGE_INFO_GID_OFF 40
+// Deliveries to a subscription from one publisher: the transport (received less source stamp) and
+// the message's age when the subscriber took it (take less source stamp).
+struct delivery_key_t {
+    u32 tgid;
+    u32 pad;
+    u64 subscription;
+    u8 publisher[16];
+};
+struct delivery_t {
+    u64 transport_sum_ns;
+    u64 age_sum_ns;
+    u64 skewed;  // messages stamped after they were received or taken: clocks apart (two hosts)
+    u32 transport[SLOTS];
+    u32 age[SLOTS];
+};
+BPF_F_TABLE("hash", struct delivery_key_t, struct delivery_t, deliveries, 4096, BPF_F_NO_PREALLOC);
+BPF_PERCPU_ARRAY(delivery_zero, struct delivery_t, 1);
+// CLOCK_REALTIME less CLOCK_MONOTONIC (ns), written by the agent as it starts and at each collect.
+BPF_ARRAY(realtime_offset, s64, 1);
 // The Deadline QoS of publishers that offer one, in ns, written by the agent from the graph: a
 // period of n deadlines or more counts n missed, as the kernel saw the messages (not as the
 // application's QoS events say).
@@ -56,11 +82,12 @@ BPF_HASH(deadlines, struct handle_key_t, u64, 4096);
 // thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
 struct took_t {
     u64 pending;
+    u64 info;  // the rmw_message_info_t the pending take fills
     u64 input;
     u64 at;
 };
 BPF_TASK_STORAGE(takes, struct took_t);
-BPF_ARRAY(dropped, u64, 4);
+BPF_ARRAY(dropped, u64, 5);
 
 static __always_inline void count_drop(int which)
 {
@@ -159,14 +186,52 @@ int on_publish(struct pt_regs *ctx)
     return 0;
 }
 
-// rcl_take returns RCL_RET_OK (0) only when it took a message: that needs the return probe too.
+static __always_inline void delivery(u32 tgid, u64 subscription, u64 info, u64 now)
+{
+    s64 stamps[2] = {};  // source, received
+    struct delivery_key_t key = {.tgid = tgid, .subscription = subscription};
+    if (bpf_probe_read_user(stamps, sizeof(stamps), (void *)info) != 0 ||
+        bpf_probe_read_user(key.publisher, sizeof(key.publisher), (void *)(info + MESSAGE_INFO_GID_OFF)) != 0)
+        return;
+    int zero = 0;
+    s64 *offset = realtime_offset.lookup(&zero);
+    if (stamps[0] <= 0 || stamps[1] <= 0 || !offset || !*offset)
+        return;  // the RMW stamps nothing, or the agent has not said the clock yet
+    struct delivery_t *d = deliveries.lookup(&key), *fresh;
+    if (!d && (fresh = delivery_zero.lookup(&zero))) {
+        deliveries.insert(&key, fresh);
+        d = deliveries.lookup(&key);
+        if (!d)
+            count_drop(4);
+    }
+    if (!d)
+        return;
+    s64 transport = stamps[1] - stamps[0], age = (s64)now + *offset - stamps[0];
+    if (transport < 0 || age < 0) {
+        __sync_fetch_and_add(&d->skewed, 1);
+        return;
+    }
+    __sync_fetch_and_add(&d->transport_sum_ns, transport);
+    __sync_fetch_and_add(&d->age_sum_ns, age);
+    u64 slot = log_slot(transport, DELIVERY_MIN_LOG2);
+    if (slot < SLOTS)
+        __sync_fetch_and_add(&d->transport[slot], 1);
+    slot = log_slot(age, DELIVERY_MIN_LOG2);
+    if (slot < SLOTS)
+        __sync_fetch_and_add(&d->age[slot], 1);
+}
+
+// rcl_take(subscription, message, message_info, allocation) returns RCL_RET_OK (0) only when it
+// took a message: that needs the return probe too.
 int on_take(struct pt_regs *ctx)
 {
     struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
-    if (took)
+    if (took) {
         took->pending = PT_REGS_PARM1(ctx);
-    else
+        took->info = PT_REGS_PARM3(ctx);
+    } else {
         count_drop(0);
+    }
     return 0;
 }
 
@@ -178,10 +243,13 @@ int on_take_return(struct pt_regs *ctx)
     u64 h = took->pending;
     took->pending = 0;
     if (PT_REGS_RC(ctx) == 0) {
+        u64 now = bpf_ktime_get_ns();
         struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = TAKEN, .handle = h};
         count(&key);
         took->input = h;
-        took->at = bpf_ktime_get_ns();
+        took->at = now;
+        if (took->info)
+            delivery(key.tgid, h, took->info, now);
     }
     return 0;
 }

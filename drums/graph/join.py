@@ -61,6 +61,13 @@ EDGE_RECEIVED_BYTES = Metric("drums_edge_received_bytes_total", COUNTER,
 EDGE_RECEIVED_WIRE_BYTES = Metric("drums_edge_received_wire_bytes_total", COUNTER,
                                   "Serialized payload the subscriber's process received over UDP from the "
                                   "publisher's writer, repairs included", EDGE)
+EDGE_TRANSPORT = Metric("drums_edge_delivery_transport_seconds", HISTOGRAM,
+                        "Time from the publisher's stamp of a message to its reception by the subscriber's RMW; "
+                        "across hosts as close as their realtime clocks are (see drums_ros_delivery_skewed_total)",
+                        EDGE, additive=False)
+EDGE_AGE = Metric("drums_edge_delivery_age_seconds", HISTOGRAM,
+                  "Time from the publisher's stamp of a message to the subscriber's take of it (rcl_take): "
+                  "transport and queueing in the subscriber's executor", EDGE, additive=False)
 EDGE_SENT_BYTES = Metric("drums_edge_sent_bytes_total", COUNTER,
                          "Bytes the publisher sent on the connection's own socket (ROS 1)", EDGE)
 EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
@@ -76,8 +83,9 @@ UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
                       "nodes on the topic and no endpoint GID", ("kind",))
 UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, NODE_REACTION, TOPIC_PUBLISHED, TOPIC_TAKEN,
-           TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES,
-           EDGE_RECEIVED_WIRE_BYTES, EDGE_SENT_BYTES, EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
+           TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES,
+           EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_RECEIVED_WIRE_BYTES, EDGE_TRANSPORT, EDGE_AGE, EDGE_SENT_BYTES,
+           EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
 INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
 GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
@@ -174,6 +182,11 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
         merge(TOPIC_PUBLISH_PERIOD, (topic, owner(pid, "publisher", topic, gid, counted=False)), h)
     for (pid, _, taken, published, gid), h in raw.of(rcl.REACTION):
         merge(NODE_REACTION, (owner(pid, "publisher", published, gid, counted=False), taken, published), h)
+    for metric, source in ((EDGE_TRANSPORT, rcl.TRANSPORT), (EDGE_AGE, rcl.AGE)):
+        for (pid, _, topic, gid, publisher), h in raw.of(source):
+            e = by_gid.get(publisher[:GID_HEX])
+            sender = e.node if e is not None and e.kind == "publisher" else UNKNOWN
+            merge(metric, (topic, sender, owner(pid, "subscriber", topic, gid, counted=False)), h)
     for metric, rows in timings.items():
         out.rows(metric).extend(rows.items())
     for kind in ("publisher", "subscriber"):

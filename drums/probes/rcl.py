@@ -1,6 +1,7 @@
-"""Messages published and taken per ROS 2 process and topic, and the time between two publishes
-of each publisher, from uprobes on librcl (bpf/rcl.bpf.c): what shared memory hides from every
-socket.
+"""Messages published and taken per ROS 2 process and topic, the time between two publishes of
+each publisher and the deadlines it missed, each delivery's transport and age from the stamps the
+RMW gives rcl_take, and each node's reaction time from a take to its publishes, from uprobes on
+librcl (bpf/rcl.bpf.c): what shared memory hides from every socket.
 
 The programs are loaded once; each librcl.so file that a process maps is found in
 /proc/<pid>/maps (as soon as it is mapped: drums.probes.loads) and gets its own pinned uprobe
@@ -60,12 +61,24 @@ REACTION = Metric("drums_ros_reaction_seconds", HISTOGRAM,
                   "Time from a thread's take of a message on the input topic to its publish on the output topic "
                   "before it waits again or runs a timer: the node's reaction (buckets as the periods', 16 us to "
                   "2.1 s); endpoint is the output's publisher", ("pid", "process", "input", "output", "endpoint"))
+DELIVERY = ("pid", "process", "topic", "endpoint", "publisher")  # endpoint: the subscription's GID
+TRANSPORT = Metric("drums_ros_delivery_transport_seconds", HISTOGRAM,
+                   "Time from the publisher's stamp of a message to its reception by the subscription's RMW "
+                   "(received less source timestamp of rmw_message_info_t; buckets as the periods', 4 us to "
+                   "537 ms); both stamps are the realtime clocks of their hosts: across hosts, as close as "
+                   "those clocks are (PTP or chrony)", DELIVERY)
+AGE = Metric("drums_ros_delivery_age_seconds", HISTOGRAM,
+             "Time from the publisher's stamp of a message to the subscriber's take of it (rcl_take): transport "
+             "and queueing in the subscriber's executor; buckets and clocks as the transport's", DELIVERY)
+SKEWED = Metric("drums_ros_delivery_skewed_total", COUNTER,
+                "Messages stamped after the subscriber received or took them: their publisher's clock is ahead "
+                "(another host's), and their delivery times are not counted", DELIVERY)
 
 # bpf/rcl.bpf.c's time slots: 2^SUB_LOG2 a power of two of nanoseconds over OCTAVES powers of two
 # from 2^min_log2, one slot under and one over.
 SUB_LOG2, OCTAVES = 6, 17
 SLOTS = (OCTAVES << SUB_LOG2) + 2
-PERIOD_MIN_LOG2, REACTION_MIN_LOG2 = 17, 14  # periods from 131 us, reactions from 16 us
+PERIOD_MIN_LOG2, REACTION_MIN_LOG2, DELIVERY_MIN_LOG2 = 17, 14, 12  # from 131 us, 16 us and 4 us
 MAX_SLOTS = 32  # slots shown per series: beyond, neighbours are merged (its buckets get coarser)
 
 
@@ -78,8 +91,13 @@ def slot_edges(min_log2: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 PERIOD_EDGES, REACTION_EDGES = slot_edges(PERIOD_MIN_LOG2), slot_edges(REACTION_MIN_LOG2)
+DELIVERY_EDGES = slot_edges(DELIVERY_MIN_LOG2)
 _TIMING = np.dtype([("last", "<u8"), ("sum", "<u8"), ("missed", "<u8"), ("slots", "<u4", SLOTS)])  # struct timing_t
 _REACTION_KEY = struct.Struct("<IIQQ")
+_DELIVERY_KEY = struct.Struct("<IIQ16s")
+_DELIVERY = np.dtype([("transport_sum", "<u8"), ("age_sum", "<u8"), ("skewed", "<u8"),
+                      ("transport", "<u4", SLOTS), ("age", "<u4", SLOTS)])  # struct delivery_t
+_S64 = struct.Struct("<q")
 
 _KEY = struct.Struct("<IIQ")
 _U64 = struct.Struct("<Q")
@@ -172,8 +190,8 @@ def timing_histogram(slots: np.ndarray, total_ns: int, edges: tuple[np.ndarray, 
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
-    maps = ("handles", "periods", "deadlines", "reactions", "dropped")
-    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, REACTION)
+    maps = ("handles", "periods", "deadlines", "reactions", "deliveries", "realtime_offset", "dropped")
+    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, REACTION, TRANSPORT, AGE, SKEWED)
     paths = (
         AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
                    "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
@@ -192,6 +210,7 @@ class RclProbe(BpfProbe):
         self._written: dict[tuple[int, int], tuple[bytes, int]] = {}  # (pid, handle) -> (map key, deadline)
         self._missed = Monotonic()
         self._reactions: dict[tuple[int, int, int], tuple[int, Histogram]] = {}  # (pid, input, output) -> as periods
+        self._deliveries: dict[bytes, tuple[int, Histogram, Histogram]] = {}  # map key -> (count, transport, age)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         return {}  # only user memory, through the registers of the calling convention
@@ -203,6 +222,7 @@ class RclProbe(BpfProbe):
         except ProbeError:
             self.stop()
             raise
+        self._say_clock()
         for pid, libs in self.libraries.processes((LIBRARY,)).items():  # found before the programs were here
             self._found(pid, libs)
 
@@ -255,6 +275,7 @@ class RclProbe(BpfProbe):
             snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
         self._collect_periods(snap, processes)
         self._collect_reactions(snap, processes)
+        self._collect_deliveries(snap, processes)
         self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
         self.read_dropped()
 
@@ -272,6 +293,15 @@ class RclProbe(BpfProbe):
                 self._endpoints[(pid, handle)] = endpoint
         return endpoint or (UNKNOWN_TOPIC, "")
 
+    def _timings(self, name: str, key: struct.Struct, dtype: np.dtype, slots: str):
+        """A map of times in slots: [(its key's fields, the key), ...], its values as one table, and
+        how many times each entry counted (in its `slots`)."""
+        keys, values, n = self.read(name)
+        table = np.frombuffer(values, dtype, count=n)
+        counts = table[slots].sum(axis=1, dtype=np.int64) if n else ()
+        entries = [(fields, keys[i * key.size:(i + 1) * key.size]) for i, fields in enumerate(key.iter_unpack(keys))]
+        return entries, table, counts
+
     def want_deadlines(self, deadlines: dict[str, int]) -> None:
         """The Deadline QoS (ns) of the graph's publishers that offer one, by endpoint GID."""
         self._deadlines = deadlines
@@ -280,13 +310,10 @@ class RclProbe(BpfProbe):
         """One histogram per publisher, made again only for publishers that published since, and
         the deadlines it missed: those the kernel counted between two messages, and those that
         passed since its last."""
-        keys, values, n = self.read("periods")
+        entries, table, counts = self._timings("periods", _KEY, _TIMING, "slots")
         now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock
-        table = np.frombuffer(values, _TIMING, count=n)
-        counts = table["slots"].sum(axis=1, dtype=np.int64) if n else ()
         kept, written = {}, {}
-        for i, (pid, _, handle) in enumerate(_KEY.iter_unpack(keys)):
-            key = keys[i * _KEY.size:(i + 1) * _KEY.size]
+        for i, ((pid, _, handle), key) in enumerate(entries):
             endpoint = self._endpoint(pid, handle, processes, "periods", key)
             if endpoint is None:
                 continue
@@ -310,20 +337,17 @@ class RclProbe(BpfProbe):
                 known = (int(counts[i]), timing_histogram(table["slots"][i], int(table["sum"][i]), PERIOD_EDGES))
             kept[(pid, handle)] = known
             snap.add(PERIOD, labels, known[1])
-        for handle, (key, _) in self._written.items():
-            if handle not in written:
+        for entry, (key, _) in self._written.items():
+            if entry not in written:
                 self.opened["deadlines"].delete(key)  # its process ended, or it offers no deadline now
         self._periods, self._written = kept, written
         self._missed.next_collect()
 
     def _collect_reactions(self, snap: Snapshot, processes: dict) -> None:
         """One histogram per node's input and output, made again only where it reacted since."""
-        keys, values, n = self.read("reactions")
-        table = np.frombuffer(values, _TIMING, count=n)
-        counts = table["slots"].sum(axis=1, dtype=np.int64) if n else ()
+        entries, table, counts = self._timings("reactions", _REACTION_KEY, _TIMING, "slots")
         kept = {}
-        for i, (pid, _, taken, published) in enumerate(_REACTION_KEY.iter_unpack(keys)):
-            key = keys[i * _REACTION_KEY.size:(i + 1) * _REACTION_KEY.size]
+        for i, ((pid, _, taken, published), key) in enumerate(entries):
             ends = [self._endpoint(pid, h, processes, "reactions", key) for h in (taken, published)]
             if None in ends or not counts[i]:
                 continue
@@ -334,3 +358,34 @@ class RclProbe(BpfProbe):
             (input_topic, _), (output_topic, gid) = ends
             snap.add(REACTION, (str(pid), self.proctable.name(pid), input_topic, output_topic, gid), known[1])
         self._reactions = kept
+
+    def _say_clock(self) -> None:
+        """The realtime clock's offset from the monotonic one, with which the programs read the
+        RMW's stamps (NTP slews it slowly; set again at each collect)."""
+        offset = time.clock_gettime_ns(time.CLOCK_REALTIME) - time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+        self.opened["realtime_offset"].update(bytes(4), _S64.pack(offset))
+
+    def _collect_deliveries(self, snap: Snapshot, processes: dict) -> None:
+        """Per subscription and publisher: the transport and age histograms, made again only where
+        messages came since, and the messages whose stamps were ahead of the subscriber's clock."""
+        self._say_clock()
+        entries, table, counts = self._timings("deliveries", _DELIVERY_KEY, _DELIVERY, "age")
+        kept = {}
+        for i, ((pid, _, subscription, publisher), key) in enumerate(entries):
+            endpoint = self._endpoint(pid, subscription, processes, "deliveries", key)
+            if endpoint is None:
+                continue
+            labels = (str(pid), self.proctable.name(pid)) + endpoint + (publisher.hex(),)
+            if table["skewed"][i]:
+                snap.add(SKEWED, labels, int(table["skewed"][i]))
+            if not counts[i]:
+                continue
+            known = self._deliveries.get(key)
+            if known is None or known[0] != counts[i]:
+                row = table[i]
+                known = (int(counts[i]), timing_histogram(row["transport"], int(row["transport_sum"]), DELIVERY_EDGES),
+                         timing_histogram(row["age"], int(row["age_sum"]), DELIVERY_EDGES))
+            kept[key] = known
+            snap.add(TRANSPORT, labels, known[1])
+            snap.add(AGE, labels, known[2])
+        self._deliveries = kept

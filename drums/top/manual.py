@@ -45,6 +45,8 @@ Edges: publisher -> subscriber on a topic
              publisher on the topic
   BANDWIDTH  bytes received per second (UDP samples; the socket
              of a ROS 1 connection)
+  AGE        how old a message was when the subscriber took it,
+             from the publisher's stamp (ROS 2), on average
   REPAIR     wire bytes beyond the samples' own (repairs), in %
   RETX RTT   TCP retransmits per second and smoothed round trip
              of a ROS 1 connection

@@ -14,7 +14,6 @@ from drums.top.rates import quantile, rate, total
 from drums.top.table import Column, Row, Table
 
 
-
 def host_column(frame: Frame) -> Column:
     """The host of a row matters once there are several: with one, it goes first when narrow."""
     several = len({a.host for a in frame.agents if a.host}) > 1
@@ -202,6 +201,21 @@ def edges_of(frame: Frame) -> dict[tuple[str, str, str], list[tuple[AgentState, 
     return out
 
 
+def edge_means(frame: Frame, histogram: str) -> dict[tuple[str, str, str], float | None]:
+    """The mean over the last interval of an edge histogram (its count and sum in the graph), from
+    the first agent (as edges_of orders them) that counted any."""
+    out = {}
+    for key, found in edges_of(frame).items():
+        out[key] = None
+        for agent, e in found:
+            now = e.get(histogram)
+            was = (agent.before.edges.get(key, {}) if agent.before else {}).get(histogram)
+            if now and was and now["count"] > was["count"]:
+                out[key] = (now["sum"] - was["sum"]) / (now["count"] - was["count"])
+                break
+    return out
+
+
 def edge_rates(frame: Frame, counter: str) -> dict[tuple[str, str, str], float | None]:
     """The rate of an edge counter, from the first agent (as edges_of orders them) that has it."""
     out = {}
@@ -265,6 +279,7 @@ EDGE_COLUMNS = [
     Column("subscriber", "TO", name=True, least=8, keep=9),
     Column("rate_hz", "RATE", units.rate, keep=8),
     Column("bytes_per_second", "BANDWIDTH", units.bandwidth, keep=7),
+    Column("age_seconds", "AGE", units.duration, keep=5),
     Column("repairs_percent", "REPAIR", units.percent, keep=4),
     Column("retransmits_hz", "RETX", units.rate, keep=3),
     Column("rtt_seconds", "RTT", units.duration, keep=3),
@@ -275,8 +290,9 @@ EDGE_COLUMNS = [
 def edges(frame: Frame) -> Table:
     """Publisher -> subscriber on a topic: samples per second the subscriber received over UDP
     (else, where it takes the topic from this publisher alone, the messages it took), bytes per
-    second (UDP samples, or a ROS 1 connection's socket), wire bytes beyond the samples' own
-    (repairs, as a % of them), and a ROS 1 connection's TCP retransmits and RTT."""
+    second (UDP samples, or a ROS 1 connection's socket), the mean age of a message when taken,
+    wire bytes beyond the samples' own (repairs, as a % of them), and a ROS 1 connection's TCP
+    retransmits and RTT."""
     taken = {t: rates(c) for t, c in topic_counters(frame, "messages_taken_total").items()}
     found = edges_of(frame)
     senders = defaultdict(int)
@@ -285,6 +301,7 @@ def edges(frame: Frame) -> Table:
     samples, received = edge_rates(frame, "samples_received_total"), edge_rates(frame, "received_bytes_total")
     wire, sent = edge_rates(frame, "received_wire_bytes_total"), edge_rates(frame, "sent_bytes_total")
     retransmits = edge_rates(frame, "tcp_retransmits_total")
+    age = edge_means(frame, "delivery_age_seconds")
     rows = []
     for key, ((_, e), *_) in found.items():
         topic, pub, sub = key
@@ -295,6 +312,7 @@ def edges(frame: Frame) -> Table:
         rtt = next((ae[1]["tcp_rtt_seconds"] for ae in found[key] if ae[1].get("tcp_rtt_seconds") is not None), None)
         rows.append(Row(f"edge|{topic}|{pub}|{sub}", {
             "topic": topic, "publisher": pub, "subscriber": sub, "rate_hz": speed, "bytes_per_second": data,
+            "age_seconds": age[key],
             "repairs_percent": 100 * (wire[key] - received[key]) / received[key]
             if wire[key] is not None and received[key] else None,
             "retransmits_hz": retransmits[key], "rtt_seconds": rtt, "qos": e.get("qos_check") or None}))

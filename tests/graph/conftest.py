@@ -41,8 +41,9 @@ class RosProcess:
         return int(self.proc.stdout.readline().split()[1])
 
     def times(self, what: str) -> list[int]:
-        """The metronome's "beats" (CLOCK_MONOTONIC, ns, right before each publish) or the reactor's
-        "reactions" (ns from the start of each callback to its publish)."""
+        """The metronome's "beats" (CLOCK_MONOTONIC, ns, right before each publish), the reactor's
+        "reactions" (ns from the start of each callback to its publish) or the receiver's "latencies"
+        (ns from each message's stamp to the start of its callback)."""
         self.proc.stdin.write(what + "\n")
         self.proc.stdin.flush()
         return [int(ns) for ns in self.proc.stdout.readline().split()[1:]]

@@ -7,7 +7,9 @@ with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory,
 every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
 "go", publishes $DRUMS_TEST_BURST messages on /beat (with $DRUMS_TEST_DEADLINE_MS), the times between
 them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but every tenth 40 ms;
-on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish), reactor
+on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish; each
+message says CLOCK_REALTIME in ns as it is published), receiver (takes /beat, and on a line
+"latencies" prints for each message the ns from its stamp to the callback's start), reactor
 (takes /beat, sleeps 15 ms and publishes /reaction; a timer publishes /status every 50 ms; on a line
 "reactions" it prints how long each callback took from its start to its publish, in ns). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
@@ -109,6 +111,10 @@ def make(role: str, name: str) -> Node:
     elif role == "metronome":
         pub = node.create_publisher(String, "beat", qos())
         threading.Thread(target=beat, args=(pub,), daemon=True).start()
+    elif role == "receiver":
+        def receive(msg):
+            latencies.append(time.time_ns() - int(msg.data))
+        node.create_subscription(String, "beat", receive, 10)
     elif role == "reactor":
         out = node.create_publisher(String, "reaction", 10)
 
@@ -130,6 +136,7 @@ def make(role: str, name: str) -> Node:
 started = threading.Event()
 beats = []  # time.monotonic_ns() right before each publish of the metronome
 reactions = []  # ns from the start of each of the reactor's callbacks to its publish
+latencies = []  # ns from the stamp of each message the receiver took to its callback's start
 
 
 def schedule() -> list[int]:
@@ -143,13 +150,13 @@ def schedule() -> list[int]:
 
 def beat(pub) -> None:
     """Publish on an absolute schedule, so that a late wakeup does not shift the ones after it."""
-    msg, periods = String(data="beat"), schedule()
+    periods = schedule()
     started.wait()
     due = time.monotonic_ns()
     for i in range(burst):
         time.sleep(max(0, due - time.monotonic_ns()) / 1e9)
         beats.append(time.monotonic_ns())
-        pub.publish(msg)
+        pub.publish(String(data=str(time.time_ns())))
         counted[0] += 1
         due += periods[i % len(periods)]
 
@@ -170,8 +177,9 @@ def main() -> None:
                     left[0] = burst
                 started.set()
                 continue
-            if line.strip() in ("beats", "reactions"):
-                print(line.strip(), *(beats if line.strip() == "beats" else reactions), flush=True)
+            asked = {"beats": beats, "reactions": reactions, "latencies": latencies}.get(line.strip())
+            if asked is not None:
+                print(line.strip(), *asked, flush=True)
                 continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us

@@ -104,6 +104,9 @@ def test_each_view_shows_what_the_nodes_count(agent, ros_nodes):
             assert (edge["FROM"], edge["TO"], edge["QOS"]) == ("/top_talker", "/top_listener", "ok")
             close(number(edge["RATE"]), taken, "edge rate")
             close(number(edge["BANDWIDTH"]), taken * size, "edge bandwidth")
+            # Over UDP on one host, taken by an idle executor: well under a 10 Hz period (the figure
+            # itself is checked against the subscriber's own clock in test_topic_timing).
+            assert 0 < number(edge["AGE"]) < 0.05, edge
             out, = [r for r in seen["connections"] if r["PID"] == str(sender) and r["REMOTE"].endswith(f":{port}")]
             into, = [r for r in seen["connections"] if r["PID"] == str(os.getpid()) and r["LOCAL"].endswith(f":{port}")]
             close(number(out["TX"]), sent, "sender's socket")
