@@ -11,10 +11,11 @@ from dataclasses import dataclass
 from drums import units
 
 # Families that say what the agent (or this detector, scraped by the same Prometheus) is and does
-# rather than what the robot does, and families whose value is an identity (a start time) or a
-# histogram's buckets (its count and sum are watched).
+# rather than what the robot does, families whose value is an identity (a start time) or a
+# histogram's buckets (its count and sum are watched), and the per-process message timings, which
+# the graph's per-topic, per-node and per-edge ones repeat under their names.
 SKIPPED = re.compile(r"drums_(probe|budget|graph|http|agent|self|scrape|job|stream|detect)_|drums_anomal|"
-                     r"_info$|_bucket$|"
+                     r"drums_ros_(publish_period|reaction|delivery)_|_info$|_bucket$|"
                      r"_start_time_seconds$|_total_bytes$|_size_bytes$|_deadline_seconds$|_fill_ratio$|"
                      r"_unattributed_rows$|_connection_limit$")
 
@@ -29,9 +30,10 @@ CATEGORIES = (  # the first pattern that matches the name
 # on a healthy host: only a doubling, or a fall to nothing, is news.
 CHURN = re.compile(r"context_switches|runqueue_waits|runqueue_latency_seconds_count")
 # Watched on request (--detail): per-thread and per-socket series, their process's totals in detail,
-# and the scheduler's (context switches, run-queue waits), which echo a change of CPU or traffic
-# already seen and move with the load of the rest of the host.
-DETAIL = re.compile(r"^drums_(thread|socket)_|context_switches|runqueue")
+# the scheduler's (context switches, run-queue waits), which echo a change of CPU or traffic
+# already seen and move with the load of the rest of the host, and the message timings (a
+# histogram's sum and count: its rate times its mean), which swing with that load too.
+DETAIL = re.compile(r"^drums_(thread|socket)_|context_switches|runqueue|_publish_period_|_reaction_|_delivery_")
 
 _LABEL = re.compile(r'([a-zA-Z_][a-zA-Z0-9_]*)="((?:[^"\\]|\\.)*)"')
 _ESCAPE = re.compile(r"\\(.)")

@@ -79,7 +79,6 @@ SKEWED = Metric("drums_ros_delivery_skewed_total", COUNTER,
 SUB_LOG2, OCTAVES = 6, 17
 SLOTS = (OCTAVES << SUB_LOG2) + 2
 PERIOD_MIN_LOG2, REACTION_MIN_LOG2, DELIVERY_MIN_LOG2 = 17, 14, 12  # from 131 us, 16 us and 4 us
-MAX_SLOTS = 32  # slots shown per series: beyond, neighbours are merged (its buckets get coarser)
 
 
 def slot_edges(min_log2: int) -> tuple[np.ndarray, np.ndarray]:
@@ -165,26 +164,20 @@ def _gid(mem: int, data: int, identifier: int) -> str:
 
 def timing_histogram(slots: np.ndarray, total_ns: int, edges: tuple[np.ndarray, np.ndarray]) -> Histogram:
     """Times counted in the kernel's slots (with these edges) as a histogram with a bucket at each
-    edge of each slot that holds counts, so the quantiles are as fine as the slots. Past MAX_SLOTS
-    such slots, neighbours within a power of two are merged, in pairs, then fours, until no more
-    than that hold counts."""
-    (first_lower, first_upper), counts = edges, slots.astype(np.int64)
-    lower, upper = first_lower, first_upper
-    step = 1
-    while np.count_nonzero(counts) > MAX_SLOTS and step < 1 << SUB_LOG2:
-        step *= 2
-        counts = np.concatenate(([slots[0]], slots[1:-1].reshape(-1, step).sum(axis=1), [slots[-1]]))
-        lower = np.concatenate(([first_lower[0]], first_lower[1:-1:step], [first_lower[-1]]))
-        upper = np.concatenate(([first_upper[0]], first_upper[step:-1:step], [first_upper[-1]]))
-    used = np.flatnonzero(counts)
-    cumulative = np.cumsum(counts[used])
-    edges = np.column_stack((lower[used], upper[used])).ravel()
-    at = np.column_stack((cumulative - counts[used], cumulative)).ravel()
-    keep = (edges > 0) & np.isfinite(edges)
-    edges, at = edges[keep], at[keep]
-    first = np.concatenate(([True], np.diff(edges) > 0))  # neighbouring slots share an edge
+    edge of each slot that holds counts, so the quantiles are as fine as the slots. A slot once
+    counted stays, so no bucket goes away and none goes down, also where rows are added on the
+    union of their buckets (two publishers of a node, rows of nodes not known yet)."""
+    lower, upper = edges
+    used = np.flatnonzero(slots)
+    counts = slots[used].astype(np.int64)
+    cumulative = np.cumsum(counts)
+    bounds = np.column_stack((lower[used], upper[used])).ravel()
+    at = np.column_stack((cumulative - counts, cumulative)).ravel()
+    keep = (bounds > 0) & np.isfinite(bounds)
+    bounds, at = bounds[keep], at[keep]
+    first = np.concatenate(([True], np.diff(bounds) > 0))  # neighbouring slots share an edge
     total = int(cumulative[-1]) if len(used) else 0
-    return Histogram(at[first].tolist(), total_ns / 1e9, total, tuple(edges[first].tolist()))
+    return Histogram(at[first].tolist(), total_ns / 1e9, total, tuple(bounds[first].tolist()))
 
 
 class RclProbe(BpfProbe):
