@@ -148,7 +148,7 @@ def test_the_client_sees_every_node_on_its_host_and_every_edge_with_its_bytes(la
         seen.update(nodes=hosts_of_nodes(g), edges=sorted(g.edges(keys=True)))
         ok = {f"/{n}": h for n, h in PLACES.items()}.items() <= seen["nodes"].items()
         return ok and all(g.has_edge("node:/talker", f"node:/listener{i}", "/chatter") for i in (2, 3)) and g
-    graph = wait_for("every node on its host and both /chatter edges", placed, within=60, seen=seen)
+    graph = wait_for("every node on its host and both /chatter edges", placed, within=90, seen=seen)
     assert {d["name"] for _, d in graph.nodes(data=True) if d["kind"] == "host"} == {"robot1", "robot2", "robot3"}
     assert {d["name"]: d["address"] for _, d in graph.nodes(data=True) if d["kind"] == "host"} == {
         f"robot{i}": address(i) for i in HOSTS}

@@ -353,9 +353,10 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     # thread's wait: allow 3 us a switch.
     per_switch = 3e-6 * sum(switches)
     # Waits begin at the wakeup tracepoint or the switch-out, the kernel's at its enqueue or the start of
-    # __schedule; both end at the switch-in. Seen: 0.05-16 ms apart on 3-500 ms of waiting.
+    # __schedule; both end at the switch-in. Seen: 0.05-16 ms apart on 3-500 ms of waiting, and 10 ms on
+    # 51 ms while the other test lane kept both CPUs busy.
     runq, k_runq = delta(THREAD_RUNQ), (k_after[1] - k_before[1]) / 1e9
-    assert abs(runq - k_runq) <= 0.002 + 0.1 * k_runq + per_switch, (runq, k_runq, switches)
+    assert abs(runq - k_runq) <= 0.002 + 0.2 * k_runq + per_switch, (runq, k_runq, switches)
     # The probe counts every switch-in after a wait; an ftrace of sched_switch agreed with it exactly.
     # The kernel's pcount (third schedstat field) was 0-3 above both in the same windows.
     waits, k_waits = delta(THREAD_RUNQ_WAITS), k_after[2] - k_before[2]
