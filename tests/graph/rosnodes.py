@@ -152,6 +152,10 @@ def beat(pub) -> None:
     """Publish on an absolute schedule, so that a late wakeup does not shift the ones after it."""
     periods = schedule()
     started.wait()
+    # With $DRUMS_TEST_BURST_SUBSCRIBERS, not before that many subscribers matched (DDS discovery
+    # over UDP can take seconds); without, whether or not anyone listens.
+    while pub.get_subscription_count() < int(os.environ.get("DRUMS_TEST_BURST_SUBSCRIBERS", "0")):
+        time.sleep(0.01)
     due = time.monotonic_ns()
     for i in range(burst):
         time.sleep(max(0, due - time.monotonic_ns()) / 1e9)

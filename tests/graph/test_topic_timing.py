@@ -133,7 +133,8 @@ def test_a_node_that_sleeps_15_ms_between_take_and_publish_reacts_in_15_ms(lab, 
     url, prometheus = lab
     reaction = "drums_node_reaction_seconds"
     reactor = ros_nodes("reactor")
-    metronome = ros_nodes("metronome", "reacted_to", env={"DRUMS_TEST_BURST": "60", "DRUMS_TEST_PERIODS_MS": "40"})
+    metronome = ros_nodes("metronome", "reacted_to", env={"DRUMS_TEST_BURST": "60", "DRUMS_TEST_PERIODS_MS": "40",
+                                                          "DRUMS_TEST_BURST_SUBSCRIBERS": "1"})
     started(url, ("/reactor", reactor), ("/reacted_to", metronome))
     metronome.go()
     wait_until(lambda: metronome.count() == 60, "the beats published", timeout=15)
@@ -166,7 +167,8 @@ def test_the_age_of_a_message_when_taken_is_what_the_subscriber_measures_from_it
     sender, receiver = f"/stamper_{transport}", f"/receiver_{transport}"
     edge = {"topic": "/beat", "publisher": sender, "subscriber": receiver}
     listening = ros_nodes("receiver", receiver[1:], env=env)
-    metronome = ros_nodes("metronome", sender[1:], env={**env, "DRUMS_TEST_BURST": "100", "DRUMS_TEST_PERIODS_MS": "10"})
+    metronome = ros_nodes("metronome", sender[1:], env={**env, "DRUMS_TEST_BURST": "100", "DRUMS_TEST_PERIODS_MS": "10",
+                                                        "DRUMS_TEST_BURST_SUBSCRIBERS": "1"})
     started(url, (receiver, listening), (sender, metronome))
     metronome.go()
     wait_until(lambda: metronome.count() == 100, "the beats published", timeout=15)
