@@ -124,8 +124,7 @@ static __always_inline void count_slot(struct timing_t *t, u64 slot)
         __sync_fetch_and_add(&t->slots[slot], 1);
 }
 
-// What a new entry of `periods` or `reactions` starts as (bcc names each map in its calls, so each
-// makes its own entries). Inserting fails if the map is full, or if another thread made it first.
+// What a new entry of `periods` or `reactions` starts as.
 static __always_inline struct timing_t *zero_timing(void)
 {
     int zero = 0;
@@ -134,15 +133,11 @@ static __always_inline struct timing_t *zero_timing(void)
 
 static __always_inline void period(struct handle_key_t *key, u64 now)
 {
-    struct timing_t *p = periods.lookup(key), *fresh;
-    if (!p && (fresh = zero_timing())) {
-        periods.insert(key, fresh);
-        p = periods.lookup(key);
-        if (!p)
-            count_drop(2);
-    }
-    if (!p)
+    struct timing_t *fresh = zero_timing(), *p = fresh ? periods.lookup_or_try_init(key, fresh) : 0;
+    if (!p) {
+        count_drop(2);
         return;
+    }
     // Threads publishing at once on one publisher may both measure from the same last publish:
     // rare, and no count is lost.
     u64 last = p->last_ns;
@@ -162,15 +157,11 @@ static __always_inline void reaction(u32 tgid, u64 output, u64 now)
     if (!took || !took->input || now < took->at)
         return;
     struct reaction_key_t key = {.tgid = tgid, .input = took->input, .output = output};
-    struct timing_t *r = reactions.lookup(&key), *fresh;
-    if (!r && (fresh = zero_timing())) {
-        reactions.insert(&key, fresh);
-        r = reactions.lookup(&key);
-        if (!r)
-            count_drop(3);
-    }
-    if (!r)
+    struct timing_t *fresh = zero_timing(), *r = fresh ? reactions.lookup_or_try_init(&key, fresh) : 0;
+    if (!r) {
+        count_drop(3);
         return;
+    }
     __sync_fetch_and_add(&r->sum_ns, now - took->at);
     count_slot(r, log_slot(now - took->at, REACTION_MIN_LOG2));
 }
@@ -197,15 +188,11 @@ static __always_inline void delivery(u32 tgid, u64 subscription, u64 info, u64 n
     s64 *offset = realtime_offset.lookup(&zero);
     if (stamps[0] <= 0 || stamps[1] <= 0 || !offset || !*offset)
         return;  // the RMW stamps nothing, or the agent has not said the clock yet
-    struct delivery_t *d = deliveries.lookup(&key), *fresh;
-    if (!d && (fresh = delivery_zero.lookup(&zero))) {
-        deliveries.insert(&key, fresh);
-        d = deliveries.lookup(&key);
-        if (!d)
-            count_drop(4);
-    }
-    if (!d)
+    struct delivery_t *fresh = delivery_zero.lookup(&zero), *d = fresh ? deliveries.lookup_or_try_init(&key, fresh) : 0;
+    if (!d) {
+        count_drop(4);
         return;
+    }
     s64 transport = stamps[1] - stamps[0], age = (s64)now + *offset - stamps[0];
     if (transport < 0 || age < 0) {
         __sync_fetch_and_add(&d->skewed, 1);
