@@ -7,7 +7,7 @@ import pytest
 from drums.agent import Agent, Selection
 from drums.budget import Budget
 from drums.errors import UsageError
-from tests.conftest import eventually, series
+from tests.conftest import eventually, series, wait_until
 
 # A hierarchy to make a test group in: v1's pids controller here, else the cgroup2 root. The
 # selection matches a process's path in any hierarchy it is in.
@@ -23,6 +23,10 @@ def pids_with_series(snap) -> set[int]:
 def sleepers():
     procs = [subprocess.Popen(["sleep", "60"]) for _ in range(2)]
     procs.append(subprocess.Popen(["cat"], stdin=subprocess.PIPE))
+    # Popen returns once exec closed its pipe, which the kernel does just before it names the
+    # process: until then /proc says "python" (the agent reads the name again after the exec).
+    for p in procs:
+        wait_until(lambda: open(f"/proc/{p.pid}/comm").read().strip() == p.args[0], f"{p.args[0]}'s exec")
     yield procs
     for p in procs:
         p.kill()
