@@ -33,12 +33,13 @@ BPF_HASH(handles, struct handle_key_t, u64, 16384);
 #define REACTION_MIN_LOG2 14  // reactions: 16 us to 2.1 s
 #define DELIVERY_MIN_LOG2 12  // deliveries: 4 us to 537 ms
 struct timing_t {
-    u64 last_ns;  // when the publisher last published (periods)
+    u64 last_ns;  // when the publisher last published, or the subscription last took (periods)
     u64 sum_ns;
-    u64 missed;   // deadlines that passed between two messages, for a publisher in `deadlines`
+    u64 missed;   // deadlines that passed between two messages, for an endpoint in `deadlines`
     u32 slots[SLOTS];
 };
-// Allocated as publishers first publish (4.4 KB each), not for all of them up front.
+// Allocated as publishers first publish (4.4 KB each), not for all of them up front; for a
+// subscription that requests a deadline, as it takes (its deadlines missed, its slots unread).
 BPF_F_TABLE("hash", struct handle_key_t, struct timing_t, periods, 4096, BPF_F_NO_PREALLOC);
 // A node's reaction: the subscription a thread took from and the publisher it then published on.
 struct reaction_key_t {
@@ -54,6 +55,12 @@ BPF_PERCPU_ARRAY(timing_zero, struct timing_t, 1);  // never written: what a new
 // (ns of the realtime clock), two sequence numbers, then publisher_gid: its identifier pointer and
 // the GUID's 16 bytes.
 #define MESSAGE_INFO_GID_OFF 40
+struct message_info_t {
+    s64 source_ns;
+    s64 received_ns;
+    u8 between[MESSAGE_INFO_GID_OFF - 16];
+    u8 publisher[16];
+};
 // Deliveries to a subscription from one publisher: the transport (received less source stamp) and
 // the message's age when the subscriber took it (take less source stamp).
 struct delivery_key_t {
@@ -73,10 +80,21 @@ BPF_F_TABLE("hash", struct delivery_key_t, struct delivery_t, deliveries, 4096, 
 BPF_PERCPU_ARRAY(delivery_zero, struct delivery_t, 1);
 // CLOCK_REALTIME less CLOCK_MONOTONIC (ns), written by the agent as it starts and at each collect.
 BPF_ARRAY(realtime_offset, s64, 1);
-// The Deadline QoS of publishers that offer one, in ns, written by the agent from the graph: a
-// period of n deadlines or more counts n missed, as the kernel saw the messages (not as the
-// application's QoS events say).
+// The Deadline QoS of publishers that offer one and subscriptions that request one, in ns, written
+// by the agent from the graph: a period of n deadlines or more between two messages published, or
+// taken, counts n missed, as the kernel saw the messages (not as the application's QoS events say).
 BPF_HASH(deadlines, struct handle_key_t, u64, 4096);
+// How many entries `deadlines` has, as the agent wrote it: an array is read for nearly nothing, and
+// saves hashing every message's key where no endpoint has a deadline.
+BPF_ARRAY(deadlines_known, u32, 1);
+
+static __always_inline u64 deadline_of(struct handle_key_t *key)
+{
+    int zero = 0;
+    u32 *known = deadlines_known.lookup(&zero);
+    u64 *deadline = known && *known ? deadlines.lookup(key) : 0;
+    return deadline ? *deadline : 0;
+}
 // Per thread: the subscription it passed to rcl_take, kept until it returns, and the last one it
 // took a message from and when, until it waits again. Task-local storage, not a hash keyed by
 // thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
@@ -131,7 +149,7 @@ static __always_inline struct timing_t *zero_timing(void)
     return timing_zero.lookup(&zero);
 }
 
-static __always_inline void period(struct handle_key_t *key, u64 now)
+static __always_inline void period(struct handle_key_t *key, u64 now, u64 deadline)
 {
     struct timing_t *fresh = zero_timing(), *p = fresh ? periods.lookup_or_try_init(key, fresh) : 0;
     if (!p) {
@@ -145,9 +163,8 @@ static __always_inline void period(struct handle_key_t *key, u64 now)
     if (!last || now <= last)
         return;
     __sync_fetch_and_add(&p->sum_ns, now - last);
-    u64 *deadline = deadlines.lookup(key);
-    if (deadline && *deadline)
-        __sync_fetch_and_add(&p->missed, (now - last) / *deadline);
+    if (deadline)
+        __sync_fetch_and_add(&p->missed, (now - last) / deadline);
     count_slot(p, log_slot(now - last, PERIOD_MIN_LOG2));
 }
 
@@ -166,34 +183,37 @@ static __always_inline void reaction(u32 tgid, u64 output, u64 now)
     count_slot(r, log_slot(now - took->at, REACTION_MIN_LOG2));
 }
 
+// DRUMS_COUNT_ONLY (drums agent --no-ros-timing): messages are counted, not timed.
 int on_publish(struct pt_regs *ctx)
 {
-    u64 now = bpf_ktime_get_ns();
     struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = PUBLISHED,
                                .handle = PT_REGS_PARM1(ctx)};
     count(&key);
-    period(&key, now);
+#ifndef DRUMS_COUNT_ONLY
+    u64 now = bpf_ktime_get_ns();
+    period(&key, now, deadline_of(&key));
     reaction(key.tgid, key.handle, now);
+#endif
     return 0;
 }
 
 static __always_inline void delivery(u32 tgid, u64 subscription, u64 info, u64 now)
 {
-    s64 stamps[2] = {};  // source, received
-    struct delivery_key_t key = {.tgid = tgid, .subscription = subscription};
-    if (bpf_probe_read_user(stamps, sizeof(stamps), (void *)info) != 0 ||
-        bpf_probe_read_user(key.publisher, sizeof(key.publisher), (void *)(info + MESSAGE_INFO_GID_OFF)) != 0)
+    struct message_info_t m;  // one read of user memory: its stamps and the GID
+    if (bpf_probe_read_user(&m, sizeof(m), (void *)info) != 0)
         return;
     int zero = 0;
     s64 *offset = realtime_offset.lookup(&zero);
-    if (stamps[0] <= 0 || stamps[1] <= 0 || !offset || !*offset)
+    if (m.source_ns <= 0 || m.received_ns <= 0 || !offset || !*offset)
         return;  // the RMW stamps nothing, or the agent has not said the clock yet
+    struct delivery_key_t key = {.tgid = tgid, .subscription = subscription};
+    __builtin_memcpy(key.publisher, m.publisher, sizeof(key.publisher));
     struct delivery_t *fresh = delivery_zero.lookup(&zero), *d = fresh ? deliveries.lookup_or_try_init(&key, fresh) : 0;
     if (!d) {
         count_drop(4);
         return;
     }
-    s64 transport = stamps[1] - stamps[0], age = (s64)now + *offset - stamps[0];
+    s64 transport = m.received_ns - m.source_ns, age = (s64)now + *offset - m.source_ns;
     if (transport < 0 || age < 0) {
         __sync_fetch_and_add(&d->skewed, 1);
         return;
@@ -230,13 +250,18 @@ int on_take_return(struct pt_regs *ctx)
     u64 h = took->pending;
     took->pending = 0;
     if (PT_REGS_RC(ctx) == 0) {
-        u64 now = bpf_ktime_get_ns();
         struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = TAKEN, .handle = h};
         count(&key);
+#ifndef DRUMS_COUNT_ONLY
+        u64 now = bpf_ktime_get_ns();
+        u64 deadline = deadline_of(&key);
+        if (deadline)
+            period(&key, now, deadline);
         took->input = h;
         took->at = now;
         if (took->info)
             delivery(key.tgid, h, took->info, now);
+#endif
     }
     return 0;
 }

@@ -171,11 +171,22 @@ class Agent:
         with self._lock:
             return self._collect()
 
-    def collect_raw(self, probes: set[str]) -> Snapshot:
+    def collect_raw(self, probes: set[str], joined: bool = False) -> Snapshot:
         """A fresh read of the named probes, before selection and budget: every entity with its
-        own rows (what jobs sample; nothing else is read)."""
+        own rows (what jobs sample; nothing else is read); `joined` adds the graph's rows of them."""
         with self._lock:
-            return self._read(probes)
+            raw = self._read(probes)
+            for metric, rows in self._joined(raw).series.items() if joined else ():
+                raw.rows(metric).extend(rows)
+            return raw
+
+    def _joined(self, raw: Snapshot) -> Snapshot:
+        """The graph's rows of `raw`: per node, topic and edge."""
+        joined = Snapshot()
+        if self.graph is not None:
+            join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
+                 joined)
+        return joined
 
     def _collect(self) -> Snapshot:
         """The snapshot to export: every probe, joined onto the graph, selected and budgeted."""
@@ -183,10 +194,7 @@ class Agent:
         self._want_rtt()
         self._want_deadlines()
         raw = self._read({p.name for p in self.probes})
-        joined = Snapshot()
-        if self.graph is not None:
-            join(self.graph.entities("node"), self.graph.entities("endpoint"), self.graph.connections(), raw,
-                 joined)
+        joined = self._joined(raw)
         everything = self.selection.everything and self.proctable.netns is None
         snap = self.budget.apply(raw if everything else self._select(raw))
         for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
@@ -205,12 +213,13 @@ class Agent:
                 probe.want_rtt(pairs)
 
     def _want_deadlines(self) -> None:
-        """The Deadline QoS of the graph's publishers, for the probe that counts their misses."""
+        """The Deadline QoS of the graph's publishers and subscriptions, for the probe that counts
+        their misses."""
         deadlines = {}
         if self.graph is not None:
             for e in self.graph.entities("endpoint"):
                 ns = e.qos.get("deadline_ns", 0)
-                if e.kind == "publisher" and 0 < ns < INFINITE_NS:
+                if 0 < ns < INFINITE_NS:
                     deadlines[e.id[:GID_HEX]] = ns
         for probe in self.probes:
             if hasattr(probe, "want_deadlines"):

@@ -9,6 +9,7 @@ import socket
 import sys
 import threading
 import time
+from urllib.parse import urlsplit
 
 from drums.errors import DrumsError, GraphError, UsageError
 
@@ -117,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "ros2 graph)")
     agent.add_argument("--no-probe", action="append", choices=PROBES, default=[],
                        help="do not run this probe (repeatable)")
+    agent.add_argument("--no-ros-timing", dest="ros_timing", action="store_false",
+                       help="count ROS 2 messages without timing them (no periods, deadlines, reactions or "
+                            "delivery times): less work in the kernel for each message")
     agent.add_argument("--strict", action="store_true",
                        help="refuse to start unless every probe attaches with eBPF and the graph adapter starts")
     agent.add_argument("--keep-loaded", action="store_true",
@@ -246,6 +250,7 @@ def run_agent(args) -> int:
     from drums.graph.model import Graph
     from drums.kernel import pinlock
     from drums.kernel.features import Features
+    from drums.probes.latency import TCP_PORT
     from drums.probes.registry import PROBES, ROS2_PROBES, build
     from drums.proctable import OWN_NETNS, ProcessTable
 
@@ -262,7 +267,7 @@ def run_agent(args) -> int:
     proctable = ProcessTable()
     features = Features()
     pins = pinlock.hold(args.pin_dir)  # held while the agent runs
-    probes = build(features, proctable, names, args.pin_dir)
+    probes = build(features, proctable, names, args.pin_dir, args.ros_timing)
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
     graph = Graph()
@@ -275,17 +280,24 @@ def run_agent(args) -> int:
     host = socket.gethostname()
     latency = next((p for p in probes if p.name == "latency"), None)
 
-    def mesh() -> set[str]:  # the other hosts of the graph, where they are reached
-        return {h.address or h.name for h in graph.entities("host") if h.name != host}
+    def agent_port(url: str) -> int:  # as another host's agent announced it; a port it may not be is none
+        try:
+            return urlsplit(url).port or TCP_PORT
+        except ValueError:
+            return TCP_PORT
+
+    def mesh() -> dict[str, int]:  # the other hosts of the graph, where they are reached: their agents' ports
+        return {h.address or h.name: agent_port(h.agent) for h in graph.entities("host") if h.name != host}
 
     def latency_targets() -> set[str]:  # the graph's hosts by name or address, and the operator's
         return {t for h in graph.entities("host") for t in (h.name, h.address) if t} | set(args.latency_target)
     stream = Stream(args.address, args.stream_port, curve=not _loopback(args.address), token=token)
-    jobs = Jobs(agent.collect_raw, host, stream, latency, latency_targets, mesh if args.latency_mesh else None)
+    jobs = Jobs(agent.collect_raw, host, stream, latency, latency_targets, mesh if args.latency_mesh else None,
+                lambda: {t.name for t in graph.entities("topic")})
     agent.wanted_pids = jobs.pids
 
     def info() -> dict:
-        return {"host": host, "api": "v1", "graph": adapter_name, "token_required": bool(token),
+        return {"host": host, "time": time.time(), "api": "v1", "graph": adapter_name, "token_required": bool(token),
                 "probes": {p.name: {"attached": p.status.attached, "attach_type": p.status.attach_type,
                                     "reason": p.status.reason} for p in agent.probes}}
     rates = Rates()  # the counters of the last picture of the graph, for the rates on the next

@@ -136,7 +136,7 @@ def test_host_job_and_info(api):
     code, document = call("GET", f"{api}/openapi.json")
     assert code == 200 and set(document["paths"]) == {
         "/info", "/jobs", "/openapi.json", "/monitor/host", "/monitor/pid/{pid}", "/monitor/latency/{target}",
-        "/monitor/socket/{protocol}/{direction}/{port}"}
+        "/monitor/socket/{protocol}/{direction}/{port}", "/monitor/topic/{topic}"}
 
 
 def test_a_job_whose_lease_is_not_renewed_ends_by_itself(api):
@@ -175,6 +175,9 @@ def test_a_process_job_ends_with_its_process(api):
     ("POST", "monitor/socket/tcp/up/1", None, 400, "direction 'up': one of src, dst, any"),
     ("POST", "monitor/socket/tcp/src/70000", None, 400, "port '70000': a whole number from 1 to 65535"),
     ("POST", "monitor/socket/tcp/src", None, 400, "a socket job is /drums/v1/monitor/socket/<tcp|udp>/<src|dst|any>/<port>"),
+    ("POST", "monitor/topic/camera/im-age", None, 400, "topic 'camera/im-age': a ROS topic name of letters, digits "
+     "and _ between slashes, as in /drums/v1/monitor/topic/camera/image"),
+    ("POST", "monitor/topic/nowhere", None, 404, "no topic /nowhere in the graph"),
     ("POST", "monitor/host", b"{bad", 400, "the body is not JSON (Expecting property name enclosed in double quotes: line 1 column 2 (char 1))"),
     ("POST", "monitor/host", [1], 400, "the body is a JSON object, not list"),
     ("POST", "monitor/host", b"\x0b", 400, "the body is not JSON (Expecting value: line 1 column 1 (char 0))"),

@@ -99,6 +99,48 @@ def test_latency_jobs_measure_targets_they_are_allowed_to(agent):
     assert 0 < values["drums_latency_rtt_mean_seconds"][1] < 0.01
 
 
+def test_a_latency_job_to_a_drums_agent_measures_how_far_its_clock_is_from_ours(agent):
+    """The agent itself (the same clock) and a peer whose clock is 5 s ahead: a stand-in HTTP server
+    that answers /drums/v1/info as an agent does, as no clock of this host can be set apart."""
+    import http.server
+    import threading
+
+    class Ahead(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            body = json.dumps({"host": "ahead", "time": time.time() + 5.0}).encode()
+            self.send_response(200 if self.path == "/drums/v1/info" else 404)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *_):
+            pass
+    peer = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Ahead)
+    threading.Thread(target=peer.serve_forever, daemon=True).start()
+    own_port = int(agent.rsplit(":", 1)[1])
+
+    def clock(c, target) -> tuple:
+        rows = {r["name"]: r["value"] for r in (c.agents[0].job("latency", target)["sample"] or {}).get("series", [])}
+        return rows.get("drums_latency_clock_offset_seconds"), rows.get("drums_latency_clock_offset_uncertainty_seconds")
+    try:
+        with Client([agent]) as c:
+            c.start("latency", "127.0.0.1", interval=0.3, count=1, method="tcp", port=own_port)
+            c.start("latency", "localhost", interval=0.3, count=1, method="tcp", port=peer.server_address[1])
+            time.sleep(1.5)
+            same, ahead = clock(c, "127.0.0.1"), clock(c, "localhost")
+            c.start("latency", "localhost", interval=0.3, count=1, method="tcp", port=free_port())  # no agent there
+            time.sleep(1.5)
+            nobody = clock(c, "localhost")
+            c.agents[0].stop("latency", "127.0.0.1")
+            c.agents[0].stop("latency", "localhost")
+    finally:
+        peer.shutdown()
+    assert 0 < same[1] < 0.05 and abs(same[0]) <= same[1] + 1e-6, same
+    assert 0 < ahead[1] < 0.05 and abs(ahead[0] - 5.0) <= ahead[1] + 1e-6, ahead
+    assert nobody == (None, None)
+
+
 # One latency probe to this host's loopback for a second, run as `nobody`: its rows as JSON.
 UNPRIVILEGED = r'''
 import json, time

@@ -144,6 +144,12 @@ def topic_alerts(cfg: Config) -> list[dict]:
               f"{w.topic_node} let {{{{ $value | humanize }}}} of the deadlines its Deadline QoS offers "
               f"(drums_topic_deadline_seconds) pass without a message in the last minute, for "
               f"{cfg.deadline_missed_for}: its subscribers see deadline-missed events."),
+        alert(cfg, "DrumsSubscriptionDeadlineMissed",
+              f"drums:topic_take_deadlines_missed:increase1m >= {cfg.deadline_misses:g}",
+              cfg.deadline_missed_for, "warning", f"Deadline QoS missed in taking: {w.topic_node}",
+              f"Subscriber {w.topic_node} let {{{{ $value | humanize }}}} of the deadlines its Deadline QoS "
+              f"requests pass without taking a message in the last minute, for {cfg.deadline_missed_for}: it "
+              f"sees deadline-missed events."),
         alert(cfg, "DrumsTopicMessagesLost",
               f"drums:topic_messages_lost:ratio_rate1m > {cfg.topic_loss_ratio:g}", cfg.topic_loss_for, "warning",
               f"Messages lost on {cfg.label('topic')}: {cfg.label('node')} ({w.host})",

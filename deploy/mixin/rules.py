@@ -66,6 +66,8 @@ def topic_rules(cfg: Config) -> list[dict]:
           for q in (0.5, 0.99)),
         record("drums:topic_deadlines_missed:increase1m",
                f"increase({cfg.series('drums_topic_deadlines_missed_total')}[{WINDOW}])"),
+        record("drums:topic_take_deadlines_missed:increase1m",
+               f"increase({cfg.series('drums_topic_take_deadlines_missed_total')}[{WINDOW}])"),
         # Publishers and subscribers of one topic may sit on different hosts of the robot.
         record(robot_published, f"sum by ({robot}, topic) ({published})"),
         # Per subscribing node: what the robot's publishers published that the node did not take.

@@ -13,11 +13,12 @@ from drums import units
 # Families that say what the agent (or this detector, scraped by the same Prometheus) is and does
 # rather than what the robot does, families whose value is an identity (a start time) or a
 # histogram's buckets (its count and sum are watched), and the per-process message timings, which
-# the graph's per-topic, per-node and per-edge ones repeat under their names.
+# the graph's per-topic, per-node and per-edge ones repeat under their names; and how sure a
+# measure is (a clock offset's uncertainty, half an exchange that swings with the load).
 SKIPPED = re.compile(r"drums_(probe|budget|graph|http|agent|self|scrape|job|stream|detect)_|drums_anomal|"
                      r"drums_ros_(publish_period|reaction|delivery)_|_info$|_bucket$|"
                      r"_start_time_seconds$|_total_bytes$|_size_bytes$|_deadline_seconds$|_fill_ratio$|"
-                     r"_unattributed_rows$|_connection_limit$")
+                     r"_unattributed_rows$|_connection_limit$|_uncertainty_seconds$")
 
 CATEGORIES = (  # the first pattern that matches the name
     ("cpu", re.compile(r"cpu|runqueue|context_switches|_load$")),

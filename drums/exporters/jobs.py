@@ -1,6 +1,7 @@
 """Monitoring jobs, the paper's runtime API: a client asks the agent to follow one process, the
-host, the sockets on a port, or the round-trip time to another host; the agent samples each job at
-its interval, keeps the latest sample for GET and publishes each on the stream.
+host, the sockets on a port, the round-trip time to another host, or a topic of the graph; the
+agent samples each job at its interval, keeps the latest sample for GET and publishes each on the
+stream.
 
 A job with a lease ends by itself when its client stops asking for it: each POST to the job
 renews it, and a lease that runs out without one deletes the job, so a client that dies leaves no
@@ -9,18 +10,24 @@ when the job began: its start time tells a later process that got the PID).
 
 A sample is the job's rows of one agent snapshot, taken before the cardinality budget folds
 anything: a job names its entity, so the entity always has its own rows. Each row is
-{"name", "labels", "value"}, histograms as {"count", "sum"}: the same names and labels as on
-/metrics.
+{"name", "labels", "value"}, histograms as {"count", "sum", "buckets": [[upper bound, cumulative
+count], ...]}: the same names, labels and buckets as on /metrics, so that a client computes any
+quantile between two samples as Prometheus does. A topic job's rows are the graph's: the topic's
+publishers (messages, bytes, period, deadlines), its edges (bytes, delivery transport and age)
+and the reactions of nodes from or to it.
 """
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable
 
 from drums.errors import UsageError
+from drums.graph.join import METRICS as GRAPH_METRICS
+from drums.graph.join import NODE_REACTION
 from drums.metrics import Histogram, Snapshot
 from drums.probes.latency import METHODS, LatencyProbe
 from drums.proctable import process_start
@@ -36,10 +43,12 @@ PROC = "/proc"  # when a job without a lease expires
 MAX_JOBS = 1000  # each costs a pass over the snapshot per sample
 # The probes whose rows each kind of job picks: a sample reads those and no others.
 PROBES_OF = {"host": {"host"}, "latency": {"latency"}, "socket": {"sockets", "tcp"},
-             "pid": {"sockets", "sched", "tcp", "process", "rtps", "rcl"}}
+             "pid": {"sockets", "sched", "tcp", "process", "rtps", "rcl"},
+             "topic": {"rcl", "rtps", "sockets", "tcp"}}  # read, then joined onto the graph
 MESH_PERIOD = 2.0  # how often the latency mesh follows the graph's hosts
 MESH_INTERVAL = 1.0
-KINDS = ("pid", "host", "socket", "latency")
+KINDS = ("pid", "host", "socket", "latency", "topic")
+TOPIC_NAME = re.compile(r"[A-Za-z0-9_]+")  # each token of a ROS topic name
 # What a job's body may set, beyond its interval: name -> (default, check, what the check wants).
 LATENCY_SETTINGS = {
     "count": (3, lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
@@ -61,7 +70,7 @@ class Forbidden(UsageError):
 @dataclass
 class Job:
     kind: str  # one of KINDS
-    target: str  # "1234", "", "tcp/src/8080", "10.0.0.2"
+    target: str  # "1234", "", "tcp/src/8080", "10.0.0.2", "/camera/image"
     interval: float
     settings: dict = field(default_factory=dict)  # a latency job's count, method and port
     created: float = field(default_factory=time.time)
@@ -101,8 +110,16 @@ class Job:
                 if not metric.name.startswith("drums_latency_"):
                     continue
                 matches = [(v, x) for v, x in series if v[0] == self.target]
+            elif self.kind == "topic":
+                if metric is NODE_REACTION:
+                    at = (labels.index("input"), labels.index("output"))
+                elif metric in GRAPH_METRICS and "topic" in labels:
+                    at = (labels.index("topic"),)
+                else:
+                    continue
+                matches = [(v, x) for v, x in series if any(v[i] == self.target for i in at)]
             elif self.kind == "pid":
-                if "pid" not in labels:
+                if "pid" not in labels or metric in GRAPH_METRICS:  # drums_node_info: not asked for
                     continue
                 at = labels.index("pid")
                 matches = [(v, x) for v, x in series if v[at] == self.target]
@@ -118,7 +135,9 @@ class Job:
                     (direction != "dst" and on_port(v[loc])) or (direction != "src" and on_port(v[rem])))]
             for values, value in matches:
                 if isinstance(value, Histogram):
-                    value = {"count": value.count, "sum": value.sum}
+                    bounds = value.bounds or metric.buckets
+                    value = {"count": value.count, "sum": value.sum,
+                             "buckets": [[b, c] for b, c in zip(bounds, value.cumulative)]}
                 rows.append({"name": metric.name, "labels": dict(zip(labels, values)), "value": value})
         return rows
 
@@ -155,8 +174,9 @@ def parse_body(kind: str, body: object) -> tuple[float, dict, float | None]:
 
 
 def job_id(kind: str, target: str) -> str:
-    """How a job is named in the API and in listings: "pid/1234", "host", "socket/tcp/src/80"."""
-    return f"{kind}/{target}" if target else kind
+    """How a job is named in the API and in listings, as its path: "pid/1234", "host",
+    "socket/tcp/src/80", "topic/camera/image"."""
+    return f"{kind}/{target.removeprefix('/')}" if target else kind
 
 
 def whole(text: str) -> int | None:
@@ -174,6 +194,11 @@ def job_target(kind: str, parts: list[str]) -> str:
         if len(parts) != 1:
             raise UsageError("a latency job is /drums/v1/monitor/latency/<host name or address>")
         return parts[0]
+    if kind == "topic":
+        if not parts or not all(TOPIC_NAME.fullmatch(p) for p in parts):
+            raise UsageError(f"topic {'/'.join(parts)!r}: a ROS topic name of letters, digits and _ between slashes, "
+                             "as in /drums/v1/monitor/topic/camera/image")
+        return "/" + "/".join(parts)
     if kind == "pid":
         pid = whole(parts[0]) if len(parts) == 1 else None
         if pid is None or not 0 < pid < 1 << 22:
@@ -193,14 +218,18 @@ def job_target(kind: str, parts: list[str]) -> str:
 
 
 class Jobs:
-    """The agent's jobs, and the thread that samples them. `collect(probes)` reads the named
-    probes' rows (before the budget); `stream`, if given, gets every sample. Latency jobs run rounds
-    on `latency` to the targets `latency_targets()` allows; with `mesh`, the agent keeps a latency
-    job of its own on each host `mesh()` returns."""
+    """The agent's jobs, and the thread that samples them. `collect(probes, joined)` reads the named
+    probes' rows (before the budget), and with `joined` the graph's rows of them; `stream`, if
+    given, gets every sample. Latency jobs run rounds on `latency` to the targets `latency_targets()`
+    allows; with `mesh`, the agent keeps a latency job of its own on each host `mesh()` returns
+    (host -> its agent's port, where the job asks its time).
+    Topic jobs follow the topics of the graph, which `topics()` names."""
 
-    def __init__(self, collect: Callable[[set[str]], Snapshot], host: str, stream=None, latency: LatencyProbe | None = None,
-                 latency_targets: Callable[[], set[str]] = set, mesh: Callable[[], set[str]] | None = None):
+    def __init__(self, collect: Callable[[set[str], bool], Snapshot], host: str, stream=None,
+                 latency: LatencyProbe | None = None, latency_targets: Callable[[], set[str]] = set,
+                 mesh: Callable[[], dict[str, int]] | None = None, topics: Callable[[], set[str]] = set):
         self.collect = collect
+        self.topics = topics
         self.host = host
         self.stream = stream
         self.latency = latency
@@ -230,6 +259,8 @@ class Jobs:
         started = process_start(PROC, target) if kind == "pid" else None
         if kind == "pid" and started is None:
             raise NotFound(f"no process {target}")
+        if kind == "topic" and target not in self.topics():
+            raise NotFound(f"no topic {target} in the graph")
         if kind == "latency":
             if self.latency is None:
                 raise Forbidden("this agent runs without the latency probe")
@@ -328,7 +359,7 @@ class Jobs:
             self._wake.clear()
 
     def _sample(self, due: list[Job]) -> None:
-        raw = self.collect(set().union(*(PROBES_OF[j.kind] for j in due)))
+        raw = self.collect(set().union(*(PROBES_OF[j.kind] for j in due)), any(j.kind == "topic" for j in due))
         at = time.time()
         for job in due:
             sample = {"time": at, "series": job.pick(raw)}
@@ -347,9 +378,10 @@ class Jobs:
         with self._lock:
             have = {j.target for j in self._jobs.values() if j.kind == "latency"}
             stale = [j.id for j in self._jobs.values() if j.mesh and j.target not in targets]
-        for target in sorted(targets - have):
+        for target in sorted(targets.keys() - have):
             try:
-                self.add("latency", target, MESH_INTERVAL, parse_body("latency", {})[1], mesh=True)
+                self.add("latency", target, MESH_INTERVAL, parse_body("latency", {"port": targets[target]})[1],
+                         mesh=True)
             except UsageError as e:
                 log.warning("latency mesh: %s", e)
         for job in stale:

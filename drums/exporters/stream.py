@@ -8,7 +8,8 @@ Each message is two frames: the key `<host>:<kind>:<target>` (a subscriber filte
     time    when the sample was taken (Unix seconds)
     layout  an id for the list of series the values belong to
     series  [[name, {label: value}], ...]: only when the layout is new and every KEYFRAME messages
-    values  one value per series, in layout order; a histogram as [count, sum]
+    values  one value per series, in layout order; a histogram as [count, sum, [[upper bound,
+            cumulative count], ...]], its buckets as on /metrics
 
 Labels are most of a sample's bytes and rarely change, so they travel only with a new layout and
 in a periodic keyframe for subscribers that joined late; the messages between carry numbers only.
@@ -105,7 +106,7 @@ class Stream:
         if series != known or seq % KEYFRAME == 1:
             message["series"] = series
         message["layout"] = layout
-        message["values"] = [[v["count"], v["sum"]] if isinstance(v, dict) else v
+        message["values"] = [[v["count"], v["sum"], v["buckets"]] if isinstance(v, dict) else v
                              for v in (r["value"] for r in rows)]
         self.socket.send_multipart([key.encode(), msgpack.packb(message)])
 

@@ -1,7 +1,8 @@
 """The graph as a picture, drawn as ROS developers know it from rqt_graph: nodes as ellipses,
 topics as boxes, publisher -> topic -> subscriber, each arrow labelled with its message rate and
-bandwidth and as thick as its bandwidth; hosts as clusters, and a process that holds several nodes
-as a cluster inside its host. /rosout, /parameter_events and Drums' own nodes are left out unless
+bandwidth and as thick as its bandwidth, a subscriber's arrow also with the age of the messages it
+took and a node with its slowest reaction; hosts as clusters, and a process that holds several
+nodes as a cluster inside its host. /rosout, /parameter_events and Drums' own nodes are left out unless
 `everything` is asked for.
 
 DOT is written here rather than through pydot: every id and label is quoted and escaped, so any
@@ -26,6 +27,7 @@ if TYPE_CHECKING:  # the graph modules load networkx only when a graph is made (
     import networkx as nx
 
 HIDDEN_TOPICS = ("/rosout", "/parameter_events")
+TIMINGS = (join.EDGE_AGE, join.NODE_REACTION)  # means on the picture
 OWN_PREFIX = "/_drums"  # Drums' own nodes: the graph reader and the /diagnostics publisher
 DOT_TIMEOUT = 20  # seconds: Graphviz lays out a few hundred vertices in well under a second
 
@@ -40,8 +42,9 @@ def _attrs(**attrs) -> str:
 
 
 class Rates:
-    """Per-second rates of the joined counters between two looks at least `gap` seconds apart:
-    a picture refreshed every few seconds shows what happened since the last one."""
+    """Per-second rates of the joined counters, and means of the joined timings, between two looks
+    at least `gap` seconds apart: a picture refreshed every few seconds shows what happened since
+    the last one."""
 
     def __init__(self, gap: float = 1.0):
         self.gap = gap
@@ -50,18 +53,30 @@ class Rates:
         self._rates: dict = {}
 
     def update(self, snap: Snapshot, now: float | None = None) -> dict:
-        """{(metric name, labels): per second} of every counter of the join in `snap`."""
+        """{(metric name, labels): per second} of every counter of the join in `snap`, and
+        {(metric name, labels): mean seconds} of its timings that counted any in between."""
         now = time.monotonic() if now is None else now
         values = {(m.name, labels): v for m in join.METRICS if m.kind == COUNTER
                   for labels, v in snap.series.get(m, ())}
+        values.update({(m.name, labels): (h.count, h.sum) for m in TIMINGS for labels, h in snap.series.get(m, ())})
         with self._lock:
             if self._before is None:
                 self._before = (now, values)
             elif now - self._before[0] >= self.gap:
                 then, old = self._before
-                self._rates = {k: (v - old[k]) / (now - then) for k, v in values.items() if k in old and v >= old[k]}
+                self._rates = {k: r for k, v in values.items()
+                               if k in old and (r := _change(v, old[k], now - then)) is not None}
                 self._before = (now, values)
             return self._rates
+
+
+def _change(now, before, seconds: float) -> float | None:
+    """A counter's rate, or a timing's mean, between two reads; None if it began again or, for a
+    timing, counted nothing."""
+    if isinstance(now, tuple):
+        counted = now[0] - before[0]
+        return (now[1] - before[1]) / counted if counted > 0 else None
+    return (now - before) / seconds if now >= before else None
 
 
 def _hidden(vid: str, entity) -> bool:
@@ -100,8 +115,11 @@ def dot(g: nx.MultiDiGraph, snap: Snapshot | None = None, rates: dict | None = N
         name = n.name
         cpu = rates.get((join.NODE_CPU.name, (name,)))
         memory = values.get((join.NODE_MEMORY.name, (name,)))
+        reaction = max((r for (m, labels), r in rates.items() if m == join.NODE_REACTION.name and labels[0] == name),
+                       default=None)
         detail = "  ".join(x for x in (f"CPU {units.percent(100 * cpu)}" if cpu is not None else "",
-                                        units.size(memory) if memory else "") if x)
+                                        units.size(memory) if memory else "",
+                                        f"reacts {units.duration(reaction)}" if reaction is not None else "") if x)
         return f"{indent}{quote(vid)} {_attrs(shape='ellipse', label=name + (chr(10) + detail if detail else ''))};"
 
     nodes_by_process: dict[tuple, list] = defaultdict(list)
@@ -151,9 +169,12 @@ def dot(g: nx.MultiDiGraph, snap: Snapshot | None = None, rates: dict | None = N
         if e.topic in topics and f"node:{e.node}" in shown:
             (pubs if e.kind == "publisher" else subs).add((e.topic, e.node))
     received: dict[tuple[str, str], float] = defaultdict(float)  # by (topic, subscriber), from every publisher
+    ages: dict[tuple[str, str], float] = {}  # by (topic, subscriber): the oldest of its publishers'
     for (metric, labels), r in rates.items():
         if metric == join.EDGE_RECEIVED_BYTES.name:
             received[labels[0], labels[2]] += r
+        elif metric == join.EDGE_AGE.name:
+            ages[labels[0], labels[2]] = max(r, ages.get((labels[0], labels[2]), 0.0))
     for topic, node in sorted(pubs):
         rate = rates.get((join.TOPIC_PUBLISHED.name, (topic, node)))
         sent = rates.get((join.TOPIC_SENT_BYTES.name, (topic, node)))
@@ -162,8 +183,10 @@ def dot(g: nx.MultiDiGraph, snap: Snapshot | None = None, rates: dict | None = N
     for topic, node in sorted(subs):
         rate = rates.get((join.TOPIC_TAKEN.name, (topic, node)))
         got = received.get((topic, node))
+        age = f"age {units.duration(ages[topic, node])}" if (topic, node) in ages else ""
+        label = "  ".join(x for x in (_flow(rate, got), age) if x)
         lines.append(f"  {quote('topic:' + topic)} -> {quote('node:' + node)} "
-                     f"{_attrs(label=_flow(rate, got), penwidth=_penwidth(got))};")
+                     f"{_attrs(label=label, penwidth=_penwidth(got))};")
     for c in sorted(direct, key=lambda c: (c.topic, c.publisher, c.subscriber)):
         got = rates.get((join.EDGE_RECEIVED_BYTES.name, (c.topic, c.publisher, c.subscriber)))
         label = "  ".join(x for x in (c.topic, _flow(None, got)) if x)

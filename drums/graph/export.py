@@ -11,8 +11,9 @@ from collections import defaultdict
 from dataclasses import asdict
 from typing import TYPE_CHECKING
 
+from drums import units
 from drums.errors import UsageError
-from drums.graph import draw, join
+from drums.graph import draw, join, paths
 from drums.graph.model import Graph
 from drums.metrics import INFO, Histogram, Snapshot
 
@@ -34,7 +35,8 @@ def document(graph: Graph, snap: Snapshot, fmt: str, everything: bool = False,
     if fmt in PICTURES:
         text = draw.dot(graph.snapshot(), snap, rates.update(snap) if rates else {}, everything)
         return (draw.svg(text) if fmt == "svg" else text).encode(), CONTENT_TYPES[fmt]
-    return render(graph.snapshot(), fmt, graph_metrics(snap), stale=graph.error).encode(), CONTENT_TYPES[fmt]
+    return render(graph.snapshot(), fmt, graph_metrics(snap), stale=graph.error,
+                  chains=paths.paths(snap)).encode(), CONTENT_TYPES[fmt]
 
 
 def graph_metrics(snap: Snapshot) -> dict:
@@ -89,9 +91,9 @@ def plain(g: nx.MultiDiGraph, metrics: dict | None = None, flat: bool = False) -
 
 
 def render(g: nx.MultiDiGraph, fmt: str, metrics: dict | None = None, stale: str = "",
-           everything: bool = False) -> str:
-    """The graph in a format; `metrics` from graph_metrics(); pictures leave out the topics and
-    nodes of the plumbing unless `everything`."""
+           everything: bool = False, chains: tuple[list[dict], bool] = ([], False)) -> str:
+    """The graph in a format; `metrics` from graph_metrics(), `chains` from paths.paths(); pictures
+    leave out the topics and nodes of the plumbing unless `everything`."""
     if fmt in PICTURES:
         text = draw.dot(g, everything=everything)
         return draw.svg(text) if fmt == "svg" else text
@@ -99,10 +101,13 @@ def render(g: nx.MultiDiGraph, fmt: str, metrics: dict | None = None, stale: str
     if fmt == "json":
         data = nx.node_link_data(plain(g, metrics), edges="edges")
         data["stale"] = stale
+        data["paths"], data["paths_truncated"] = chains
         return json.dumps(data, indent=1, sort_keys=True) + "\n"
     if fmt == "graphml":
-        return "\n".join(nx.generate_graphml(plain(g, metrics, flat=True))) + "\n"
-    return _text(g, metrics or {}, stale)
+        flat = plain(g, metrics, flat=True)
+        flat.graph.update(paths=json.dumps(chains[0], sort_keys=True), paths_truncated=chains[1])
+        return "\n".join(nx.generate_graphml(flat)) + "\n"
+    return _text(g, metrics or {}, stale) + _paths(*chains)
 
 
 def _text(g: nx.MultiDiGraph, metrics: dict, stale: str) -> str:
@@ -139,6 +144,19 @@ def _text(g: nx.MultiDiGraph, metrics: dict, stale: str) -> str:
         for c, values in by_key.get(key, []):
             qos = "" if c.qos_check in ("", "ok") else f" QoS: {c.qos_check}"
             lines.append(f"  {c.publisher} -> {c.subscriber}{_values(values)}{qos}")
+    return "\n".join(lines) + "\n"
+
+
+def _paths(found: list[dict], truncated: bool) -> str:
+    """A line per path, its time and then each part's."""
+    if not found:
+        return ""
+    lines = [f"paths: mean time since the agent started, the sum of its parts'{' (the slowest)' if truncated else ''}"]
+    for path in found:
+        hops = "".join(f" -[{topic}]-> {node}" for topic, node in zip(path["topics"], path["nodes"][1:]))
+        parts = " + ".join(f"{units.duration(p['seconds'])} {'age' if 'edge' in p else 'reaction'}"
+                           for p in path["parts"])
+        lines.append(f"  {path['nodes'][0]}{hops}: {units.duration(path['seconds'])} = {parts}")
     return "\n".join(lines) + "\n"
 
 

@@ -46,6 +46,9 @@ TOPIC_PUBLISH_PERIOD = Metric("drums_topic_publish_period_seconds", HISTOGRAM,
 TOPIC_DEADLINES_MISSED = Metric("drums_topic_deadlines_missed_total", COUNTER,
                                 "Deadlines the node's publisher on the topic offers (Deadline QoS) that passed "
                                 "without a message from it, as the kernel saw its messages", TOPIC)
+TOPIC_TAKE_DEADLINES_MISSED = Metric("drums_topic_take_deadlines_missed_total", COUNTER,
+                                     "Deadlines the node's subscription on the topic requests (Deadline QoS) that "
+                                     "passed without a message taken by it, as the kernel saw its takes", TOPIC)
 TOPIC_SAMPLES_SENT = Metric("drums_topic_samples_sent_total", COUNTER,
                             "Samples of the node's writer on the topic sent over UDP", TOPIC)
 TOPIC_SENT_BYTES = Metric("drums_topic_sent_bytes_total", COUNTER,
@@ -63,7 +66,8 @@ EDGE_RECEIVED_WIRE_BYTES = Metric("drums_edge_received_wire_bytes_total", COUNTE
                                   "publisher's writer, repairs included", EDGE)
 EDGE_TRANSPORT = Metric("drums_edge_delivery_transport_seconds", HISTOGRAM,
                         "Time from the publisher's stamp of a message to its reception by the subscriber's RMW; "
-                        "across hosts as close as their realtime clocks are (see drums_ros_delivery_skewed_total)",
+                        "across hosts as close as their realtime clocks are (drums_latency_clock_offset_seconds "
+                        "measures how close; see drums_ros_delivery_skewed_total)",
                         EDGE, additive=False)
 EDGE_AGE = Metric("drums_edge_delivery_age_seconds", HISTOGRAM,
                   "Time from the publisher's stamp of a message to the subscriber's take of it (rcl_take): "
@@ -83,8 +87,8 @@ UNATTRIBUTED = Metric("drums_topic_unattributed_rows", GAUGE,
                       "nodes on the topic and no endpoint GID", ("kind",))
 UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, NODE_REACTION, TOPIC_PUBLISHED, TOPIC_TAKEN,
-           TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_SAMPLES_SENT, TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES,
-           EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_RECEIVED_WIRE_BYTES, EDGE_TRANSPORT, EDGE_AGE, EDGE_SENT_BYTES,
+           TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_TAKE_DEADLINES_MISSED, TOPIC_SAMPLES_SENT,
+           TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_RECEIVED_WIRE_BYTES, EDGE_TRANSPORT, EDGE_AGE, EDGE_SENT_BYTES,
            EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
 INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
@@ -155,8 +159,10 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
                                  (TOPIC_TAKEN, rcl.TAKEN, "subscriber")):
         for (pid, _, topic, gid), value in raw.of(source):
             sums[metric][topic, owner(pid, kind, topic, gid)] += value
-    for (pid, _, topic, gid), value in raw.of(rcl.MISSED):  # counted with its messages
-        sums[TOPIC_DEADLINES_MISSED][topic, owner(pid, "publisher", topic, gid, counted=False)] += value
+    for metric, source, kind in ((TOPIC_DEADLINES_MISSED, rcl.MISSED, "publisher"),
+                                 (TOPIC_TAKE_DEADLINES_MISSED, rcl.TAKE_MISSED, "subscriber")):
+        for (pid, _, topic, gid), value in raw.of(source):  # counted with its messages
+            sums[metric][topic, owner(pid, kind, topic, gid, counted=False)] += value
     for metric, source in ((TOPIC_SAMPLES_SENT, rtps.SAMPLES_SENT), (TOPIC_SENT_BYTES, rtps.SENT_BYTES),
                            (TOPIC_SENT_WIRE_BYTES, rtps.SENT_WIRE_BYTES)):
         for (_, _, writer), value in raw.of(source):

@@ -19,7 +19,8 @@ BPFFS = "/sys/fs/bpf"
 PIN_ROOT = os.path.join(BPFFS, "drums")
 PERCPU_TYPES = {5, 6, 10}  # BPF_MAP_TYPE_PERCPU_HASH, PERCPU_ARRAY, LRU_PERCPU_HASH
 ARRAY_TYPES = {2, 6}  # BPF_MAP_TYPE_ARRAY, PERCPU_ARRAY
-_BATCH = 4096
+_BATCH = 4096  # entries of one batch read at most
+_BATCH_BYTES = 1 << 18  # and this many bytes of values: a buffer for 4,096 of 8 KiB each would be 32 MiB
 # What bpf_map_lookup_batch fails with where the map type or kernel has no batch operations.
 _NO_BATCH = {errno.EINVAL, errno.EOPNOTSUPP, 524}  # 524: the kernel's ENOTSUPP
 
@@ -135,16 +136,22 @@ class PinnedMap:
     def _read_batch(self) -> tuple[bytes, bytes, int]:
         lib = libbpf()
         keys, values, total = [], [], 0
-        kbuf = ctypes.create_string_buffer(self.key_size * _BATCH)
-        vbuf = ctypes.create_string_buffer(self.value_stride * _BATCH)
+        batch = max(1, min(_BATCH, _BATCH_BYTES // self.value_stride))
+        kbuf = ctypes.create_string_buffer(self.key_size * batch)
+        vbuf = ctypes.create_string_buffer(self.value_stride * batch)
         token = ctypes.create_string_buffer(max(self.key_size, 8))
         token_next = ctypes.create_string_buffer(max(self.key_size, 8))
         first = True
         while True:
-            count = ctypes.c_uint32(_BATCH)
+            count = ctypes.c_uint32(batch)
             ret = lib.bpf_map_lookup_batch(self.fd, None if first else token, token_next, kbuf, vbuf,
                                            ctypes.byref(count), None)
             err = ctypes.get_errno() if ret < 0 else 0
+            if err == errno.ENOSPC and batch < _BATCH:  # a hash bucket holds more than a batch: read it whole
+                batch *= 2
+                kbuf = ctypes.create_string_buffer(self.key_size * batch)
+                vbuf = ctypes.create_string_buffer(self.value_stride * batch)
+                continue
             if ret < 0 and err != errno.ENOENT:
                 raise _BatchError(err, f"batch read of {self.path}: {os.strerror(err)}")
             n = count.value

@@ -100,6 +100,7 @@ class BpfProbe(Probe):
     source = ""
     maps: tuple[str, ...] = ()
     paths: tuple[AttachPath, ...] = ()
+    options: dict[str, int] = {}  # -D definitions that choose what the programs do: part of the pins' name
 
     def __init__(self, features: Features, pin_root: str = bpffs.PIN_ROOT):
         super().__init__()
@@ -121,7 +122,7 @@ class BpfProbe(Probe):
                     h.update(f.read())
             except OSError as e:
                 raise ProbeError(f"BPF source {name} not found in {loader.BPF_DIR}: {e.strerror}") from None
-        h.update(f"{path.name}\0{self.features.kernel_release}\0{_boot_id()}".encode())
+        h.update(f"{path.name}\0{self.features.kernel_release}\0{_boot_id()}\0{sorted(self.options.items())}".encode())
         return h.hexdigest()[:16]
 
     def start(self) -> None:
@@ -153,7 +154,7 @@ class BpfProbe(Probe):
     def _request(self, path: AttachPath, pin_dir: str) -> loader.LoadRequest:
         if self.features.btf is None:
             raise KernelError("cannot parse the kernel's BTF (/sys/kernel/btf/vmlinux)")
-        defines = dict(self.offsets(self.features.btf), DRUMS_ATTACH=ATTACH_DEFINES[path.name])
+        defines = dict(self.offsets(self.features.btf), **self.options, DRUMS_ATTACH=ATTACH_DEFINES[path.name])
         return loader.LoadRequest(
             source=self.source,
             cflags=[f"-D{k}={v}" for k, v in sorted(defines.items())],

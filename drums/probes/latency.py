@@ -5,17 +5,24 @@ may send it (root, or a group in net.ipv4.ping_group_range), else by timing TCP 
 answered by SYN-ACK or by a reset took one round trip either way. A target whose ICMP echoes all
 go unanswered while a TCP connect is answered is probed by TCP from then on (ICMP filtered).
 
+Where the target runs a Drums agent on the TCP port, each round also asks it the time
+(/drums/v1/info), as NTP does: its clock less ours at the middle of the exchange is the offset,
+right to within half the exchange. Delivery times across hosts are differences of two hosts'
+realtime clocks, so this is what tells whether a millisecond of them is the network's or the clocks'.
+
 Only targets the operator or the graph named are probed: the API cannot turn the agent into a
 tool for scanning arbitrary hosts.
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import socket
 import statistics
 import threading
 import time
+import urllib.request
 from dataclasses import dataclass
 
 import icmplib
@@ -39,10 +46,18 @@ SENT = Metric("drums_latency_probes_sent_total", COUNTER,
 LOST = Metric("drums_latency_probes_lost_total", COUNTER, "Probes sent to the target and left unanswered",
               LABELS)
 
+CLOCK_OFFSET = Metric("drums_latency_clock_offset_seconds", GAUGE,
+                      "The target's realtime clock less this host's, as the target's Drums agent said its time at the "
+                      "last round (NTP's estimate: against the middle of the exchange)", ("target",), additive=False)
+CLOCK_UNCERTAINTY = Metric("drums_latency_clock_offset_uncertainty_seconds", GAUGE,
+                           "Half the exchange that measured the clock offset: the true offset is within this of it",
+                           ("target",), additive=False)
+
 METHODS = ("auto", "icmp", "tcp")
 GAP = 0.05  # between the probes of one round
 TIMEOUT = 1.0  # a probe unanswered this long is lost
 TCP_PORT = 9969  # another Drums agent's port: open (SYN-ACK) or closed (reset), either answers
+MAX_INFO = 1 << 16  # bytes of a peer's /drums/v1/info read at most
 
 
 @dataclass
@@ -79,6 +94,22 @@ def tcp_round(address: str, port: int, count: int) -> Round:
     return Round("tcp", rtts, count)
 
 
+def clock_offset(address: str, port: int) -> tuple[float, float] | None:
+    """(the clock of the Drums agent at address:port less ours, half the exchange's time), None
+    where no agent answers with its time."""
+    host = f"[{address}]" if ":" in address else address
+    began = time.time()
+    try:
+        with urllib.request.urlopen(f"http://{host}:{port}/drums/v1/info", timeout=TIMEOUT) as answer:
+            said = json.loads(answer.read(MAX_INFO))["time"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    ended = time.time()
+    if isinstance(said, bool) or not isinstance(said, (int, float)):
+        return None
+    return said - (began + ended) / 2, (ended - began) / 2
+
+
 def icmp_round(address: str, count: int) -> Round:
     host = icmplib.ping(address, count=count, interval=GAP, timeout=TIMEOUT, privileged=os.geteuid() == 0)
     return Round("icmp", [r / 1000 for r in host.rtts], host.packets_sent)
@@ -86,13 +117,14 @@ def icmp_round(address: str, count: int) -> Round:
 
 class LatencyProbe(Probe):
     name = "latency"
-    metrics = (RTT_MIN, RTT_MEAN, RTT_MAX, LOSS, SENT, LOST)
+    metrics = (RTT_MIN, RTT_MEAN, RTT_MAX, LOSS, SENT, LOST, CLOCK_OFFSET, CLOCK_UNCERTAINTY)
 
     def __init__(self):
         super().__init__()
         self._lock = threading.Lock()
         self._watches: dict[str, Watch] = {}
         self._last: dict[str, Round] = {}
+        self._clocks: dict[str, tuple[float, float]] = {}  # target -> (offset, uncertainty) of its last round
         self._totals: dict[tuple[str, str], list[int]] = {}  # (target, method) -> [sent, lost]
 
     def start(self) -> None:
@@ -115,6 +147,7 @@ class LatencyProbe(Probe):
         with self._lock:
             w = self._watches.pop(target, None)
             self._last.pop(target, None)
+            self._clocks.pop(target, None)
             for key in [k for k in self._totals if k[0] == target]:
                 del self._totals[key]
         if w is not None:
@@ -141,10 +174,15 @@ class LatencyProbe(Probe):
                 result = Round(method if method != "auto" else "icmp", [], w.count)  # all lost
             if method == "auto" and result.method == "tcp":
                 method = "tcp"
+            clock = clock_offset(target, w.port)
             with self._lock:
                 if self._watches.get(target) is not w:
                     return  # unwatched while this round ran
                 self._last[target] = result
+                if clock is None:
+                    self._clocks.pop(target, None)
+                else:
+                    self._clocks[target] = clock
                 totals = self._totals.setdefault((target, result.method), [0, 0])
                 totals[0] += result.sent
                 totals[1] += result.sent - len(result.rtts)
@@ -169,6 +207,7 @@ class LatencyProbe(Probe):
         with self._lock:
             last = dict(self._last)
             totals = {k: list(v) for k, v in self._totals.items()}
+            clocks = dict(self._clocks)
         for target, r in sorted(last.items()):
             labels = (target, r.method)
             if r.rtts:
@@ -180,4 +219,7 @@ class LatencyProbe(Probe):
         for (target, method), (sent, lost) in sorted(totals.items()):
             snap.add(SENT, (target, method), sent)
             snap.add(LOST, (target, method), lost)
+        for target, (offset, uncertainty) in sorted(clocks.items()):
+            snap.add(CLOCK_OFFSET, (target,), offset)
+            snap.add(CLOCK_UNCERTAINTY, (target,), uncertainty)
 

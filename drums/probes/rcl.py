@@ -1,7 +1,7 @@
 """Messages published and taken per ROS 2 process and topic, the time between two publishes of
-each publisher and the deadlines it missed, each delivery's transport and age from the stamps the
-RMW gives rcl_take, and each node's reaction time from a take to its publishes, from uprobes on
-librcl (bpf/rcl.bpf.c): what shared memory hides from every socket.
+each publisher, the deadlines publishers and subscriptions missed, each delivery's transport and
+age from the stamps the RMW gives rcl_take, and each node's reaction time from a take to its
+publishes, from uprobes on librcl (bpf/rcl.bpf.c): what shared memory hides from every socket.
 
 The programs are loaded once; each librcl.so file that a process maps is found in
 /proc/<pid>/maps (as soon as it is mapped: drums.probes.loads) and gets its own pinned uprobe
@@ -57,6 +57,10 @@ MISSED = Metric("drums_ros_deadlines_missed_total", COUNTER,
                 "Deadlines (the Deadline QoS the publisher offers) that passed without a message from it, as "
                 "the kernel saw its messages; counted while the silence lasts; only publishers with a deadline",
                 LABELS)
+TAKE_MISSED = Metric("drums_ros_take_deadlines_missed_total", COUNTER,
+                     "Deadlines (the Deadline QoS the subscription requests) that passed without a message "
+                     "taken by it (rcl_take), as the kernel saw its takes; counted while the silence lasts; only "
+                     "subscriptions with a deadline", LABELS)
 REACTION = Metric("drums_ros_reaction_seconds", HISTOGRAM,
                   "Time from a thread's take of a message on the input topic to its publish on the output topic "
                   "before it waits again or runs a timer: the node's reaction (buckets as the periods', 16 us to "
@@ -183,15 +187,20 @@ def timing_histogram(slots: np.ndarray, total_ns: int, edges: tuple[np.ndarray, 
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
-    maps = ("handles", "periods", "deadlines", "reactions", "deliveries", "realtime_offset", "dropped")
-    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, REACTION, TRANSPORT, AGE, SKEWED)
+    maps = ("handles", "periods", "deadlines", "deadlines_known", "reactions", "deliveries", "realtime_offset",
+            "dropped")
+    metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, TAKE_MISSED, REACTION, TRANSPORT, AGE, SKEWED)
     paths = (
         AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
                    "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
     )
 
-    def __init__(self, features, proctable: ProcessTable, libraries: MappedLibraries | None = None, **kw):
+    def __init__(self, features, proctable: ProcessTable, libraries: MappedLibraries | None = None,
+                 timing: bool = True, **kw):
+        """`timing`: time the messages as well as count them (periods, deadlines, reactions, deliveries)."""
         super().__init__(features, **kw)
+        self.timing = timing
+        self.options = {} if timing else {"DRUMS_COUNT_ONLY": 1}
         self.proctable = proctable
         self.libraries = libraries or MappedLibraries(proctable, (LIBRARY,))  # may follow more libraries
         self.libraries.listeners.append(self._found)
@@ -199,8 +208,8 @@ class RclProbe(BpfProbe):
         self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
         self._endpoints: dict[tuple[int, int], tuple[str, str]] = {}  # (pid, handle) -> (topic, GID)
         self._periods: dict[tuple[int, int], tuple[int, Histogram]] = {}  # (pid, handle) -> (count, histogram)
-        self._deadlines: dict[str, int] = {}  # endpoint GID -> the Deadline QoS it offers, ns
-        self._written: dict[tuple[int, int], tuple[bytes, int]] = {}  # (pid, handle) -> (map key, deadline)
+        self._deadlines: dict[str, int] = {}  # endpoint GID -> the Deadline QoS it offers or requests, ns
+        self._written: dict[bytes, int] = {}  # map key of an endpoint -> the deadline the programs know, ns
         self._missed = Monotonic()
         self._reactions: dict[tuple[int, int, int], tuple[int, Histogram]] = {}  # (pid, input, output) -> as periods
         self._deliveries: dict[bytes, tuple[int, Histogram, Histogram]] = {}  # map key -> (count, transport, age)
@@ -216,6 +225,10 @@ class RclProbe(BpfProbe):
             self.stop()
             raise
         self._say_clock()
+        keys, _, _ = self.read("deadlines")  # an agent's before this one (--keep-loaded): their handles are old
+        for i in range(0, len(keys), _KEY.size):
+            self.opened["deadlines"].delete(keys[i:i + _KEY.size])
+        self._say_deadlines_known(0)
         for pid, libs in self.libraries.processes((LIBRARY,)).items():  # found before the programs were here
             self._found(pid, libs)
 
@@ -245,7 +258,7 @@ class RclProbe(BpfProbe):
         try:
             offsets = perflink.symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
             for i, (fn, program, ret) in enumerate(UPROBES):
-                if fn in offsets:
+                if fn in offsets and (self.timing or program != "on_idle"):  # idle ends a reaction
                     link = perflink.uprobe(self._programs[program], host_path, offsets[fn], ret)
                     bpffs.pin(link, f"{prefix}{i}")
                     os.close(link)
@@ -259,16 +272,22 @@ class RclProbe(BpfProbe):
         processes = self.libraries.processes((LIBRARY,))
         keys, values, _ = self.read("handles")
         totals: dict[tuple[int, int, str, str], int] = {}
+        written = {}
         for i, (pid, op, handle) in enumerate(_KEY.iter_unpack(keys)):
-            endpoint = self._endpoint(pid, handle, processes, "handles", keys[i * _KEY.size:(i + 1) * _KEY.size])
+            key = keys[i * _KEY.size:(i + 1) * _KEY.size]
+            endpoint = self._endpoint(pid, handle, processes, "handles", key)
             if endpoint is not None:
-                key = (pid, op) + endpoint
-                totals[key] = totals.get(key, 0) + _U64.unpack_from(values, i * 8)[0]
+                totals[(pid, op) + endpoint] = totals.get((pid, op) + endpoint, 0) + _U64.unpack_from(values, i * 8)[0]
+                deadline = self._deadlines.get(endpoint[1], 0) if endpoint[1] else 0
+                if deadline:
+                    written[key] = deadline
         for (pid, op, topic, gid), count in totals.items():
             snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
-        self._collect_periods(snap, processes)
-        self._collect_reactions(snap, processes)
-        self._collect_deliveries(snap, processes)
+        if self.timing:
+            self._write_deadlines(written)
+            self._collect_periods(snap, processes)
+            self._collect_reactions(snap, processes)
+            self._collect_deliveries(snap, processes)
         self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
         self.read_dropped()
 
@@ -296,44 +315,51 @@ class RclProbe(BpfProbe):
         return entries, table, counts
 
     def want_deadlines(self, deadlines: dict[str, int]) -> None:
-        """The Deadline QoS (ns) of the graph's publishers that offer one, by endpoint GID."""
+        """The Deadline QoS (ns) of the graph's endpoints that offer or request one, by GID."""
         self._deadlines = deadlines
+
+    def _write_deadlines(self, written: dict[bytes, int]) -> None:
+        """Tell the programs the deadlines of the endpoints that have counted messages (map key ->
+        ns): a publisher's count from its next message, a subscription's from its next take."""
+        for key, deadline in written.items():
+            if self._written.get(key) != deadline:
+                self.opened["deadlines"].update(key, _U64.pack(deadline))
+        for key in self._written.keys() - written.keys():
+            self.opened["deadlines"].delete(key)  # its process ended, or it has no deadline now
+        if len(written) != len(self._written):
+            self._say_deadlines_known(len(written))
+        self._written = written
+
+    def _say_deadlines_known(self, count: int) -> None:
+        self.opened["deadlines_known"].update(bytes(4), struct.pack("<I", count))
 
     def _collect_periods(self, snap: Snapshot, processes: dict) -> None:
         """One histogram per publisher, made again only for publishers that published since, and
-        the deadlines it missed: those the kernel counted between two messages, and those that
-        passed since its last."""
+        the deadlines each endpoint with one missed: those the kernel counted between two
+        messages, and those that passed since its last."""
         entries, table, counts = self._timings("periods", _KEY, _TIMING, "slots")
         now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock
-        kept, written = {}, {}
-        for i, ((pid, _, handle), key) in enumerate(entries):
+        kept = {}
+        for i, ((pid, op, handle), key) in enumerate(entries):
             endpoint = self._endpoint(pid, handle, processes, "periods", key)
             if endpoint is None:
                 continue
             labels = (str(pid), self.proctable.name(pid)) + endpoint
-            deadline = self._deadlines.get(endpoint[1], 0) if endpoint[1] else 0
-            if self._written.get((pid, handle), (key, 0))[1] != deadline:
-                if deadline:
-                    self.opened["deadlines"].update(key, _U64.pack(deadline))
-                else:
-                    self.opened["deadlines"].delete(key)
+            deadline = self._written.get(key, 0)
             if deadline:
-                written[(pid, handle)] = (key, deadline)
                 # Read with the entry, in which the kernel moves last_ns before it adds to missed: a
                 # read between the two sees a smaller sum, which Monotonic holds back.
                 silent = (now - int(table["last"][i])) // deadline if table["last"][i] else 0
-                snap.add(MISSED, labels, self._missed((pid, handle), int(table["missed"][i]) + max(0, silent)))
-            if not counts[i]:
+                snap.add(TAKE_MISSED if op else MISSED, labels,
+                         self._missed(key, int(table["missed"][i]) + max(0, silent)))
+            if op or not counts[i]:  # a subscription's periods are kept for its deadlines only
                 continue
             known = self._periods.get((pid, handle))
             if known is None or known[0] != counts[i]:
                 known = (int(counts[i]), timing_histogram(table["slots"][i], int(table["sum"][i]), PERIOD_EDGES))
             kept[(pid, handle)] = known
             snap.add(PERIOD, labels, known[1])
-        for entry, (key, _) in self._written.items():
-            if entry not in written:
-                self.opened["deadlines"].delete(key)  # its process ended, or it offers no deadline now
-        self._periods, self._written = kept, written
+        self._periods = kept
         self._missed.next_collect()
 
     def _collect_reactions(self, snap: Snapshot, processes: dict) -> None:

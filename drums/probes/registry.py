@@ -11,8 +11,10 @@ PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl", "loads", 
 ROS2_PROBES = ("rtps", "rcl", "loads")
 
 
-def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "") -> list[Probe]:
-    """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums)."""
+def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "",
+          ros_timing: bool = True) -> list[Probe]:
+    """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums);
+    `ros_timing`: rcl times messages as well as counting them."""
     from drums.probes.host import HostProbe
     from drums.probes.latency import LatencyProbe
     from drums.probes.loads import LINKERS, LoadsProbe
@@ -36,7 +38,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
         "host": HostProbe,
         "process": lambda: ProcessProbe(proctable),
         "rtps": lambda: RtpsProbe(features, proctable, dds, pin_root=pin_root),
-        "rcl": lambda: RclProbe(features, proctable, dds, pin_root=pin_root),
+        "rcl": lambda: RclProbe(features, proctable, dds, timing=ros_timing, pin_root=pin_root),
         "loads": lambda: LoadsProbe(features, dds, pin_root=pin_root),
         "latency": LatencyProbe,  # probes only the targets of latency jobs
     }

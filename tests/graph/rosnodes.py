@@ -1,15 +1,17 @@
 """ROS 2 test nodes, each run as its own process: `python rosnodes.py ROLE [NAME ...]`.
 
-Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), producer (a 1 MB
-image-like message on /image at 10 Hz; $DRUMS_TEST_IMAGE_BYTES sets another size), viewer
+Roles: talker (publishes /chatter at 10 Hz), listener (subscribes /chatter), both with the Deadline
+QoS $DRUMS_TEST_DEADLINE_MS if set, producer (a 1 MB image-like message on /image at 10 Hz;
+$DRUMS_TEST_IMAGE_BYTES sets another size), viewer
 (subscribes /image), processor (/image -> /processed), sink (subscribes /processed), idle (a node
 with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory, default 100 kB,
 every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
 "go", publishes $DRUMS_TEST_BURST messages on /beat (with $DRUMS_TEST_DEADLINE_MS), the times between
 them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but every tenth 40 ms;
 on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish; each
-message says CLOCK_REALTIME in ns as it is published), receiver (takes /beat, and on a line
-"latencies" prints for each message the ns from its stamp to the callback's start), reactor
+message says CLOCK_REALTIME in ns as it is published), receiver (takes /beat, requesting
+$DRUMS_TEST_DEADLINE_MS, and on a line "latencies" prints for each message the ns from its stamp
+to the callback's start), reactor
 (takes /beat, sleeps 15 ms and publishes /reaction; a timer publishes /status every 50 ms; on a line
 "reactions" it prints how long each callback took from its start to its publish, in ns). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
@@ -92,7 +94,7 @@ def make(role: str, name: str) -> Node:
     if role == "talker":
         node.create_timer(0.1, publishes(node.create_publisher(String, "chatter", qos()), String(data="hello")))
     elif role == "listener":
-        node.create_subscription(String, "chatter", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
+        node.create_subscription(String, "chatter", lambda m: counted.__setitem__(0, counted[0] + 1), qos())
     elif role == "producer":
         msg = UInt8MultiArray(data=bytes(IMAGE_BYTES))
         node.create_timer(0.1, publishes(node.create_publisher(UInt8MultiArray, "image", 10), msg))
@@ -114,7 +116,7 @@ def make(role: str, name: str) -> Node:
     elif role == "receiver":
         def receive(msg):
             latencies.append(time.time_ns() - int(msg.data))
-        node.create_subscription(String, "beat", receive, 10)
+        node.create_subscription(String, "beat", receive, qos())
     elif role == "reactor":
         out = node.create_publisher(String, "reaction", 10)
 

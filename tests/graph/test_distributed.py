@@ -233,6 +233,10 @@ def test_the_api_off_loopback_needs_the_token_and_the_stream_is_encrypted(lab):
                        lambda: [s for s in client.poll(0.5) if s.key == job["stream"]["key"]])
     rtt = samples[-1].value("drums_latency_rtt_mean_seconds", target=address(2))
     assert 0 < rtt < 0.05
+    # robot2's agent said its time at its own port (from its announcement): one kernel, one clock.
+    offset, uncertainty = (samples[-1].value(f"drums_latency_clock_offset{part}_seconds", target=address(2))
+                           for part in ("", "_uncertainty"))
+    assert 0 < uncertainty < 0.05 and abs(offset) <= uncertainty + 1e-6, (offset, uncertainty)
     assert plain.poll(500) == 0 and keyless.poll(500) == 0
     plain.close()
     keyless.close()

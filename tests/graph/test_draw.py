@@ -10,7 +10,7 @@ import pytest
 
 from drums.graph import draw, join
 from drums.graph.model import Connection, Endpoint, Graph, GraphState, Host, Node, Process, Topic
-from drums.metrics import Snapshot
+from drums.metrics import Histogram, Snapshot
 
 GID = "010f78fd4a21e7950000000000001403"
 
@@ -114,14 +114,22 @@ def test_arrows_carry_rates_and_bandwidth_and_grow_with_it():
         snap.add(join.TOPIC_TAKEN, ("/image", "/detector"), n)
         snap.add(join.EDGE_RECEIVED_BYTES, ("/image", "/camera", "/detector"), n * 1 << 20)
         snap.add(join.NODE_CPU, ("/detector",), n / 60)
+        # Ages of 2 ms, and 4 ms from a second publisher: the arrow shows the older.
+        snap.add(join.EDGE_AGE, ("/image", "/camera", "/detector"), Histogram([], n * 0.002, n, ()))
+        snap.add(join.EDGE_AGE, ("/image", "/camera2", "/detector"), Histogram([], n * 0.004, n, ()))
+        # Reactions of 15 ms, and of 5 ms on another pair: the node shows the slowest. Then none in
+        # a third pair: it shows nothing.
+        snap.add(join.NODE_REACTION, ("/detector", "/image", "/objects"), Histogram([], 1 + n * 0.015, 10 + n, ()))
+        snap.add(join.NODE_REACTION, ("/detector", "/image", "/debug"), Histogram([], n * 0.005, n, ()))
+        snap.add(join.NODE_REACTION, ("/detector", "/scan", "/debug"), Histogram([], 1.0, 10, ()))
     rates = draw.Rates()
     assert rates.update(before, now=100.0) == {}
     got = rates.update(after, now=103.0)  # 30 messages of 1 MiB in 3 s
     text = draw.dot(g.snapshot(), after, got)
     assert '"node:/camera" -> "topic:/image" [label="10.0 Hz  10.0 MiB/s", penwidth="5.01"]' in text
-    assert '"topic:/image" -> "node:/detector" [label="10.0 Hz  10.0 MiB/s", penwidth="5.01"]' in text
+    assert '"topic:/image" -> "node:/detector" [label="10.0 Hz  10.0 MiB/s  age 4.0 ms", penwidth="5.01"]' in text
     assert '"topic:/objects" -> "node:/planner" [label="", penwidth="1.0"]' in text
-    assert 'label="/detector\\nCPU 17%"' in text  # 0.5 s of CPU in 3 s
+    assert 'label="/detector\\nCPU 17%  reacts 15.0 ms"' in text  # 0.5 s of CPU in 3 s
     assert "10.0 Hz" in texts(drawn(ros2_state(), snap=after, rates=got))
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import time
 import urllib.request
 
@@ -90,15 +91,18 @@ def _equal(seen, expected) -> None:
 def test_deadlines_missed_are_counted_while_a_publisher_is_silent_and_when_it_speaks_again(lab, ros_nodes):
     """Deadline QoS 100 ms; 20 messages 50 ms apart, a silence of 2.05 s, two more. The agent learns
     a publisher's handle at its first message and its deadline from the graph: it counts from the
-    scrape after that, as the missed count's first appearance tells."""
+    scrape after that, as the missed count's first appearance tells. A subscription that requests
+    the same deadline misses as many, as it takes."""
     url, _ = lab
     deadline = 100_000_000
+    taker = ros_nodes("receiver", "deadline_taker", env={"DRUMS_TEST_DEADLINE_MS": "100"})
     metronome = ros_nodes("metronome", "deadlines", env={"DRUMS_TEST_BURST": "22", "DRUMS_TEST_DEADLINE_MS": "100",
-                                                         "DRUMS_TEST_PERIODS_MS": "50x19,2050,50"})
+                                                         "DRUMS_TEST_PERIODS_MS": "50x19,2050,50",
+                                                         "DRUMS_TEST_BURST_SUBSCRIBERS": "1"})
 
     def missed() -> float | None:
         return value(url, "drums_topic_deadlines_missed_total", topic="/beat", node="/deadlines")
-    started(url, ("/deadlines", metronome))
+    started(url, ("/deadlines", metronome), ("/deadline_taker", taker))
     metronome.go()
     wait_until(lambda: missed() is not None, "the deadline counted", timeout=5)
     counting = time.monotonic_ns()
@@ -125,6 +129,18 @@ def test_deadlines_missed_are_counted_while_a_publisher_is_silent_and_when_it_sp
     check(20)  # the silence goes on: what has passed of it counts already
     wait_until(lambda: metronome.count() == 22, "the last two messages", timeout=5)
     assert check(22) >= 20  # the 2.05 s silence, counted when it ended; and the one since the last message
+    assert len(taker.times("latencies")) == 22
+
+    def both() -> tuple:
+        text = scrape(url)
+        return tuple(samples(text, metric).get((("node", node), ("topic", "/beat")))
+                     for metric, node in (("drums_topic_deadlines_missed_total", "/deadlines"),
+                                          ("drums_topic_take_deadlines_missed_total", "/deadline_taker")))
+    offered, requested = both()
+    assert None not in (offered, requested), (offered, requested)
+    # The takes come a fraction of a millisecond after the publishes: the silence since the last
+    # may have crossed one more deadline for the one than for the other.
+    assert requested >= 20 and abs(offered - requested) <= 1, (offered, requested)
 
 
 def test_a_node_that_sleeps_15_ms_between_take_and_publish_reacts_in_15_ms(lab, ros_nodes):
@@ -186,3 +202,98 @@ def test_the_age_of_a_message_when_taken_is_what_the_subscriber_measures_from_it
     assert 0 <= np.median(own) - p50 <= 0.0005, (p50, np.median(own))
     transport_p50 = quantile(prometheus, 0.5, "drums_edge_delivery_transport_seconds", selector)
     assert 0 < transport_p50 <= p50  # received before it was taken
+
+
+def test_a_path_through_three_nodes_takes_the_sum_of_its_ages_and_reaction(lab, ros_nodes):
+    """camera -> detector -> planner: the metronome's stamp travels in the message through the
+    reactor (which sleeps 15 ms and publishes what it took), so the receiver at the end measures
+    the whole path from the camera's publish to its own callback."""
+    url, _ = lab
+    planner = ros_nodes("receiver", "p_planner", "--ros-args", "-r", "beat:=detections")
+    detector = ros_nodes("reactor", "p_detector", "--ros-args", "-r", "beat:=camera", "-r", "reaction:=detections")
+    camera = ros_nodes("metronome", "p_camera", "--ros-args", "-r", "beat:=camera",
+                       env={"DRUMS_TEST_BURST": "60", "DRUMS_TEST_PERIODS_MS": "40", "DRUMS_TEST_BURST_SUBSCRIBERS": "1"})
+    started(url, ("/p_planner", planner), ("/p_detector", detector), ("/p_camera", camera))
+    camera.go()
+    wait_until(lambda: camera.count() == 60, "the frames published", timeout=15)
+    time.sleep(0.5)  # the last detections taken
+    own = np.array(planner.times("latencies")) / 1e9
+    assert len(own) >= 40
+
+    def graph() -> dict:
+        with urllib.request.urlopen(url.replace("/metrics", "/graph?format=json"), timeout=5) as answer:
+            return json.load(answer)
+
+    def whole() -> dict:
+        data = graph()
+        found = [p for p in data["paths"] if p["nodes"][0] == "/p_camera"]
+        assert [(p["nodes"], p["topics"]) for p in found] == [
+            (["/p_camera", "/p_detector", "/p_planner"], ["/camera", "/detections"])], data["paths"]
+        assert found[0]["parts"][-1]["count"] == len(own), found[0]["parts"]
+        return found[0]
+    path = eventually(whole, timeout=10)
+    edge1, reaction, edge2 = path["parts"]
+    assert (edge1["edge"], reaction["reaction"], edge2["edge"]) == (
+        ["/camera", "/p_camera", "/p_detector"], ["/p_detector", "/camera", "/detections"],
+        ["/detections", "/p_detector", "/p_planner"])
+    assert path["seconds"] == pytest.approx(sum(p["sum"] / p["count"] for p in path["parts"]))
+    assert abs(reaction["seconds"] - 0.015) <= 0.002, reaction
+    # The planner's own figure adds rclpy at the ends (seen 0.2-0.4 ms); Drums' parts leave out
+    # only what lies between them: the detector's callback before its take returns and after its publish.
+    assert -0.0001 <= own.mean() - path["seconds"] <= 0.001, (own.mean(), path["seconds"], path["parts"])
+
+    shown = subprocess.run([sys.executable, "-m", "drums", "graph", "--agent", url.removesuffix("/metrics")],
+                           capture_output=True, text=True, timeout=30)
+    assert shown.returncode == 0, shown.stderr
+    [line] = [x for x in shown.stdout.splitlines() if x.startswith("  /p_camera -[/camera]-> /p_detector")]
+    assert line.startswith("  /p_camera -[/camera]-> /p_detector -[/detections]-> /p_planner: ") and "reaction" in line
+
+
+def test_a_topic_job_samples_the_topic_on_the_api_and_the_stream(lab, ros_nodes):
+    """POST /drums/v1/monitor/topic/job_beat: its samples carry the graph's rows of the topic (its
+    publisher's messages and period histogram with buckets, its edge's age), the same on the stream."""
+    from drums.client import Client
+    from drums.top.rates import quantile as bucket_quantile
+    url, _ = lab
+    base = url.removesuffix("/metrics")
+    listening = ros_nodes("receiver", "job_receiver", "--ros-args", "-r", "beat:=job_beat")
+    metronome = ros_nodes("metronome", "job_metronome", "--ros-args", "-r", "beat:=job_beat",
+                          env={"DRUMS_TEST_BURST": "100", "DRUMS_TEST_BURST_SUBSCRIBERS": "1"})
+    started(url, ("/job_receiver", listening), ("/job_metronome", metronome))
+    with Client([base]) as client:
+        job, = client.start("topic", "job_beat", interval=0.5)
+        assert (job["id"], job["kind"], job["target"]) == ("topic/job_beat", "topic", "/job_beat")
+        metronome.go()
+        wait_until(lambda: metronome.count() == 100, "the beats published", timeout=15)
+        time.sleep(0.5)  # the last ones taken
+        own = np.diff(metronome.times("beats")) / 1e9
+        taken = len(listening.times("latencies"))
+        publisher = {"topic": "/job_beat", "node": "/job_metronome"}
+        edge = {"topic": "/job_beat", "publisher": "/job_metronome", "subscriber": "/job_receiver"}
+
+        def complete(sample) -> bool:
+            return sample is not None and sample.value("drums_topic_messages_published_total", **publisher) == 100 \
+                and (sample.value("drums_edge_delivery_age_seconds", **edge) or [0])[0] == taken
+        got = [s for s in (_received(client, job["stream"]["key"])) if complete(s)]
+        sample = client.agents[0].job("topic", "job_beat")["sample"]
+        client.stop("topic", "job_beat")
+    rows = {(r["name"], tuple(sorted(r["labels"].items()))): r["value"] for r in sample["series"]}
+    assert {name for name, _ in rows} >= {"drums_topic_messages_published_total", "drums_topic_messages_taken_total",
+                                          "drums_topic_publish_period_seconds", "drums_edge_delivery_age_seconds"}
+    assert all(dict(labels)["topic"] == "/job_beat" for _, labels in rows)
+    period = rows["drums_topic_publish_period_seconds", tuple(sorted(publisher.items()))]
+    assert period["count"] == 99
+    cumulative = {**{b: c for b, c in period["buckets"]}, float("inf"): period["count"]}
+    assert abs(bucket_quantile(0.5, cumulative, {}) - np.quantile(own, 0.5)) <= 0.001
+    assert rows["drums_edge_delivery_age_seconds", tuple(sorted(edge.items()))]["count"] == taken
+    # The stream brought a complete sample too: histograms as [count, sum, buckets].
+    assert got, "no complete sample of the topic on the stream"
+    assert got[-1].value("drums_topic_publish_period_seconds", **publisher)[0] == 99
+
+
+def _received(client, key: str, seconds: float = 5.0) -> list:
+    """The samples of `key` that the stream brings within `seconds`."""
+    got, began = [], time.monotonic()
+    while time.monotonic() - began < seconds:
+        got += [s for s in client.poll(0.2) if s.key == key]
+    return got

@@ -159,3 +159,16 @@ def test_a_process_of_thirty_nodes_keeps_every_label_short(agent, ros_nodes):
                        for v in s.labels.values()), default=0)
         assert longest <= 64
     eventually(check, timeout=30)
+
+
+def test_an_agent_told_not_to_time_messages_counts_them_and_times_none(ros_nodes):
+    """`drums agent --no-ros-timing`: the programs count and no more (no periods, deadlines,
+    reactions or delivery times), for a robot that wants the counts at the least cost."""
+    with running_agent(*ARGS, "--no-ros-timing") as url:
+        burst(ros_nodes, {"DRUMS_TEST_DEADLINE_MS": "50"}, ("untimed_talker",), "untimed_listener")
+        expect(url, {"/untimed_talker": N}, {"/untimed_listener": N})
+        families = {f.name for f in text_string_to_metric_families(scrape(url))}
+    timings = {"drums_ros_publish_period_seconds", "drums_ros_deadlines_missed", "drums_ros_take_deadlines_missed",
+               "drums_ros_reaction_seconds", "drums_ros_delivery_age_seconds", "drums_topic_publish_period_seconds",
+               "drums_topic_deadlines_missed", "drums_edge_delivery_age_seconds"}
+    assert "drums_topic_messages_published" in families and families & timings == set()

@@ -33,9 +33,13 @@ def build(cfg: Config) -> dashboard.Dashboard:
                                      # every agent of the ROS domain reports every publisher's QoS
                                      query(f"max by ({cfg.robot_label}, topic, node) "
                                            f"({s('drums_topic_deadline_seconds')})", legend("node") + " deadline")))
-        .with_panel(timeseries_panel("Deadlines missed", "Deadlines each publisher let pass without a message "
-                                     "in the last minute, as the kernel saw its messages (DrumsTopicDeadlineMissed).",
-                                     "short", query(s("drums:topic_deadlines_missed:increase1m"), legend("node"))))
+        .with_panel(timeseries_panel("Deadlines missed", "Deadlines each publisher let pass without a message, "
+                                     "and each subscription without taking one, in the last minute, as the kernel "
+                                     "saw its messages (DrumsTopicDeadlineMissed, DrumsSubscriptionDeadlineMissed).",
+                                     "short",
+                                     query(s("drums:topic_deadlines_missed:increase1m"), legend("node") + " publishing"),
+                                     query(s("drums:topic_take_deadlines_missed:increase1m"),
+                                           legend("node") + " taking")))
         .with_panel(timeseries_panel("Lost", "Share of the topic's messages on the robot each subscriber did not "
                                      "take (DrumsTopicMessagesLost).", "percentunit",
                                      query(s("drums:topic_messages_lost:ratio_rate1m"), legend("node", host))))
