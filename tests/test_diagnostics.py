@@ -114,6 +114,7 @@ def _publisher(url: str) -> psutil.Process:
     return next(c for c in agent.children() if "drums.exporters.diagnostics" in c.cmdline())
 
 
+@pytest.mark.lane2  # half a minute of its own: make test runs it beside the rest
 def test_levels_values_and_publisher_restarts(roles, tmp_path):
     config = tmp_path / "diagnostics.yaml"
     config.write_text(CONFIG)
