@@ -133,9 +133,11 @@ def test_levels_values_and_publisher_restarts(roles, tmp_path):
             assert b["values"]["pid"] == str(busy.pid) and i["values"]["pid"] == str(idle.pid)
             assert float(i["values"]["cpu %"]) < 5
             # The CPU time the agent read at its last collect is what the process had used when the
-            # array arrived, less the collect-to-arrival delay (psutil counts in 10 ms ticks).
+            # array arrived, less the collect-to-arrival delay (psutil counts in 10 ms ticks): the
+            # agent, its publisher and DDS on a host whose other core the rest of make test holds
+            # (seen 0.28 s; a stale or wrong figure would be a second off or more).
             lag = r["busy_cpu"] - float(b["values"]["cpu seconds"])
-            assert -0.02 <= lag <= 0.15, (r["busy_cpu"], b["values"])
+            assert -0.02 <= lag <= 0.5, (r["busy_cpu"], b["values"])
         used = (records[-1]["busy_cpu"] - records[0]["busy_cpu"]) / (records[-1]["at"] - records[0]["at"])
         reported = sum(float(r["statuses"]["drums: /busy"]["values"]["cpu %"]) for r in records[1:]) / 9
         assert abs(reported - 100 * used) < 3, (reported, used)

@@ -76,6 +76,10 @@ def topic_rules(cfg: Config) -> list[dict]:
                      f'drums:topic_messages_taken:rate1m{{node!="unknown"}}'),
         record("drums:topic_messages_lost:ratio_rate1m",
                f"{lost}\n/ on ({robot}, topic) group_left\n{robot_published}"),
+        # What expected_rates.yaml asks of each topic as a period, for the dashboard to draw beside
+        # the measured one: the least rate on a robot is the longest period it allows.
+        *(record("drums:topic_longest_expected_period_seconds", f"vector({1 / least:g})", topic=topic)
+          for topic, least in sorted(cfg.expected_rates.items())),
     ]
 
 

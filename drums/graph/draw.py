@@ -2,8 +2,8 @@
 topics as boxes, publisher -> topic -> subscriber, each arrow labelled with its message rate and
 bandwidth and as thick as its bandwidth, a subscriber's arrow also with the age of the messages it
 took and a node with its slowest reaction; hosts as clusters, and a process that holds several
-nodes as a cluster inside its host. /rosout, /parameter_events and Drums' own nodes are left out unless
-`everything` is asked for.
+nodes as a cluster inside its host. /rosout, /parameter_events and Drums' own nodes are left out
+unless `everything` is asked for.
 
 DOT is written here rather than through pydot: every id and label is quoted and escaped, so any
 name a middleware allows (a `node` attribute, quotes, backslashes) is valid DOT. Graphviz's `dot`

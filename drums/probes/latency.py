@@ -8,7 +8,7 @@ go unanswered while a TCP connect is answered is probed by TCP from then on (ICM
 Where the target runs a Drums agent on the TCP port, each round also asks it the time
 (/drums/v1/info), as NTP does: its clock less ours at the middle of the exchange is the offset,
 right to within half the exchange. Delivery times across hosts are differences of two hosts'
-realtime clocks, so this is what tells whether a millisecond of them is the network's or the clocks'.
+realtime clocks, so this tells whether a millisecond of them is the network's or the clocks'.
 
 Only targets the operator or the graph named are probed: the API cannot turn the agent into a
 tool for scanning arbitrary hosts.
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import socket
 import statistics
@@ -58,6 +59,7 @@ GAP = 0.05  # between the probes of one round
 TIMEOUT = 1.0  # a probe unanswered this long is lost
 TCP_PORT = 9969  # another Drums agent's port: open (SYN-ACK) or closed (reset), either answers
 MAX_INFO = 1 << 16  # bytes of a peer's /drums/v1/info read at most
+_DIRECT = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # a proxy would time itself
 
 
 @dataclass
@@ -100,12 +102,12 @@ def clock_offset(address: str, port: int) -> tuple[float, float] | None:
     host = f"[{address}]" if ":" in address else address
     began = time.time()
     try:
-        with urllib.request.urlopen(f"http://{host}:{port}/drums/v1/info", timeout=TIMEOUT) as answer:
+        with _DIRECT.open(f"http://{host}:{port}/drums/v1/info", timeout=TIMEOUT) as answer:
             said = json.loads(answer.read(MAX_INFO))["time"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
     ended = time.time()
-    if isinstance(said, bool) or not isinstance(said, (int, float)):
+    if isinstance(said, bool) or not isinstance(said, (int, float)) or not math.isfinite(said):
         return None
     return said - (began + ended) / 2, (ended - began) / 2
 

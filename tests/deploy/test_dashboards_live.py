@@ -134,7 +134,7 @@ def test_the_dashboards_have_the_panels_the_mixin_promises():
     assert [sorted(v["name"] for v in board["templating"]["list"]) for board in boards.values()] == [
         ["datasource", "host", "robot"], ["datasource", "robot"], ["datasource", "host", "robot"],
         ["datasource", "host", "node", "robot"], ["datasource", "robot", "topic"]]
-    assert len(panel_queries()) == 85
+    assert len(panel_queries()) == 86
 
 
 def test_template_variables_list_the_live_robot_host_nodes_and_topics(live):
@@ -168,7 +168,7 @@ def test_every_rule_evaluates_without_error_on_live_data(live):
     # A rule that fails (e.g. many-to-many matching) records nothing and only says so here.
     rules = [rule for group in api(live, "rules")["groups"] for rule in group["rules"]]
     assert [(r["name"], r.get("lastError")) for r in rules if r["health"] != "ok"] == []
-    assert len(rules) == 48
+    assert len(rules) == 50
 
 
 def test_the_leaker_and_the_flooder_trip_their_alerts(live):

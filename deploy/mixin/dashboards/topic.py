@@ -27,12 +27,16 @@ def build(cfg: Config) -> dashboard.Dashboard:
                                      query(s("drums:topic_messages_taken:rate1m"), legend("node", host))))
         .with_panel(timeseries_panel("Publish period and deadline", "Time between two messages of each "
                                      "publisher, p50 and p99 over a minute, beside the Deadline QoS it offers "
-                                     "(DrumsTopicDeadlineMissed).", "s",
+                                     "(DrumsTopicDeadlineMissed) and the longest period expected_rates.yaml "
+                                     "allows the topic (DrumsTopicBelowExpectedRate).", "s",
                                      query(s("drums:topic_publish_period_seconds:p50_rate1m"), legend("node") + " p50"),
                                      query(s("drums:topic_publish_period_seconds:p99_rate1m"), legend("node") + " p99"),
                                      # every agent of the ROS domain reports every publisher's QoS
                                      query(f"max by ({cfg.robot_label}, topic, node) "
-                                           f"({s('drums_topic_deadline_seconds')})", legend("node") + " deadline")))
+                                           f"({s('drums_topic_deadline_seconds')})", legend("node") + " deadline"),
+                                     # the same on every robot: no robot label to select by
+                                     query('drums:topic_longest_expected_period_seconds{topic="$topic"}',
+                                           "expected at most")))
         .with_panel(timeseries_panel("Deadlines missed", "Deadlines each publisher let pass without a message, "
                                      "and each subscription without taking one, in the last minute, as the kernel "
                                      "saw its messages (DrumsTopicDeadlineMissed, DrumsSubscriptionDeadlineMissed).",
