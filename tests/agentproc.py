@@ -1,6 +1,7 @@
 """`drums agent` in a process of its own, as users run it, and reading what it serves."""
 import contextlib
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -14,6 +15,21 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def reserved_port() -> int:
+    """A free port below the kernel's ephemeral range, for a program that binds it seconds after
+    it is chosen (the demo starts its nodes first): a port from free_port() may be taken meanwhile
+    by any socket bound to port 0 or connecting out, as the other lane of make test has many."""
+    with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+        ephemeral = int(f.read().split()[0])
+    for port in random.sample(range(max(1024, ephemeral - 10000), ephemeral), 500):
+        try:
+            socket.create_server(("127.0.0.1", port)).close()
+            return port
+        except OSError:
+            continue
+    raise RuntimeError(f"no free port in the 10,000 below {ephemeral}")
 
 
 @contextlib.contextmanager

@@ -12,7 +12,7 @@ import urllib.request
 
 import pytest
 
-from tests.agentproc import free_port
+from tests.agentproc import reserved_port
 from tests.conftest import eventually
 
 pytestmark = pytest.mark.demo
@@ -57,7 +57,7 @@ def make(target: str, env: dict) -> subprocess.CompletedProcess:
 
 def demo_env() -> tuple[dict, dict]:
     """(ports, environment) of a demo on free ports of its own."""
-    ports = {name: free_port() for name in ("AGENT", "STREAM", "PROMETHEUS")}
+    ports = {name: reserved_port() for name in ("AGENT", "STREAM", "PROMETHEUS")}
     return ports, {**os.environ, **{f"DRUMS_DEMO_{name}_PORT": str(port) for name, port in ports.items()}}
 
 

@@ -22,7 +22,7 @@ import sys
 
 import pytest
 
-from tests.agentproc import free_port
+from tests.agentproc import reserved_port
 from tests.graph.test_page import rendered
 from tests.test_demo import ROOT, demo_env, make
 
@@ -64,7 +64,7 @@ def own(event: dict, fault: str) -> bool:
 
 def test_the_leak_the_flood_and_the_faulty_router_are_each_named_within_ten_seconds(tmp_path):
     ports, env = demo_env()
-    ports["DETECT"] = free_port()
+    ports["DETECT"] = reserved_port()
     # 100 KB images at 30 Hz (3 MB/s, six times what the throttled link carries): `make test` runs
     # the other tests beside this one, and 1 MB images would take a core from them.
     env.update(DRUMS_DEMO_DETECT_PORT=str(ports["DETECT"]), DRUMS_DEMO_FAULT_AFTER=str(FAULT_AFTER),
