@@ -36,6 +36,7 @@ struct timing_t {
     u64 last_ns;  // when the publisher last published, or the subscription last took (periods)
     u64 sum_ns;
     u64 missed;   // deadlines that passed between two messages, for an endpoint in `deadlines`
+    u64 messages; // a publisher's messages: counted here rather than in `handles`, one lookup fewer
     u32 slots[SLOTS];
 };
 // Allocated as publishers first publish (4.4 KB each), not for all of them up front; for a
@@ -149,23 +150,26 @@ static __always_inline struct timing_t *zero_timing(void)
     return timing_zero.lookup(&zero);
 }
 
-static __always_inline void period(struct handle_key_t *key, u64 now, u64 deadline)
+// The endpoint's period entry, with the time since its last message counted; 0 if no entry
+// could be had.
+static __always_inline struct timing_t *period(struct handle_key_t *key, u64 now, u64 deadline)
 {
     struct timing_t *fresh = zero_timing(), *p = fresh ? periods.lookup_or_try_init(key, fresh) : 0;
     if (!p) {
         count_drop(2);
-        return;
+        return 0;
     }
     // Threads publishing at once on one publisher may both measure from the same last publish:
     // rare, and no count is lost.
     u64 last = p->last_ns;
     p->last_ns = now;
-    if (!last || now <= last)
-        return;
-    __sync_fetch_and_add(&p->sum_ns, now - last);
-    if (deadline)
-        __sync_fetch_and_add(&p->missed, (now - last) / deadline);
-    count_slot(p, log_slot(now - last, PERIOD_MIN_LOG2));
+    if (last && now > last) {
+        __sync_fetch_and_add(&p->sum_ns, now - last);
+        if (deadline)
+            __sync_fetch_and_add(&p->missed, (now - last) / deadline);
+        count_slot(p, log_slot(now - last, PERIOD_MIN_LOG2));
+    }
+    return p;
 }
 
 static __always_inline void reaction(u32 tgid, u64 output, u64 now)
@@ -188,10 +192,15 @@ int on_publish(struct pt_regs *ctx)
 {
     struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = PUBLISHED,
                                .handle = PT_REGS_PARM1(ctx)};
+#ifdef DRUMS_COUNT_ONLY
     count(&key);
-#ifndef DRUMS_COUNT_ONLY
+#else
     u64 now = bpf_ktime_get_ns();
-    period(&key, now, deadline_of(&key));
+    struct timing_t *p = period(&key, now, deadline_of(&key));
+    if (p)
+        __sync_fetch_and_add(&p->messages, 1);
+    else
+        count(&key);  // no period entry to be had: counted as without timing
     reaction(key.tgid, key.handle, now);
 #endif
     return 0;

@@ -95,7 +95,8 @@ def slot_edges(min_log2: int) -> tuple[np.ndarray, np.ndarray]:
 
 PERIOD_EDGES, REACTION_EDGES = slot_edges(PERIOD_MIN_LOG2), slot_edges(REACTION_MIN_LOG2)
 DELIVERY_EDGES = slot_edges(DELIVERY_MIN_LOG2)
-_TIMING = np.dtype([("last", "<u8"), ("sum", "<u8"), ("missed", "<u8"), ("slots", "<u4", SLOTS)])  # struct timing_t
+_TIMING = np.dtype([("last", "<u8"), ("sum", "<u8"), ("missed", "<u8"), ("messages", "<u8"),
+                    ("slots", "<u4", SLOTS)])  # struct timing_t
 _REACTION_KEY = struct.Struct("<IIQQ")
 _DELIVERY_KEY = struct.Struct("<IIQ16s")
 _DELIVERY = np.dtype([("transport_sum", "<u8"), ("age_sum", "<u8"), ("skewed", "<u8"),
@@ -270,22 +271,30 @@ class RclProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         self.libraries.refresh()
         processes = self.libraries.processes((LIBRARY,))
+        # Takes are counted in `handles`; with timing, publishes in their period entry (one hash
+        # lookup fewer a message), and in `handles` only where no entry could be had.
         keys, values, _ = self.read("handles")
+        counted = [(fields, keys[i * _KEY.size:(i + 1) * _KEY.size], "handles", _U64.unpack_from(values, i * 8)[0])
+                   for i, fields in enumerate(_KEY.iter_unpack(keys))]
+        periods = self._timings("periods", _KEY, _TIMING, "slots") if self.timing else ([], None, ())
+        entries, table, _ = periods
+        counted += [(fields, key, "periods", int(table["messages"][i])) for i, (fields, key) in enumerate(entries)]
         totals: dict[tuple[int, int, str, str], int] = {}
         written = {}
-        for i, (pid, op, handle) in enumerate(_KEY.iter_unpack(keys)):
-            key = keys[i * _KEY.size:(i + 1) * _KEY.size]
-            endpoint = self._endpoint(pid, handle, processes, "handles", key)
-            if endpoint is not None:
-                totals[(pid, op) + endpoint] = totals.get((pid, op) + endpoint, 0) + _U64.unpack_from(values, i * 8)[0]
-                deadline = self._deadlines.get(endpoint[1], 0) if endpoint[1] else 0
-                if deadline:
-                    written[key] = deadline
+        for (pid, op, handle), key, map_name, count in counted:
+            endpoint = self._endpoint(pid, handle, processes, map_name, key)
+            if endpoint is None:
+                continue
+            if count:
+                totals[(pid, op) + endpoint] = totals.get((pid, op) + endpoint, 0) + count
+            deadline = self._deadlines.get(endpoint[1], 0) if endpoint[1] else 0
+            if deadline:
+                written[key] = deadline
         for (pid, op, topic, gid), count in totals.items():
             snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
         if self.timing:
             self._write_deadlines(written)
-            self._collect_periods(snap, processes)
+            self._collect_periods(snap, processes, periods)
             self._collect_reactions(snap, processes)
             self._collect_deliveries(snap, processes)
         self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
@@ -333,11 +342,11 @@ class RclProbe(BpfProbe):
     def _say_deadlines_known(self, count: int) -> None:
         self.opened["deadlines_known"].update(bytes(4), struct.pack("<I", count))
 
-    def _collect_periods(self, snap: Snapshot, processes: dict) -> None:
+    def _collect_periods(self, snap: Snapshot, processes: dict, periods: tuple) -> None:
         """One histogram per publisher, made again only for publishers that published since, and
         the deadlines each endpoint with one missed: those the kernel counted between two
-        messages, and those that passed since its last."""
-        entries, table, counts = self._timings("periods", _KEY, _TIMING, "slots")
+        messages, and those that passed since its last. `periods`: the map as _timings read it."""
+        entries, table, counts = periods
         now = time.clock_gettime_ns(time.CLOCK_MONOTONIC)  # bpf_ktime_get_ns's clock
         kept = {}
         for i, ((pid, op, handle), key) in enumerate(entries):
