@@ -12,6 +12,7 @@ import pytest
 from drums.metrics import Snapshot
 from drums.probes import host
 from drums.probes.host import HostProbe
+from tests.conftest import wait_until
 
 MIB = 1 << 20
 
@@ -244,6 +245,13 @@ def _link_with_traffic(datagrams: int) -> None:
         for _ in range(datagrams):
             s.sendto(b"x" * 100, ("10.251.0.2", 9))
             time.sleep(0.1)
+
+    def sent() -> int:
+        with open(f"/sys/class/net/{NIC}/statistics/tx_packets") as f:
+            return int(f.read())
+    # Datagrams wait in the neighbour queue until ARP has the peer's address: on a busy host they
+    # left after the sends returned (1 packet counted of 6 and an ARP request).
+    wait_until(lambda: sent() >= datagrams, f"{datagrams} datagrams out of {NIC}", timeout=10)
 
 
 @pytest.fixture
