@@ -111,12 +111,16 @@ def dot(g: nx.MultiDiGraph, snap: Snapshot | None = None, rates: dict | None = N
              '  node [fontname="Helvetica", fontsize="10"];',
              '  edge [fontname="Helvetica", fontsize="9", color="#555555"];']
 
+    slowest: dict[str, float] = {}  # node -> its slowest reaction's mean
+    for (metric, labels), r in rates.items():
+        if metric == join.NODE_REACTION.name:
+            slowest[labels[0]] = max(r, slowest.get(labels[0], r))
+
     def node_line(vid: str, n, indent: str) -> str:
         name = n.name
         cpu = rates.get((join.NODE_CPU.name, (name,)))
         memory = values.get((join.NODE_MEMORY.name, (name,)))
-        reaction = max((r for (m, labels), r in rates.items() if m == join.NODE_REACTION.name and labels[0] == name),
-                       default=None)
+        reaction = slowest.get(name)
         detail = "  ".join(x for x in (f"CPU {units.percent(100 * cpu)}" if cpu is not None else "",
                                         units.size(memory) if memory else "",
                                         f"reacts {units.duration(reaction)}" if reaction is not None else "") if x)
