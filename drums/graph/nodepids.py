@@ -62,9 +62,12 @@ class ProcScan:
     def name(self, pid: int) -> str:
         return self.table.name(pid)
 
-    def has_rcl(self, pid: int) -> bool:
+    def has_rcl(self, pid: int, recheck: bool = False) -> bool:
+        """Whether the process has librcl loaded. A no is kept too (a scan of every process asks),
+        but `recheck` reads it again: a process asked while it still imported rclpy says no, and
+        one whose participant the graph now shows has loaded it since."""
         key = (pid, process_start(self.proc, pid))
-        if key not in self._rcl:
+        if key not in self._rcl or (recheck and not self._rcl[key]):
             self._rcl[key] = bool(mapped_libraries(self.proc, pid, (RCL_LIBRARY,)))
         return self._rcl[key]
 
@@ -118,7 +121,7 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
         bits = pid_bits_from_gid(prefix) if prefix else None
         if bits is None:
             continue
-        found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid)]
+        found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid, recheck=True)]
         owner = scan.participants.get(prefix)
         if owner is not None and owner[0] not in found and not scan.runs(*owner):
             out[node] = (None, "gone")
@@ -134,7 +137,7 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
     if unmapped:
         for pid in scan.pids():
             name = _node_arg(scan.cmdline(pid))
-            if name in unmapped and scan.has_rcl(pid):
+            if name in unmapped and scan.has_rcl(pid, recheck=True):
                 out[name] = (pid, "cmdline")
         unmapped = [n for n in nodes if n not in out]
     if unmapped:

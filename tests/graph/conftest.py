@@ -43,7 +43,8 @@ class RosProcess:
     def times(self, what: str) -> list[int]:
         """The metronome's "beats" (CLOCK_MONOTONIC, ns, right before each publish), the reactor's
         "reactions" (ns from the start of each callback to its publish) or the receiver's "latencies"
-        (ns from each message's stamp to the start of its callback)."""
+        (ns from each message's stamp to the start of its callback), "ages" and "transports" (ns from
+        the RMW's source stamp to the take, and to its received stamp)."""
         self.proc.stdin.write(what + "\n")
         self.proc.stdin.flush()
         return [int(ns) for ns in self.proc.stdout.readline().split()[1:]]

@@ -11,7 +11,8 @@ them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but 
 on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish; each
 message says CLOCK_REALTIME in ns as it is published), receiver (takes /beat, requesting
 $DRUMS_TEST_DEADLINE_MS, and on a line "latencies" prints for each message the ns from its stamp
-to the callback's start), reactor
+to the callback's start; "ages" the ns from the RMW's source stamp to right after rclpy took it, and
+"transports" the RMW's received less source stamps, as the message info says), reactor
 (takes /beat, sleeps 15 ms and publishes /reaction; a timer publishes /status every 50 ms; on a line
 "reactions" it prints how long each callback took from its start to its publish, in ns). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
@@ -114,8 +115,10 @@ def make(role: str, name: str) -> Node:
         pub = node.create_publisher(String, "beat", qos())
         threading.Thread(target=beat, args=(pub,), daemon=True).start()
     elif role == "receiver":
-        def receive(msg):
+        def receive(msg, info):
             latencies.append(time.time_ns() - int(msg.data))
+            ages.append(took[0] - info["source_timestamp"])
+            transports.append(info["received_timestamp"] - info["source_timestamp"])
         node.create_subscription(String, "beat", receive, qos())
     elif role == "reactor":
         out = node.create_publisher(String, "reaction", 10)
@@ -139,6 +142,18 @@ started = threading.Event()
 beats = []  # time.monotonic_ns() right before each publish of the metronome
 reactions = []  # ns from the start of each of the reactor's callbacks to its publish
 latencies = []  # ns from the stamp of each message the receiver took to its callback's start
+ages, transports = [], []  # ns from the RMW's source stamp to the take, and to its received stamp
+took = [0]  # CLOCK_REALTIME in ns right after the executor's last take
+
+
+class TakeClock(SingleThreadedExecutor):
+    """Notes the time as soon as a message is taken, before rclpy dispatches it to its callback (which
+    takes longer than the middleware's part on this host): what a C++ node would see."""
+
+    def _take_subscription(self, sub):
+        taken = super()._take_subscription(sub)
+        took[0] = time.time_ns()
+        return taken
 
 
 def schedule() -> list[int]:
@@ -171,7 +186,7 @@ def main() -> None:
     ours = sys.argv[:sys.argv.index("--ros-args")] if "--ros-args" in sys.argv else sys.argv
     role, names = ours[1], ours[2:] or [ours[1]]
     rclpy.init(args=sys.argv)
-    executor = SingleThreadedExecutor()
+    executor = TakeClock()
     for name in names:
         executor.add_node(make(role, name))
     print("ready", os.getpid(), flush=True)
@@ -183,7 +198,8 @@ def main() -> None:
                     left[0] = burst
                 started.set()
                 continue
-            asked = {"beats": beats, "reactions": reactions, "latencies": latencies}.get(line.strip())
+            asked = {"beats": beats, "reactions": reactions, "latencies": latencies, "ages": ages,
+                     "transports": transports}.get(line.strip())
             if asked is not None:
                 print(line.strip(), *asked, flush=True)
                 continue

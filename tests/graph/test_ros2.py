@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 import time
 
 from drums.graph.model import Graph
@@ -88,6 +89,28 @@ def test_a_node_with_another_host_id_is_ours_while_its_pid_bits_are_one_of_our_p
     # (DDS would list it for its 20 s lease).
     p.kill()
     assert map_nodes(prefixes, scan, ours) == {"/renumbered": (None, "gone"), "/elsewhere": (None, "remote")}
+
+
+def test_a_process_seen_before_it_loaded_ros_is_mapped_once_its_node_appears(ros2_graph, ros_nodes):
+    """A scan of every process (for a node the GIDs do not place) reads one that still imports
+    rclpy: no librcl yet. Its node, when it comes, is placed by its GID all the same."""
+    from drums.graph.nodepids import FASTDDS_VENDOR, ProcScan, map_nodes
+    scan = ProcScan()
+    late = {}
+    starting = threading.Thread(target=lambda: late.update(p=ros_nodes("idle", "late", env={"DRUMS_TEST_IMPORT_DELAY": "2"})))
+    starting.start()
+    importing = []
+
+    def seen():
+        scan.refresh()
+        importing.extend(pid for pid in scan.pids() if "late" in scan.cmdline(pid))
+        return importing
+    wait_until(seen, "the late node's process", timeout=5)
+    assert map_nodes({"/placed_by_nothing": None}, scan)["/placed_by_nothing"][1] in ("unmapped", "librcl")
+    assert not scan.has_rcl(importing[0])  # asked while it imports, and remembered
+    starting.join()
+    prefix = FASTDDS_VENDOR + bytes(2) + (late["p"].pid & 0xFFFF).to_bytes(2, "little") + bytes(6)
+    assert map_nodes({"/late": prefix}, scan) == {"/late": (late["p"].pid, "gid")}
 
 
 def test_new_node_appears_and_killed_node_leaves_within_two_seconds(ros2_graph, ros_nodes):

@@ -175,11 +175,12 @@ def test_a_node_that_sleeps_15_ms_between_take_and_publish_reacts_in_15_ms(lab, 
 
 @pytest.mark.parametrize("transport", sorted(TRANSPORTS))
 def test_the_age_of_a_message_when_taken_is_what_the_subscriber_measures_from_its_stamp(lab, ros_nodes, transport):
-    """The metronome stamps each message with its realtime clock; the receiver measures, at the
-    start of its callback, how old each one is. Drums reads the RMW's own stamps at rcl_take."""
+    """The receiver measures, right after rclpy took each message, how old it is by the RMW's source
+    stamp, and the transport as its message info says (received less source stamp). Drums reads the
+    same stamps at rcl_take's return."""
     url, prometheus = lab
     env = TRANSPORTS[transport]
-    age = "drums_edge_delivery_age_seconds"
+    age, transport_seconds = "drums_edge_delivery_age_seconds", "drums_edge_delivery_transport_seconds"
     sender, receiver = f"/stamper_{transport}", f"/receiver_{transport}"
     edge = {"topic": "/beat", "publisher": sender, "subscriber": receiver}
     listening = ros_nodes("receiver", receiver[1:], env=env)
@@ -189,19 +190,25 @@ def test_the_age_of_a_message_when_taken_is_what_the_subscriber_measures_from_it
     metronome.go()
     wait_until(lambda: metronome.count() == 100, "the beats published", timeout=15)
     time.sleep(0.5)  # the last ones taken
-    own = np.array(listening.times("latencies")) / 1e9
+    own = np.array(listening.times("ages")) / 1e9
     assert len(own) >= 80  # the metronome publishes whether or not the receiver hears it yet
 
     eventually(lambda: _equal(value(url, age + "_count", **edge), len(own)), timeout=10)
     selector = ",".join(f'{k}="{v}"' for k, v in edge.items())
     in_prometheus(prometheus, age, selector, len(own))
     p50 = quantile(prometheus, 0.5, age, selector)
-    # Drums times the middleware's part: from the RMW's stamp as it writes to rcl_take's return.
-    # The receiver's own figure adds rclpy at both ends (the message made into C and back, the
-    # executor's dispatch: seen 0.15-0.2 ms), and never less.
-    assert 0 <= np.median(own) - p50 <= 0.0005, (p50, np.median(own))
-    transport_p50 = quantile(prometheus, 0.5, "drums_edge_delivery_transport_seconds", selector)
-    assert 0 < transport_p50 <= p50  # received before it was taken
+    # Drums takes its time at rcl_take's return; the receiver a little later, once rclpy has made the
+    # message into Python: never earlier, and within the issue's 20% or 50 us.
+    assert 0 <= np.median(own) - p50 <= max(0.2 * np.median(own), 50e-6), (p50, np.median(own))
+    # The transport is the RMW's two stamps, which the receiver has too: the same sum to the ns, and
+    # the median within its slot (1.6%).
+    transports = np.array(listening.times("transports"))
+    assert len(transports) == len(own)
+    assert abs(value(url, transport_seconds + "_sum", **edge) - transports.sum() / 1e9) <= 1e-6
+    transport_p50 = quantile(prometheus, 0.5, transport_seconds, selector)
+    assert abs(transport_p50 - np.median(transports) / 1e9) <= 0.02 * np.median(transports) / 1e9, \
+        (transport_p50, np.median(transports))
+    assert transport_p50 <= p50  # received before it was taken
 
 
 def test_a_path_through_three_nodes_takes_the_sum_of_its_ages_and_reaction(lab, ros_nodes):
