@@ -14,8 +14,12 @@ import time
 import urllib.request
 from contextlib import contextmanager
 
+import pytest
+
 from tests.agentproc import running_agent
 from tests.deploy.promproc import running_prometheus
+
+pytestmark = pytest.mark.lane2  # a minute and a half of its own: make test runs it in a lane beside the rest
 
 QUIET = 45.0  # seconds the sender trickles before it sends in earnest: the detector's history by then
 TRICKLE = 1024  # bytes a second, so that its series exist before the jump

@@ -24,6 +24,8 @@ from tests.graph.conftest import RosProcess
 from tests.graph.test_hosts import named
 from tests.graph.test_topics import UDP
 
+pytestmark = pytest.mark.lane2  # a minute of its own network: make test runs it in a lane beside the rest
+
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 PREFIX = f"fl{os.getpid() % 10000}"
 ROBOTS = (1, 2)
