@@ -1,9 +1,11 @@
 // Messages published and taken per ROS 2 publisher and subscription, counted by uprobes on
 // librcl's rcl_publish* and rcl_take* functions; the time between two publishes of each publisher;
 // each message's delivery, from the stamps the RMW gives rcl_take; and each node's reaction time:
-// from a thread's take of a message to its publishes before it waits again (rcl_wait) or runs a
-// timer (rcl_timer_call), per input and output. On one host Fast DDS moves samples over shared
-// memory, where no socket sees them; every ROS 2 client library still goes through rcl.
+// from a thread's take of a message to its publishes until it takes another, runs a timer
+// (rcl_timer_call) or takes a service request or response, per input and output. Not at rcl_wait:
+// an executor waits as often as it takes, and a uprobe there would cost every message a trap. On
+// one host Fast DDS moves samples over shared memory, where no socket sees them; every ROS 2 client
+// library still goes through rcl.
 //
 // The agent attaches these programs to each librcl.so it finds in processes' memory maps, and
 // names each handle (an rcl_publisher_t or rcl_subscription_t address) by reading its topic name
@@ -63,7 +65,8 @@ struct message_info_t {
     u8 publisher[16];
 };
 // Deliveries to a subscription from one publisher: the transport (received less source stamp) and
-// the message's age when the subscriber took it (take less source stamp).
+// the message's age when the subscriber took it (take less source stamp). Every message counted
+// here (timed, or skewed) is a take not counted in `handles`: one lookup fewer.
 struct delivery_key_t {
     u32 tgid;
     u32 pad;
@@ -97,7 +100,7 @@ static __always_inline u64 deadline_of(struct handle_key_t *key)
     return deadline ? *deadline : 0;
 }
 // Per thread: the subscription it passed to rcl_take, kept until it returns, and the last one it
-// took a message from and when, until it waits again. Task-local storage, not a hash keyed by
+// took a message from and when, until it runs a timer or service. Task-local storage, not a hash keyed by
 // thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
 struct took_t {
     u64 pending;
@@ -154,7 +157,9 @@ static __always_inline struct timing_t *zero_timing(void)
 // could be had.
 static __always_inline struct timing_t *period(struct handle_key_t *key, u64 now, u64 deadline)
 {
-    struct timing_t *fresh = zero_timing(), *p = fresh ? periods.lookup_or_try_init(key, fresh) : 0;
+    struct timing_t *p = periods.lookup(key), *fresh = p ? 0 : zero_timing();
+    if (fresh)  // the template is looked up only for an endpoint's first message
+        p = periods.lookup_or_try_init(key, fresh);
     if (!p) {
         count_drop(2);
         return 0;
@@ -178,7 +183,9 @@ static __always_inline void reaction(u32 tgid, u64 output, u64 now)
     if (!took || !took->input || now < took->at)
         return;
     struct reaction_key_t key = {.tgid = tgid, .input = took->input, .output = output};
-    struct timing_t *fresh = zero_timing(), *r = fresh ? reactions.lookup_or_try_init(&key, fresh) : 0;
+    struct timing_t *r = reactions.lookup(&key), *fresh = r ? 0 : zero_timing();
+    if (fresh)
+        r = reactions.lookup_or_try_init(&key, fresh);
     if (!r) {
         count_drop(3);
         return;
@@ -206,26 +213,29 @@ int on_publish(struct pt_regs *ctx)
     return 0;
 }
 
-static __always_inline void delivery(u32 tgid, u64 subscription, u64 info, u64 now)
+// Whether the take was counted here (timed, or skewed).
+static __always_inline int delivery(u32 tgid, u64 subscription, u64 info, u64 now)
 {
     struct message_info_t m;  // one read of user memory: its stamps and the GID
     if (bpf_probe_read_user(&m, sizeof(m), (void *)info) != 0)
-        return;
+        return 0;
     int zero = 0;
     s64 *offset = realtime_offset.lookup(&zero);
     if (m.source_ns <= 0 || m.received_ns <= 0 || !offset || !*offset)
-        return;  // the RMW stamps nothing, or the agent has not said the clock yet
+        return 0;  // the RMW stamps nothing, or the agent has not said the clock yet
     struct delivery_key_t key = {.tgid = tgid, .subscription = subscription};
     __builtin_memcpy(key.publisher, m.publisher, sizeof(key.publisher));
-    struct delivery_t *fresh = delivery_zero.lookup(&zero), *d = fresh ? deliveries.lookup_or_try_init(&key, fresh) : 0;
+    struct delivery_t *d = deliveries.lookup(&key), *fresh = d ? 0 : delivery_zero.lookup(&zero);
+    if (fresh)
+        d = deliveries.lookup_or_try_init(&key, fresh);
     if (!d) {
         count_drop(4);
-        return;
+        return 0;
     }
     s64 transport = m.received_ns - m.source_ns, age = (s64)now + *offset - m.source_ns;
     if (transport < 0 || age < 0) {
         __sync_fetch_and_add(&d->skewed, 1);
-        return;
+        return 1;
     }
     __sync_fetch_and_add(&d->transport_sum_ns, transport);
     __sync_fetch_and_add(&d->age_sum_ns, age);
@@ -235,6 +245,7 @@ static __always_inline void delivery(u32 tgid, u64 subscription, u64 info, u64 n
     slot = log_slot(age, DELIVERY_MIN_LOG2);
     if (slot < SLOTS)
         __sync_fetch_and_add(&d->age[slot], 1);
+    return 1;
 }
 
 // rcl_take(subscription, message, message_info, allocation) returns RCL_RET_OK (0) only when it
@@ -260,23 +271,24 @@ int on_take_return(struct pt_regs *ctx)
     took->pending = 0;
     if (PT_REGS_RC(ctx) == 0) {
         struct handle_key_t key = {.tgid = bpf_get_current_pid_tgid() >> 32, .op = TAKEN, .handle = h};
+#ifdef DRUMS_COUNT_ONLY
         count(&key);
-#ifndef DRUMS_COUNT_ONLY
+#else
         u64 now = bpf_ktime_get_ns();
         u64 deadline = deadline_of(&key);
         if (deadline)
             period(&key, now, deadline);
         took->input = h;
         took->at = now;
-        if (took->info)
-            delivery(key.tgid, h, took->info, now);
+        if (!took->info || !delivery(key.tgid, h, took->info, now))
+            count(&key);  // not counted with its delivery
 #endif
     }
     return 0;
 }
 
-// rcl_wait and rcl_timer_call: the thread is done with what it took (an executor waits again, or
-// runs a timer, whose publishes react to no message).
+// rcl_timer_call, rcl_take_request and rcl_take_response: what the thread publishes next reacts to a
+// timer or a service, not to the message it took last.
 int on_idle(struct pt_regs *ctx)
 {
     struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);

@@ -34,7 +34,8 @@ NODE_RUNQ = Metric("drums_node_runqueue_latency_seconds", HISTOGRAM,
                    "Run-queue waits of the node's process's threads", NODE, sched.RUNQ_BUCKETS)
 NODE_REACTION = Metric("drums_node_reaction_seconds", HISTOGRAM,
                        "Time from the node's take of a message on the input topic to its publish on the output "
-                       "topic, in the same thread before it waits again or runs a timer (rcl_take to rcl_publish)",
+                       "topic, in the same thread before it takes another or runs a timer or service "
+                       "(rcl_take to rcl_publish)",
                        NODE + ("input", "output"), additive=False)
 TOPIC_PUBLISHED = Metric("drums_topic_messages_published_total", COUNTER,
                          "Messages the node published on the topic (rcl_publish)", TOPIC)

@@ -39,10 +39,13 @@ UPROBES = (
     ("rcl_take_serialized_message", "on_take_return", True),
     ("rcl_take_loaned_message", "on_take", False),
     ("rcl_take_loaned_message", "on_take_return", True),
-    ("rcl_wait", "on_idle", False),
-    ("rcl_timer_call", "on_idle", False),
+    # What a thread publishes after these reacts to a timer or a service, not to its last take.
+    *((fn, "on_idle", False) for fn in ("rcl_timer_call", "rcl_timer_call_with_info", "rcl_take_request",
+                                        "rcl_take_request_with_info", "rcl_take_response",
+                                        "rcl_take_response_with_info")),
 )
 PROGRAMS = ("on_publish", "on_take", "on_take_return", "on_idle")
+OP_TAKEN = 1  # handle_key_t.op of a take (TAKEN in rcl.bpf.c; a publish is 0)
 UNKNOWN_TOPIC = "unknown"  # a handle whose topic could not be read (yet: it is tried again)
 
 LABELS = ("pid", "process", "topic", "endpoint")  # endpoint: the publisher's or subscription's GID
@@ -63,8 +66,9 @@ TAKE_MISSED = Metric("drums_ros_take_deadlines_missed_total", COUNTER,
                      "subscriptions with a deadline", LABELS)
 REACTION = Metric("drums_ros_reaction_seconds", HISTOGRAM,
                   "Time from a thread's take of a message on the input topic to its publish on the output topic "
-                  "before it waits again or runs a timer: the node's reaction (buckets as the periods', 16 us to "
-                  "2.1 s); endpoint is the output's publisher", ("pid", "process", "input", "output", "endpoint"))
+                  "before it takes another or runs a timer or service: the node's reaction (buckets as the "
+                  "periods', 16 us to 2.1 s); endpoint is the output's publisher",
+                  ("pid", "process", "input", "output", "endpoint"))
 DELIVERY = ("pid", "process", "topic", "endpoint", "publisher")  # endpoint: the subscription's GID
 TRANSPORT = Metric("drums_ros_delivery_transport_seconds", HISTOGRAM,
                    "Time from the publisher's stamp of a message to its reception by the subscription's RMW "
@@ -271,14 +275,18 @@ class RclProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         self.libraries.refresh()
         processes = self.libraries.processes((LIBRARY,))
-        # Takes are counted in `handles`; with timing, publishes in their period entry (one hash
-        # lookup fewer a message), and in `handles` only where no entry could be had.
+        # Counted in `handles`; with timing, publishes in their period entry and takes with their
+        # delivery (one hash lookup fewer a message), and in `handles` only where those had none.
         keys, values, _ = self.read("handles")
         counted = [(fields, keys[i * _KEY.size:(i + 1) * _KEY.size], "handles", _U64.unpack_from(values, i * 8)[0])
                    for i, fields in enumerate(_KEY.iter_unpack(keys))]
         periods = self._timings("periods", _KEY, _TIMING, "slots") if self.timing else ([], None, ())
+        deliveries = self._timings("deliveries", _DELIVERY_KEY, _DELIVERY, "age") if self.timing else ([], None, ())
         entries, table, _ = periods
         counted += [(fields, key, "periods", int(table["messages"][i])) for i, (fields, key) in enumerate(entries)]
+        entries, table, timed = deliveries
+        counted += [((pid, OP_TAKEN, subscription), key, "deliveries", int(timed[i] + table["skewed"][i]))
+                    for i, ((pid, _, subscription, _), key) in enumerate(entries)]
         totals: dict[tuple[int, int, str, str], int] = {}
         written = {}
         for (pid, op, handle), key, map_name, count in counted:
@@ -289,14 +297,14 @@ class RclProbe(BpfProbe):
                 totals[(pid, op) + endpoint] = totals.get((pid, op) + endpoint, 0) + count
             deadline = self._deadlines.get(endpoint[1], 0) if endpoint[1] else 0
             if deadline:
-                written[key] = deadline
+                written[_KEY.pack(pid, op, handle)] = deadline
         for (pid, op, topic, gid), count in totals.items():
             snap.add(TAKEN if op else PUBLISHED, (str(pid), self.proctable.name(pid), topic, gid), count)
         if self.timing:
             self._write_deadlines(written)
             self._collect_periods(snap, processes, periods)
             self._collect_reactions(snap, processes)
-            self._collect_deliveries(snap, processes)
+            self._collect_deliveries(snap, processes, deliveries)
         self._endpoints = {k: v for k, v in self._endpoints.items() if k[0] in processes}
         self.read_dropped()
 
@@ -393,11 +401,12 @@ class RclProbe(BpfProbe):
         offset = time.clock_gettime_ns(time.CLOCK_REALTIME) - time.clock_gettime_ns(time.CLOCK_MONOTONIC)
         self.opened["realtime_offset"].update(bytes(4), _S64.pack(offset))
 
-    def _collect_deliveries(self, snap: Snapshot, processes: dict) -> None:
+    def _collect_deliveries(self, snap: Snapshot, processes: dict, deliveries: tuple) -> None:
         """Per subscription and publisher: the transport and age histograms, made again only where
-        messages came since, and the messages whose stamps were ahead of the subscriber's clock."""
+        messages came since, and the messages whose stamps were ahead of the subscriber's clock.
+        `deliveries`: the map as _timings read it."""
         self._say_clock()
-        entries, table, counts = self._timings("deliveries", _DELIVERY_KEY, _DELIVERY, "age")
+        entries, table, counts = deliveries
         kept = {}
         for i, ((pid, _, subscription, publisher), key) in enumerate(entries):
             endpoint = self._endpoint(pid, subscription, processes, "deliveries", key)

@@ -97,7 +97,8 @@ def test_a_process_seen_before_it_loaded_ros_is_mapped_once_its_node_appears(ros
     from drums.graph.nodepids import FASTDDS_VENDOR, ProcScan, map_nodes
     scan = ProcScan()
     late = {}
-    starting = threading.Thread(target=lambda: late.update(p=ros_nodes("idle", "late", env={"DRUMS_TEST_IMPORT_DELAY": "2"})))
+    slow = {"DRUMS_TEST_IMPORT_DELAY": "2"}
+    starting = threading.Thread(target=lambda: late.update(p=ros_nodes("idle", "late", env=slow)))
     starting.start()
     importing = []
 
