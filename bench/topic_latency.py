@@ -196,7 +196,8 @@ def main() -> None:
 
     p50, p99 = ({m: median(w[q] for w in rows) for m, rows in windows.items()} for q in (0, 1))
     # Within a round, the windows of the modes are seconds apart: their difference leaves out drift.
-    adds = [median(t[q] - c[q] for t, c in zip(windows["timing"], windows["counting"])) for q in (0, 1)]
+    differences = [[t[q] - c[q] for t, c in zip(windows["timing"], windows["counting"])] for q in (0, 1)]
+    adds = [median(d) for d in differences]
     cpu = {m: b["cpu"] for m, b in busy.items()}
     bpf_us = {m: b["per_sent"] / 1e3 for m, b in busy.items()}
     delivered_us = {m: b["per_delivered"] / 1e3 for m, b in busy.items()}
@@ -219,6 +220,8 @@ def main() -> None:
          for mode, b in busy.items() for name, (ns, count) in sorted(b["runs"].items())]
         + [f"{mode}: {b['taken']} of {b['sent']} messages taken" for mode, b in busy.items()]
         + [f"messages lost in the latency windows' run: {lost} (goal 0)"]
+        + [f"timing less counting by round, {q}, us: " + ", ".join(fmt(d, 1) for d in sorted(ds))
+           for q, ds in zip(("p50", "p99"), differences)]
         + ["uprobe traps (about 1-2 us each, 3 per message here) come on top of the BPF run time"])
 
 

@@ -337,11 +337,13 @@ class RosNode:
         threading.Thread(target=self._serve, daemon=True).start()
         for topic, kind in self.publish.items():
             self.master.registerPublisher(self.name, topic, kind, self.uri)
-        for topic, kind in self.subscribe.items():
-            _, _, publishers = self.master.registerSubscriber(self.name, topic, kind, self.uri)
-            for uri in publishers:
-                threading.Thread(target=self._connect, args=(topic, uri), daemon=True).start()
+        found = [(topic, uri) for topic, kind in self.subscribe.items()
+                 for uri in self.master.registerSubscriber(self.name, topic, kind, self.uri)[2]]
+        # "ready" first: a connection's thread may have read its messages, and said so, before this
+        # thread runs again.
         say(f"ready {os.getpid()} {self.uri}")
+        for topic, uri in found:
+            threading.Thread(target=self._connect, args=(topic, uri), daemon=True).start()
         signal.sigwait(ending)
         for topic in self.publish:
             self.master.unregisterPublisher(self.name, topic, self.uri)

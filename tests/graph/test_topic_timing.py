@@ -306,3 +306,34 @@ def _received(client, key: str, seconds: float = 5.0) -> list:
     while time.monotonic() - began < seconds:
         got += [s for s in client.poll(0.2) if s.key == key]
     return got
+
+
+def test_the_timing_histograms_of_processes_over_the_budget_are_summed_into_other(ros_nodes):
+    """With room for one process, two publishers' period histograms: the kept process's as it is,
+    the other's in the process budget's `other` row, on the union of their buckets, promtool-clean."""
+    raw = "drums_ros_publish_period_seconds"
+    limits = ("--max-processes", "1", "--process-name", "budget_(first|second)")
+    with running_agent(*ARGS, *limits) as url:
+        metronomes = [ros_nodes("metronome", name, env={"DRUMS_TEST_BURST": "100", "DRUMS_TEST_PERIODS_MS": "10"})
+                      for name in ("budget_first", "budget_second")]
+        for name, process in zip(("/budget_first", "/budget_second"), metronomes):
+            wait_until(lambda: node(url, name).get("pid") == process.pid, f"{name} in the graph", timeout=15)
+        for m in metronomes:
+            m.go()
+        for m in metronomes:
+            wait_until(lambda: m.count() == 100, "the beats published", timeout=15)
+
+        def counted():
+            rows = {dict(k)["pid"]: v for k, v in samples(scrape(url), raw + "_count").items()}
+            assert len(rows) == 2 and "other" in rows and sum(rows.values()) >= 198, rows
+            return rows
+        rows = eventually(counted, timeout=10)
+        [kept] = rows.keys() - {"other"}
+        assert kept in {str(m.pid) for m in metronomes} and rows[kept] == 99, rows
+        # The folded process's 99; and a share of the kept one's too, had they traded the slot while
+        # they published (a process more than twice as busy wins it).
+        assert 99 <= rows["other"] <= 198, rows
+        text = scrape(url)
+        checked = subprocess.run(["promtool", "check", "metrics"], input=text, capture_output=True, text=True)
+        assert (checked.returncode, checked.stdout, checked.stderr) == (0, "", ""), checked
+        assert samples(text, "drums_budget_folded_entities")[(("kind", "process"),)] == 1.0
