@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from itertools import islice
 from operator import itemgetter
 
+import numpy as np
+
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
@@ -241,15 +243,42 @@ class Budget:
         entering = {labels: values for labels, values in changed if entity_of(labels) not in kept}
         for e in demoted:
             entering.update((labels, g.values(labels)) for labels in g.rows_of.get(e, ()))
-        for labels, values in entering.items():
-            old = g.folded.get(labels)
-            key = g.other_key(labels)
-            total = st.totals.get(key)
-            steps = [g.step(new, was) for new, was in zip(values, old or [None] * len(values))]
-            st.totals[key] = steps if total is None else [a + b for a, b in zip(total, steps)]
-            if old is None:
-                st.members[key] = st.members.get(key, 0) + 1
-            g.folded[labels] = values
+        if not entering:
+            return
+        if any(isinstance(v, Histogram) for v in next(iter(entering.values()))):
+            for labels, values in entering.items():  # histograms, one row at a time: few, with buckets
+                old = g.folded.get(labels)
+                steps = [g.step(new, was) for new, was in zip(values, old or [None] * len(values))]
+                Budget._add(st, g.other_key(labels), steps, old is None)
+                g.folded[labels] = values
+            return
+        # Numbers, in bulk: what each row grew by since it last went into `other` (a counter that went
+        # back: all of it), summed per `other` row with one array operation.
+        rows = list(entering.items())
+        olds = [g.folded.get(labels) for labels, _ in rows]
+        new = np.array([values for _, values in rows])
+        zero = (0,) * new.shape[1]
+        old = np.array([was if was is not None else zero for was in olds])
+        steps = np.where(new < old, new, new - old) if g.counters else new - old
+        index: dict = {}
+        at = np.fromiter((index.setdefault(g.other_key(labels), len(index)) for labels, _ in rows), np.intp, len(rows))
+        sums = np.zeros((len(index), new.shape[1]), steps.dtype)
+        np.add.at(sums, at, steps)
+        fresh = np.bincount(at, [was is None for was in olds], len(index))
+        for key, i in index.items():
+            Budget._add(st, key, sums[i].tolist(), False)
+            if fresh[i]:
+                st.members[key] = st.members.get(key, 0) + int(fresh[i])
+        g.folded.update(rows)
+
+    @staticmethod
+    def _add(st: _KindState, key: tuple, steps: list, new_member: bool) -> None:
+        """Add these steps to an `other` row; a row new to it is one member more (gauges' rows
+        leave when their last member does)."""
+        total = st.totals.get(key)
+        st.totals[key] = steps if total is None else [a + b for a, b in zip(total, steps)]
+        if new_member:
+            st.members[key] = st.members.get(key, 0) + 1
 
     @staticmethod
     def _choose(st: _KindState, entities: set, activity: dict) -> None:
