@@ -100,8 +100,9 @@ static __always_inline u64 deadline_of(struct handle_key_t *key)
     return deadline ? *deadline : 0;
 }
 // Per thread: the subscription it passed to rcl_take, kept until it returns, and the last one it
-// took a message from and when, until it runs a timer or service. Task-local storage, not a hash keyed by
-// thread: a hash update costs about 0.5 us here, where this is a pointer lookup.
+// took a message from and when, until it takes another or runs a timer or service. Task-local
+// storage, not a hash keyed by thread: a hash update costs about 0.5 us here, where this is a
+// pointer lookup.
 struct took_t {
     u64 pending;
     u64 info;  // the rmw_message_info_t the pending take fills
@@ -109,9 +110,9 @@ struct took_t {
     u64 at;
 };
 BPF_TASK_STORAGE(takes, struct took_t);
-// Processes that took a message (a bit per PID modulo TAKERS): a thread of one that never did reacts
-// to nothing, and its publishes skip the task-storage lookup (a helper call) for an array's read. A
-// PID that shares a slot only costs its publishes that lookup.
+// Processes that took a message (a byte per PID modulo TAKERS): a thread of one that never did
+// reacts to nothing, and its publishes skip the task-storage lookup (a helper call) for an array's
+// read. A PID that shares a slot only costs its publishes that lookup.
 #define TAKERS 4096
 BPF_ARRAY(takers, u8, TAKERS);
 BPF_ARRAY(dropped, u64, 5);
@@ -299,8 +300,8 @@ int on_take_return(struct pt_regs *ctx)
     return 0;
 }
 
-// rcl_timer_call, rcl_take_request and rcl_take_response: what the thread publishes next reacts to a
-// timer or a service, not to the message it took last.
+// rcl_timer_call, rcl_take_request and rcl_take_response: what the thread publishes next reacts to
+// a timer or a service, not to the message it took last.
 int on_idle(struct pt_regs *ctx)
 {
     struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
