@@ -194,9 +194,10 @@ class Agent:
         self._want_rtt()
         self._want_deadlines()
         raw = self._read({p.name for p in self.probes})
-        joined = self._joined(raw)
         everything = self.selection.everything and self.proctable.netns is None
-        snap = self.budget.apply(raw if everything else self._select(raw))
+        selected = raw if everything else self._select(raw)
+        joined = self._joined(selected)  # the processes not selected are in no node's, topic's or edge's rows
+        snap = self.budget.apply(selected)
         for metric, rows in joined.series.items():  # bounded by the graph: not budgeted
             snap.rows(metric).extend(rows)
         self._self_metrics(snap)
