@@ -43,8 +43,10 @@ def _run(procs, agent):
     agent.collect()  # the probes learn of the new processes: parse their datagrams from now on
     procs["talker"].go()
     procs["producer"].go()
+    # 3 s at 10 Hz, once each publisher has matched its subscribers (pairwise DDS discovery, which
+    # a host busy with three lanes of make test can hold up for tens of seconds)
     wait_until(lambda: all(p.count() == BURST for p in procs.values()),
-               f"every node to publish or receive {BURST} messages", timeout=20)
+               f"every node to publish or receive {BURST} messages", timeout=60)
     return agent.collect()
 
 
