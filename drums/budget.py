@@ -249,7 +249,7 @@ class Budget:
             for labels, values in entering.items():  # histograms, one row at a time: few, with buckets
                 old = g.folded.get(labels)
                 steps = [g.step(new, was) for new, was in zip(values, old or [None] * len(values))]
-                Budget._add(st, g.other_key(labels), steps, old is None)
+                Budget._add(st, g.other_key(labels), steps, int(old is None))
                 g.folded[labels] = values
             return
         # Numbers, in bulk: what each row grew by since it last went into `other` (a counter that went
@@ -266,19 +266,17 @@ class Budget:
         np.add.at(sums, at, steps)
         fresh = np.bincount(at, [was is None for was in olds], len(index))
         for key, i in index.items():
-            Budget._add(st, key, sums[i].tolist(), False)
-            if fresh[i]:
-                st.members[key] = st.members.get(key, 0) + int(fresh[i])
+            Budget._add(st, key, sums[i].tolist(), int(fresh[i]))
         g.folded.update(rows)
 
     @staticmethod
-    def _add(st: _KindState, key: tuple, steps: list, new_member: bool) -> None:
-        """Add these steps to an `other` row; a row new to it is one member more (gauges' rows
-        leave when their last member does)."""
+    def _add(st: _KindState, key: tuple, steps: list, joined: int) -> None:
+        """Add these steps to an `other` row, which `joined` rows new to it now count in (gauges'
+        rows leave when their last member does)."""
         total = st.totals.get(key)
         st.totals[key] = steps if total is None else [a + b for a, b in zip(total, steps)]
-        if new_member:
-            st.members[key] = st.members.get(key, 0) + 1
+        if joined:
+            st.members[key] = st.members.get(key, 0) + joined
 
     @staticmethod
     def _choose(st: _KindState, entities: set, activity: dict) -> None:
