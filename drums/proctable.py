@@ -68,6 +68,8 @@ class ProcessTable:
         self.refreshes = 0
         self._new_at: dict[int, int] = {}
         self._told = True
+        self._cpu: dict[int, float] = {}  # what the sched probe said at the refresh _cpu_at
+        self._cpu_at = -1
 
     def refresh(self, renamed: Iterable[int] | None = ()) -> None:
         """List the processes. A name is read when its PID first appears, and again when the PID is
@@ -96,6 +98,17 @@ class ProcessTable:
         """The refresh at which the process with this PID was last found new; None when that cannot
         be known (a refresh was not told which processes were renamed) or the PID is gone."""
         return self._new_at.get(pid) if self._told else None
+
+    def ran(self, cpu: dict[int, float]) -> None:
+        """Told by the sched probe at each collect: the CPU seconds each process that has run
+        since the probe attached has used. A process whose count has not moved has not run, so its
+        memory, threads, open files and storage I/O are as they were (but for the kernel's reclaim)."""
+        self._cpu, self._cpu_at = cpu, self.refreshes
+
+    def cpu(self, pid: int) -> float | None:
+        """The process's CPU seconds as the sched probe counted them at this refresh (0: it has not
+        run since the probe attached); None when no sched probe said so at this refresh."""
+        return self._cpu.get(pid, 0.0) if self._cpu_at == self.refreshes else None
 
     def alive(self, pid: int) -> bool:
         return pid in self._names

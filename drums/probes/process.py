@@ -15,9 +15,18 @@ from drums.probes.base import Probe, ProbeStatus
 from drums.proctable import ProcessTable
 
 LABELS = ("pid", "process")
-RESIDENT_MEMORY = Metric("drums_process_resident_memory_bytes", GAUGE, "Resident set size", LABELS)
+GOLDEN = 0.6180339887  # spreads consecutive PIDs evenly over the unit interval
+# A process that has not run since it was read has the memory, threads, open files and storage I/O
+# it had then, but for what the kernel's reclaim took from its memory: it is read again after
+# IDLE_INTERVAL times a half to one (by its PID, so that the idle processes of a host spread their
+# reads over the scrapes rather than come due together).
+INTERVAL, IDLE_INTERVAL = 5.0, 60.0
+_READ = (f"read at most every {INTERVAL:g} s; one that has not run since, every {IDLE_INTERVAL / 2:g} to "
+         f"{IDLE_INTERVAL:g} s")
+
+RESIDENT_MEMORY = Metric("drums_process_resident_memory_bytes", GAUGE, f"Resident set size ({_READ})", LABELS)
 UNIQUE_MEMORY = Metric(
-    "drums_process_unique_memory_bytes", GAUGE, "Memory freed if the process exited (USS)", LABELS
+    "drums_process_unique_memory_bytes", GAUGE, f"Memory freed if the process exited (USS; {_READ})", LABELS
 )
 THREADS = Metric("drums_process_threads", GAUGE, "Threads in the process", LABELS)
 OPEN_FDS = Metric("drums_process_open_fds", GAUGE, "Open file descriptors", LABELS)
@@ -31,7 +40,14 @@ START_TIME = Metric("drums_process_start_time_seconds", GAUGE, "Process start ti
                     additive=False)
 
 
-GOLDEN = 0.6180339887  # spreads consecutive PIDs evenly over the unit interval
+
+
+class _Read:
+    """A process's values at its last read, and what tells whether they may have changed since."""
+    __slots__ = ("at", "values", "refresh", "cpu")
+
+    def __init__(self, at: float, values: list, refresh: int, cpu: float | None):
+        self.at, self.values, self.refresh, self.cpu = at, values, refresh, cpu
 
 
 def open_fds(pid: int) -> int:
@@ -51,15 +67,16 @@ class ProcessProbe(Probe):
     name = "process"
     metrics = (RESIDENT_MEMORY, UNIQUE_MEMORY, THREADS, OPEN_FDS, READ_BYTES, WRITTEN_BYTES, START_TIME)
 
-    def __init__(self, proctable: ProcessTable, interval: float = 5.0):
+    def __init__(self, proctable: ProcessTable, interval: float = INTERVAL, idle_interval: float = IDLE_INTERVAL):
         super().__init__()
         self.proctable = proctable  # names as every probe gives them: following renames and exec
         # Each process costs several /proc reads (smaps_rollup above all), and memory, threads and
-        # open files change slowly: a process is read at most once per interval (seconds).
-        self.interval = interval
+        # open files change slowly: a process is read at most once per interval (seconds), and one
+        # that has not run since (as the sched probe tells the process table) once per idle_interval.
+        self.interval, self.idle_interval = interval, idle_interval
         self._pids: frozenset[int] = frozenset()
         self._procs: dict[int, psutil.Process] = {}
-        self._read_at: dict[int, tuple[float, list, int]] = {}  # pid -> (when, values, table's refreshes)
+        self._last: dict[int, _Read] = {}
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
@@ -68,35 +85,43 @@ class ProcessProbe(Probe):
         self._pids = frozenset(pids)
         for pid in self._procs.keys() - self._pids:
             del self._procs[pid]
-        for pid in self._read_at.keys() - self._pids:
-            del self._read_at[pid]
+        for pid in self._last.keys() - self._pids:
+            del self._last[pid]
+
+    def _due(self, pid: int, cached: _Read | None, now: float) -> bool:
+        """Whether the process must be read now rather than given its values of the last read."""
+        table = self.proctable
+        if cached is None:
+            return True
+        # The process table knows which PIDs have another process since a read, where the kernel
+        # tells it of every exit and exec (new_at); else psutil checks the start time.
+        new_at = table.new_at(pid)
+        if new_at is not None and new_at > cached.refresh:
+            self._procs.pop(pid, None)
+            return True
+        cpu = table.cpu(pid)
+        idle = cpu is not None and cpu == cached.cpu
+        wait = self.idle_interval * (1 + (pid * GOLDEN) % 1.0) / 2 if idle else self.interval
+        return now - cached.at >= wait or (new_at is None and not self._procs[pid].is_running())
 
     def collect(self, snap: Snapshot) -> None:
         now, table = time.monotonic(), self.proctable
         for pid in self._pids:
-            cached = self._read_at.get(pid)
-            # The process table knows which PIDs have another process since a read, where the kernel
-            # tells it of every exit and exec (new_at); else psutil checks the start time.
-            new_at = table.new_at(pid)
-            if cached and new_at is not None and new_at > cached[2]:
-                self._procs.pop(pid, None)
-                cached = None
-            if cached and now - cached[0] < self.interval and (new_at is not None or self._procs[pid].is_running()):
-                values = cached[1]
-            else:
+            cached = self._last.get(pid)
+            if self._due(pid, cached, now):
                 try:
                     values = self._read(pid)
                 except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
                     self._procs.pop(pid, None)
-                    self._read_at.pop(pid, None)
+                    self._last.pop(pid, None)
                     continue
                 # A process read for the first time is given a phase within the interval, so that
                 # a hundred processes found at once are read a few at each scrape afterwards, not
                 # all at every fifth one (a scrape of 50 ms at the 95th percentile).
                 phase = 0.0 if cached else (pid * GOLDEN) % 1.0 * self.interval
-                self._read_at[pid] = (now - phase, values, table.refreshes)
+                cached = self._last[pid] = _Read(now - phase, values, table.refreshes, table.cpu(pid))
             labels = (str(pid), self.proctable.name(pid))
-            for metric, value in values:
+            for metric, value in cached.values:
                 snap.add(metric, labels, value)
 
     def _read(self, pid: int) -> list[tuple[Metric, float]]:

@@ -5,6 +5,7 @@ from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.proctable import MappedLibraries, ProcessTable
 
+# In the order they collect: sched before process, to which it tells the processes that ran.
 PROBES = ("sockets", "sched", "tcp", "host", "process", "rtps", "rcl", "loads", "latency")
 # Run by default only with the ros2 graph: they count per DDS writer and topic (loads tells them
 # at once when a process loads ROS 2 or DDS).

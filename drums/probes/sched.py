@@ -158,13 +158,17 @@ class SchedProbe(BpfProbe):
             snap.add(THREAD_RUNQ_WAITS, labels, runq_waits)
             snap.add(THREAD_SWITCHES, labels + ("voluntary",), vol)
             snap.add(THREAD_SWITCHES, labels + ("involuntary",), invol)
+        ran = {}
         for (tgid, start), s in totals.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), pt.name(tgid))
             key = (tgid, start)
-            snap.add(PROCESS_CPU, labels, m((PROCESS_CPU, key), oncpu / 1e9))
+            cpu = m((PROCESS_CPU, key), oncpu / 1e9)
+            ran[tgid] = cpu
+            snap.add(PROCESS_CPU, labels, cpu)
             snap.add(PROCESS_RUNQ, labels, m((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits)))
             for kind, n in (("voluntary", vol), ("involuntary", invol)):
                 snap.add(PROCESS_SWITCHES, labels + (kind,), m((PROCESS_SWITCHES, key, kind), n))
+        pt.ran(ran)
         m.next_collect()
         self.read_dropped()

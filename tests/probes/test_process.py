@@ -1,10 +1,12 @@
 """process: a child with known memory, threads and storage I/O, read by the probe and checked with /proc."""
+import collections
 import contextlib
 import os
 import subprocess
 import sys
 import time
 
+import psutil
 import pytest
 
 from drums.metrics import Snapshot
@@ -242,3 +244,52 @@ def test_a_cached_process_is_read_again_once_the_kernel_says_its_pid_changed():
         table.refresh({pid})  # the exit, as a job's collect sees it
         assert collect_told(set()) == {(str(pid), "sleep"): pytest.approx(start_time(pid), abs=0.01)}
         assert start_time(pid) != pytest.approx(first_start, abs=0.001)
+
+
+# Grows by the bytes named on each line of its stdin (touching every page), then sleeps in read().
+GROWER = ("import sys\nheld = []\nprint('ready', flush=True)\nfor line in sys.stdin:\n"
+          "    held.append(bytearray(b'\\1') * int(line))\n    print('grown', flush=True)\n")
+
+
+def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_probe, proctable):
+    """With the sched probe telling the process table which processes ran, a sleeping process is
+    read once, not at every interval (here every collect); once it wakes and grows, the next
+    collect reads it, and gives the memory the kernel gives."""
+    probe = ProcessProbe(proctable, interval=0, idle_interval=1e9)
+    probe.start()
+    reads = collections.Counter()
+    read = probe._read
+    probe._read = lambda pid: (reads.update([pid]), read(pid))[1]  # the real read, counted
+    child = subprocess.Popen([sys.executable, "-c", GROWER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert child.stdout.readline() == "ready\n"
+        pid = child.pid
+        probe.set_pids([pid])
+
+        def collect_rss() -> int:
+            proctable.refresh(sched_probe.renamed())
+            snap = Snapshot()
+            sched_probe.collect(snap)
+            probe.collect(snap)
+            return snap.values(RESIDENT_MEMORY)[(str(pid), comm(pid))]
+
+        def sleeping() -> None:
+            assert state(pid) == "S"
+
+        eventually(sleeping, timeout=10)
+        collect_rss(), collect_rss()  # the first read, and one more if it ran after the sched probe looked
+        before, asleep = reads[pid], collect_rss()
+        for _ in range(5):
+            assert collect_rss() == asleep
+        assert reads[pid] == before  # not read again: it has not run
+        child.stdin.write(f"{64 * MIB}\n")
+        child.stdin.flush()
+        assert child.stdout.readline() == "grown\n"
+        eventually(sleeping, timeout=10)
+        grown = collect_rss()
+        assert reads[pid] == before + 1
+        assert grown == psutil.Process(pid).memory_info().rss >= asleep + 64 * MIB
+    finally:
+        child.stdin.close()
+        child.wait(10)
