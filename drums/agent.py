@@ -21,7 +21,7 @@ from drums.graph.model import ENTITIES, Graph
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.probes.base import Probe
 from drums.proctable import ProcessTable
-from drums.selfcost import TreeCost
+from drums.selfcost import BUSY, MEMORY_EVERY, TreeCost
 
 log = logging.getLogger("drums")
 
@@ -47,11 +47,11 @@ AGENT_COLLECT = Metric("drums_agent_collect_duration_seconds", GAUGE,
 AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER,
                    "CPU time used by the agent's processes: the agent and each helper it started, by role", ("role",))
 AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE,
-                   "Resident memory of the agent's processes, by role (each read at most every 5 s after its "
-                   "first 30 s)", ("role",))
+                   f"Resident memory of the agent's processes, by role (each read again once it has used {BUSY:g} s "
+                   f"of CPU since, else every {MEMORY_EVERY:g} s)", ("role",))
 AGENT_USS = Metric("drums_agent_unique_memory_bytes", GAUGE,
                    "Memory only the agent's processes use, by role (private pages: what stopping them would "
-                   "free; each read at most every 5 s after its first 30 s)",
+                   f"free; each read again once it has used {BUSY:g} s of CPU since, else every {MEMORY_EVERY:g} s)",
                    ("role",))
 GRAPH_STALE = Metric("drums_graph_stale", GAUGE,
                      "1 while the graph adapter fails (the last good graph is kept), else 0", ("adapter",))
@@ -203,6 +203,14 @@ class Agent:
         self._self_metrics(snap)
         snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
         return snap
+
+    def tcp_changes(self) -> int | None:
+        """TCP state changes on the host as the tcp probe counts them; None without it (the auto
+        graph dumps the connections again only when this moved)."""
+        for probe in self.probes:
+            if probe.status.attached and hasattr(probe, "transitions"):
+                return probe.transitions()
+        return None
 
     def _want_rtt(self) -> None:
         """RTT is read for the connections that have series of their own, and the graph's edges."""

@@ -18,12 +18,12 @@ _TICKS = os.sysconf("SC_CLK_TCK")
 TRIM_EVERY = 10.0
 ARENAS = 2
 _M_ARENA_MAX = -8  # mallopt's parameter, from glibc's malloc.h
-# Reading smaps_rollup walks a process's page tables: a millisecond or two for the agent and for
-# an rclpy helper. Memory moves slowly once a process runs: each of the tree is read at every
-# sample for its first SETTLE seconds (while it loads and grows), then at most every MEMORY_EVERY,
-# as the process probe reads the processes it watches.
+# Reading smaps_rollup walks a process's page tables: a millisecond or more for the agent and for
+# an rclpy helper. A process's memory moves with its work: each of the tree is read again once it
+# has used BUSY seconds of CPU since it was last read (a helper loading its libraries), else at
+# most every MEMORY_EVERY, as the process probe reads the processes it watches.
 MEMORY_EVERY = 5.0
-SETTLE = 30.0
+BUSY = 0.1
 
 
 def _glibc():
@@ -97,22 +97,23 @@ class TreeCost:
         self._last: dict[int, tuple[str, float]] = {}  # child pid -> (role, CPU seconds) when last seen
         self._ended: dict[str, float] = {}  # role -> CPU seconds of its children that ended
         self._heap = Heap()  # made before the agent starts its threads
-        # pid ("self": the agent) -> (when first seen, when read, (RSS, USS))
+        # pid ("self": the agent) -> (when read, its CPU seconds then, (RSS, USS))
         self._memory: dict[int | str, tuple[float, float, tuple[int, int]]] = {}
 
-    def _memory_of(self, pid: int | str, now: float) -> tuple[int, int]:
-        first, read_at, rss_uss = self._memory.get(pid, (now, 0.0, (0, 0)))
-        if now - first < SETTLE or now - read_at >= MEMORY_EVERY:
-            read_at, rss_uss = now, memory(pid)
-        self._memory[pid] = first, read_at, rss_uss
+    def _memory_of(self, pid: int | str, now: float, cpu: float) -> tuple[int, int]:
+        read_at, cpu_then, rss_uss = self._memory.get(pid, (float("-inf"), 0.0, (0, 0)))
+        if now - read_at >= MEMORY_EVERY or cpu - cpu_then >= BUSY:
+            read_at, cpu_then, rss_uss = now, cpu, memory(pid)
+        self._memory[pid] = read_at, cpu_then, rss_uss
         return rss_uss
 
     def sample(self) -> dict[str, tuple[float, int, int]]:
         """role -> (CPU seconds, RSS, USS)."""
         self._heap.trim()
         now, times = time.monotonic(), os.times()
-        rss, uss = self._memory_of("self", now)
-        out = {AGENT: [times.user + times.system, rss, uss]}
+        cpu = times.user + times.system
+        rss, uss = self._memory_of("self", now, cpu)
+        out = {AGENT: [cpu, rss, uss]}
         seen = {}
         for pid in _children():
             got = _cpu_and_role(pid)
@@ -120,7 +121,7 @@ class TreeCost:
                 continue
             cpu, role = got
             seen[pid] = (role, cpu)
-            rss, uss = self._memory_of(pid, now)
+            rss, uss = self._memory_of(pid, now, cpu)
             row = out.setdefault(role, [0.0, 0, 0])
             row[0] += cpu
             row[1] += rss

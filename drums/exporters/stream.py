@@ -33,7 +33,6 @@ from zmq.utils import z85
 
 from drums.errors import DrumsError
 
-DEFAULT_PORT = 9970
 KEYFRAME = 10  # a late subscriber decodes from at most this many messages on
 REFUSED_SAID_EVERY = 60.0  # seconds: at most one line about subscribers refused
 

@@ -13,14 +13,13 @@ from typing import TYPE_CHECKING
 
 from drums import units
 from drums.errors import UsageError
-from drums.graph import draw, join, paths
+from drums.graph import FORMATS, draw, join, paths
 from drums.graph.model import Graph
 from drums.metrics import INFO, Histogram, Snapshot
 
 if TYPE_CHECKING:  # the graph modules load networkx only when a graph is made (model.snapshot)
     import networkx as nx
 
-FORMATS = ("text", "json", "dot", "svg", "graphml")
 PICTURES = ("dot", "svg")
 CONTENT_TYPES = {"text": "text/plain; charset=utf-8", "json": "application/json",
                  "dot": "text/vnd.graphviz", "svg": "image/svg+xml", "graphml": "application/graphml+xml"}

@@ -147,6 +147,13 @@ class TcpProbe(BpfProbe):
             snap.add(CONN_RTT, labels, rtt)
         self.read_dropped()
 
+    def transitions(self) -> int:
+        """TCP state changes on the host (every network namespace's) since the programs were loaded:
+        while this holds still, no connection or listener came or went. A read of its own, safe
+        beside a collect in another thread."""
+        _, values, _ = self.opened["tcp_totals"].read()
+        return sum(sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0][3:])
+
     def _read_rtt(self) -> list[tuple[tuple[str, str], float]]:
         if self._wanted is None:
             return [((local, remote), c.srtt_us / 1e6) for c, local, remote in established()]

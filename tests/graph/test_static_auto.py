@@ -140,6 +140,53 @@ def test_auto_graph_has_an_edge_from_client_to_server(procs):
     assert {names[client.pid], names[server.pid], f"tcp:{port}"} <= texts(drawn_graph(graph))  # Graphviz draws it
 
 
+# Accepts a connection for each line of its stdin, from a client it makes itself: a new edge.
+SERVER_OF_LINES = textwrap.dedent("""
+    import socket, sys
+    s = socket.socket(); s.bind(("127.0.0.1", 0)); s.listen(); print(s.getsockname()[1], flush=True)
+    held = []
+    for line in sys.stdin:
+        held.append(socket.create_connection(s.getsockname())); held.append(s.accept()[0])
+        print("connected", flush=True)
+""")
+
+
+def test_the_auto_graph_dumps_the_connections_again_only_when_a_tcp_socket_changed_state(procs, tcp_probe):
+    """With the tcp probe's count of TCP state changes, a poll while it holds still gives the last
+    dump's graph without dumping (other tests may connect meanwhile: only quiet polls are checked);
+    a new connection or a process that ended is in the next poll's graph."""
+    adapter = AutoAdapter(tcp_changes=tcp_probe.transitions)
+    dumps = []
+    dump = adapter._dump
+    adapter._dump = lambda: (dumps.append(1), dump())[1]  # the real dump, counted
+    server = subprocess.Popen([sys.executable, "-c", SERVER_OF_LINES], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(server.stdout.readline())
+        nodes = {n.pid: n.name for n in adapter.poll().nodes}  # listening, no connection yet
+        node = nodes[server.pid]
+        quiet = 0
+        for _ in range(50):
+            before, done = tcp_probe.transitions(), len(dumps)
+            adapter.poll()
+            if tcp_probe.transitions() == before:
+                quiet += 1
+                assert len(dumps) == done
+        assert quiet >= 10
+        server.stdin.write("connect\n")
+        server.stdin.flush()
+        assert server.stdout.readline() == "connected\n"
+        # The server connected to itself: an edge from its own node to its own node.
+        assert (node, f"tcp:{port}") in {(c.subscriber, c.topic) for c in adapter.poll().connections
+                                         if c.publisher == node}
+        server.kill()
+        server.wait()
+        assert server.pid not in {n.pid for n in adapter.poll().nodes}
+    finally:
+        server.kill()
+        server.wait()
+
+
 class FakeReader(ChildAdapter):
     """A reader child that describes one node, then answers garbage, then nothing."""
     name = "fake"
