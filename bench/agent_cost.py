@@ -21,7 +21,7 @@ import textwrap
 import threading
 import time
 
-from common import (Agent, BenchError, cpu_seconds, drums_unload, fetch, fmt, main_wrapper, median,
+from common import (Agent, BenchError, Scraper, cpu_seconds, drums_unload, fmt, main_wrapper, median,
                     memory, percentile, print_table, progress, ratio, require_root, samples, series_count,
                     terminate, tree, uss_bytes)
 
@@ -108,8 +108,9 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
     try:
         agent.wait_ready()
         on_ready()
+        scraper = Scraper(agent.url)
         for _ in range(2):  # the first collects read the names of every new process
-            fetch(agent.url, timeout=30)
+            scraper.get()
             time.sleep(interval)
         latencies, collect, outside, sizes, per_probe = [], [], [], [], {}
         processes = tree(agent.proc.pid)  # the whole tree: the agent and any helper it started
@@ -117,7 +118,7 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
         next_at = t0
         while time.monotonic() - t0 < seconds:
             start = time.perf_counter()
-            status, body = fetch(agent.url, timeout=30)
+            status, body = scraper.get()
             latencies.append((time.perf_counter() - start) * 1000)
             if status != 200:
                 raise BenchError(f"/metrics answered {status}")
@@ -130,6 +131,7 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
             next_at += interval
             time.sleep(max(0.0, next_at - time.monotonic()))
         cpu1, t1 = sum(map(cpu_seconds, processes)), time.monotonic()
+        scraper.close()
         return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": sum(map(uss_bytes, processes)),
                 "rss": sum(memory(p).get("Rss", 0) for p in processes), "processes": len(processes),
                 "latencies": latencies, "collect": collect, "outside": outside, "sizes": sizes[-1],
@@ -238,7 +240,8 @@ def run(args) -> None:
         f"{args.interval:g} s; the agent runs all probes"
         + f" (its whole process tree measured: {ours['processes']} process{'es' if ours['processes'] > 1 else ''})"
         + (f" with {args.agent_args}" if args.agent_args else " with its default budget") + ".",
-        "a Drums cycle is one /metrics request timed by the client (collect + render + HTTP); a psutil "
+        "a Drums cycle is one /metrics request timed by the client (collect + render + HTTP), over one "
+        "connection kept alive, as Prometheus scrapes; a psutil "
         "cycle is one poll of every process and of net_connections(), with nothing rendered or sent.",
         f"agent's own collect time (sum of drums_probe_collect_duration_seconds): median "
         f"{fmt(median(ours['collect']), 1)} ms; per probe: "

@@ -5,6 +5,7 @@ The benchmarks are not tests: they measure, print, clean up and exit 0 whether o
 """
 from __future__ import annotations
 
+import http.client
 import json
 import os
 import re
@@ -17,6 +18,7 @@ import sys
 import tempfile
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass, field
 
@@ -206,6 +208,33 @@ def fetch(url: str, timeout: float = 5) -> tuple[int, bytes]:
         return e.code, e.read()
     except (urllib.error.URLError, ConnectionError, TimeoutError, OSError):
         return 0, b""
+
+
+class Scraper:
+    """GETs one URL over a connection kept alive between requests, as Prometheus scrapes a target
+    (a new TCP connection per scrape would be a change of the host's connections each time)."""
+
+    def __init__(self, url: str, timeout: float = 30):
+        parts = urllib.parse.urlsplit(url)
+        self.address, self.path, self.timeout = (parts.hostname, parts.port), parts.path, timeout
+        self._conn: http.client.HTTPConnection | None = None
+
+    def get(self) -> tuple[int, bytes]:
+        for _ in range(2):  # the server may have closed an idle connection: once more on a new one
+            try:
+                if self._conn is None:
+                    self._conn = http.client.HTTPConnection(*self.address, timeout=self.timeout)
+                self._conn.request("GET", self.path)
+                response = self._conn.getresponse()
+                return response.status, response.read()
+            except (http.client.HTTPException, OSError):
+                self.close()
+        return 0, b""
+
+    def close(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
 
 
 _SAMPLE = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)(\{.*\})?\s+(\S+)$')

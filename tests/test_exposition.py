@@ -5,13 +5,43 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from drums import docs
 from drums.budget import Budget
-from drums.exporters.prometheus import render
+from drums.exporters.prometheus import Renderer, render
 from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Histogram, Metric, Snapshot
 
 CPU = Metric("drums_process_cpu_seconds_total", COUNTER, "cpu", ("pid", "process"))
 MEM = Metric("drums_process_resident_memory_bytes", GAUGE, "rss", ("pid", "process"))
 SENT = Metric("drums_process_socket_sent_bytes_total", COUNTER, "sent", ("pid", "process", "protocol"))
 LAT = Metric("drums_process_runqueue_latency_seconds", HISTOGRAM, "lat", ("pid", "process"), (0.001, 0.01))
+
+
+def test_a_renderer_that_remembers_the_last_scrape_writes_what_a_fresh_one_writes():
+    """Scrape after scrape, families come, go and change one value; a family whose rows are equal
+    to the last scrape's is taken as it was written, and a snapshot added to after it was rendered
+    is written anew."""
+    def snapshot(cpu: dict, lat: Histogram | None) -> Snapshot:
+        snap = Snapshot()
+        snap.group_rows((CPU, MEM)).extend(((pid, "p"), (value, 100)) for pid, value in cpu.items())
+        if lat is not None:
+            snap.add(LAT, ("1", "a"), lat)
+        return snap
+
+    def sent(pid: str, protocol: str, value: int) -> Snapshot:
+        snap = Snapshot()
+        snap.add(SENT, (pid, "p", protocol), value)
+        return snap
+
+    renderer = Renderer()
+    scrapes = [snapshot({"1": 1.5, "2": 2}, None),
+               snapshot({"1": 1.5, "2": 2}, Histogram([2, 3], 0.0125, 4)),
+               snapshot({"1": 1.5, "2": 2.25}, Histogram([2, 3], 0.0125, 4)),
+               snapshot({"2": 2.25}, Histogram([2, 4], 0.02, 5)),
+               sent("3", "tcp", 10), sent("3", "tcp", 10), sent("3", "udp", 10)]
+    for snap in scrapes:
+        assert renderer(snap) == render(snap)
+    snap = scrapes[-1]
+    snap.add(SENT, ("4", "p", "tcp"), 7)
+    assert renderer(snap) == render(snap) and b'pid="4"' in render(snap)
+    assert [renderer(s) == render(s) for s in scrapes] == [True] * len(scrapes)
 
 
 def test_render_parses_back_with_prometheus_client_including_hostile_label_values():

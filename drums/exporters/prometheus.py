@@ -39,21 +39,33 @@ def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") ->
 
 
 class Renderer:
-    """Renders snapshots, remembering each series' text up to its value: from one scrape to the
-    next nearly every series is the same, and only its number is formatted again. What a render
-    did not use is forgotten."""
+    """Renders snapshots, remembering each family's rows and text: from one scrape to the next most
+    families are the same (their rows compare equal, at C speed), and their text is taken as it
+    was. In a family that changed, each series' text up to its value is remembered, and only the
+    numbers are formatted again. What a render did not use is forgotten."""
 
     def __init__(self):
+        self._families: dict[Metric, tuple[list, str]] = {}  # metric -> (its rows, their text)
         self._prefixes: dict[Metric, dict[tuple, str]] = {}
 
     def __call__(self, snap: Snapshot) -> bytes:
-        known, kept = self._prefixes, {}
+        families, prefixes = self._families, self._prefixes
+        kept_families, kept_prefixes = {}, {}
         out: list[str] = []
         for metric in sorted(snap.series, key=lambda m: m.name):
             rows = snap.series[metric]
-            if rows:
-                out.append(_family(metric, rows, known.get(metric, {}), kept.setdefault(metric, {})))
-        self._prefixes = kept  # two renders at once: the last one's is kept, both are right
+            if not rows:
+                continue
+            last = families.get(metric)
+            if last is not None and last[0] == rows:
+                text = last[1]
+                kept_prefixes[metric] = prefixes.get(metric, {})
+            else:
+                text = _family(metric, rows, prefixes.get(metric, {}), kept_prefixes.setdefault(metric, {}))
+            kept_families[metric] = (rows.copy(), text)  # a copy: a snapshot may be added to after
+            out.append(text)
+        # Two renders at once: the last one's is kept, both are right.
+        self._families, self._prefixes = kept_families, kept_prefixes
         return "".join(out).encode()
 
 
