@@ -39,6 +39,7 @@ struct socket_traffic_t {
     u8 laddr[16];     // IPv4 addresses use the first 4 bytes
     u8 raddr[16];
     struct traffic_t t;
+    u64 marked;       // the generation in which the socket was last marked changed (see below)
 };
 
 struct thread_traffic_t {
@@ -71,6 +72,34 @@ static __always_inline void count_drop(int which)
     u64 *d = dropped.lookup(&which);
     if (d)
         __sync_fetch_and_add(d, 1);
+}
+
+// Which sockets changed since the agent last read them, so that a scrape reads those and not the
+// ten thousand that sat idle. The agent moves the generation on at each read and takes the keys
+// marked in the one before; a socket is marked once per generation (its first count, or its
+// entry's deletion), in the set of the generation's parity, while the agent empties the other.
+// [0]: the generation; [1]: marks lost to a full set (the agent then reads the map whole).
+BPF_ARRAY(generation, u64, 2);
+BPF_HASH(changed_even, u64, u8, 16384);
+BPF_HASH(changed_odd, u64, u8, 16384);
+
+static __always_inline void mark_changed(u64 sk, struct socket_traffic_t *s)
+{
+    int zero = 0;
+    u64 *g = generation.lookup(&zero);
+    if (!g || (s && s->marked == *g + 1))
+        return;
+    u64 gen = *g;
+    if (s)
+        s->marked = gen + 1;  // + 1: an entry made with marked 0 is not yet marked in generation 0
+    u8 yes = 1;
+    int err = gen & 1 ? changed_odd.update(&sk, &yes) : changed_even.update(&sk, &yes);
+    if (err) {
+        int lost = 1;
+        u64 *n = generation.lookup(&lost);
+        if (n)
+            __sync_fetch_and_add(n, 1);
+    }
 }
 
 static __always_inline u16 classify(u16 family, u16 protocol)
@@ -116,6 +145,7 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid, u
         if (ino == s->ino)
             return s;
         socket_traffic.delete(&sk);
+        mark_changed(sk, 0);  // whether or not a fresh entry takes its place
     }
     struct socket_traffic_t fresh = {};
     fresh.tgid = tgid;
@@ -151,6 +181,7 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 k
     struct socket_traffic_t *s = socket_entry(sk, tgid, &klass);
     u64 bytes = ret > 0 ? ret : 0;
     if (s) {
+        mark_changed(sk, s);
         // Atomic: threads of a process may share a socket.
         if (ret < 0) {
             __sync_fetch_and_add(is_send ? &s->t.send_errors : &s->t.recv_errors, 1);
@@ -314,8 +345,8 @@ int exit_udp_recvmsg(struct pt_regs *ctx)
 int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 sk = ctx->args[0];
-    if ((int)ctx->args[2] == TCP_CLOSE)
-        socket_traffic.delete(&sk);
+    if ((int)ctx->args[2] == TCP_CLOSE && socket_traffic.delete(&sk) == 0)
+        mark_changed(sk, 0);
     return 0;
 }
 

@@ -51,8 +51,9 @@ def libbpf() -> ctypes.CDLL:
     lib.bpf_map_delete_elem.argtypes = [ctypes.c_int, ctypes.c_void_p]
     lib.bpf_map_update_elem.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64]
     lib.bpf_map_get_next_key.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
-    lib.bpf_map_lookup_batch.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                                         ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32), ctypes.c_void_p]
+    for batch in (lib.bpf_map_lookup_batch, lib.bpf_map_lookup_and_delete_batch):
+        batch.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                          ctypes.POINTER(ctypes.c_uint32), ctypes.c_void_p]
     lib.bpf_obj_get_info_by_fd.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32)]
     return lib
 
@@ -133,8 +134,26 @@ class PinnedMap:
                 self._batch_ok = e.errno not in _NO_BATCH
         return self._read_each()
 
-    def _read_batch(self) -> tuple[bytes, bytes, int]:
+    def take(self) -> tuple[bytes, bytes, int]:
+        """All entries, as read() gives them, deleted as they are read (a hash map's)."""
+        if self._batch_ok:
+            try:
+                return self._read_batch(delete=True)
+            except _BatchError as e:
+                self._batch_ok = e.errno not in _NO_BATCH
+        keys, values, count = self._read_each()
+        for i in range(count):
+            self.delete(keys[i * self.key_size:(i + 1) * self.key_size])
+        return keys, values, count
+
+    def lookup(self, key: bytes) -> bytes | None:
+        """The entry's value; None if there is none."""
+        value = ctypes.create_string_buffer(self.value_stride)
+        return value.raw if libbpf().bpf_map_lookup_elem(self.fd, key, value) == 0 else None
+
+    def _read_batch(self, delete: bool = False) -> tuple[bytes, bytes, int]:
         lib = libbpf()
+        batch_op = lib.bpf_map_lookup_and_delete_batch if delete else lib.bpf_map_lookup_batch
         keys, values, total = [], [], 0
         batch = max(1, min(_BATCH, _BATCH_BYTES // self.value_stride))
         kbuf = ctypes.create_string_buffer(self.key_size * batch)
@@ -144,8 +163,7 @@ class PinnedMap:
         first = True
         while True:
             count = ctypes.c_uint32(batch)
-            ret = lib.bpf_map_lookup_batch(self.fd, None if first else token, token_next, kbuf, vbuf,
-                                           ctypes.byref(count), None)
+            ret = batch_op(self.fd, None if first else token, token_next, kbuf, vbuf, ctypes.byref(count), None)
             err = ctypes.get_errno() if ret < 0 else 0
             if err == errno.ENOSPC and batch < _BATCH:  # a hash bucket holds more than a batch: read it whole
                 batch *= 2

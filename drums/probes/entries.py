@@ -7,9 +7,12 @@ others last time (their rows, in an object array beside the keys).
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 
 import numpy as np
+
+from drums.kernel.bpffs import PinnedMap
 
 
 @dataclass
@@ -62,3 +65,52 @@ class Entries:
         """What the next read is matched against: the entries of `matched` under `mask`, with the
         rows the caller put in matched.rows."""
         self._keys, self._words, self._rows = matched.keys[mask], matched.words[mask], matched.rows[mask]
+
+
+_GENERATION = struct.Struct("<QQ")  # a `generation` array's two entries: the generation, marks lost
+_FIRST = struct.pack("<I", 0)
+
+
+class Marked:
+    """A BPF hash map read whole only when much of it changed. Its programs mark each key they
+    count into or delete, once per generation, in one of two sets (by the generation's parity);
+    a read moves the generation on, takes the set of the one before and looks up those keys only
+    (a lookup costs about four times what an entry of a whole read does, so past an eighth of the
+    entries the map is read whole). Ten thousand idle sockets cost a scrape three small calls."""
+
+    WHOLE_ABOVE = 8  # read whole when more than 1/WHOLE_ABOVE of the entries were marked
+
+    def __init__(self, entries: PinnedMap, generation: PinnedMap, marks: tuple[PinnedMap, PinnedMap]):
+        self.map, self._generation, self._marks = entries, generation, marks
+        self._values: dict[bytes, bytes] | None = None  # key -> value, in the order first read
+        self._gen = self._lost = -1
+        self.whole_reads = 0
+
+    def read(self) -> tuple[bytes, bytes, int]:
+        """All entries, as PinnedMap.read gives them."""
+        gen, lost = _GENERATION.unpack_from(self._generation.read()[1])
+        self._generation.update(_FIRST, struct.pack("<Q", gen + 1))
+        marked, _, n = self._marks[gen & 1].take()
+        values, size = self._values, self.map.key_size
+        # Whole: at first, when marks were lost to a full set, or when the generation is not the
+        # one this reader left (another reader of the pins moved it).
+        if values is None or (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(len(values), 64):
+            keys, all_values, count = self.map.read()
+            stride = self.map.value_stride
+            values = {keys[i * size:(i + 1) * size]: all_values[i * stride:(i + 1) * stride] for i in range(count)}
+            self.whole_reads += 1
+        else:
+            for i in range(n):
+                key = marked[i * size:(i + 1) * size]
+                value = self.map.lookup(key)
+                if value is None:
+                    values.pop(key, None)
+                else:
+                    values[key] = value
+        self._values, self._gen, self._lost = values, gen + 1, lost
+        return b"".join(values), b"".join(values.values()), len(values)
+
+    def forget(self, keys: list[bytes]) -> None:
+        """Entries the caller deleted: were one changed instead, its mark brings it back."""
+        for key in keys:
+            self._values.pop(key, None)

@@ -16,7 +16,7 @@ from drums.metrics import COUNTER, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
                               needs_fentry, needs_kprobes, needs_tracepoints, offset_defines)
-from drums.probes.entries import Entries, Matched
+from drums.probes.entries import Entries, Marked, Matched
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -44,7 +44,7 @@ THREAD = {c: Metric(f"drums_thread_socket_{c}_total", COUNTER,
           for c in ("sent_bytes", "received_bytes")}
 
 # Map layouts, as in bpf/sockets.bpf.c.
-_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6Q")
+_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQ")  # the counts, then the generation marked in
 _IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
 _THREAD_VALUE = struct.Struct("<IIQ24Q")
 _PROCESS_VALUE = struct.Struct("<Q24Q")
@@ -68,6 +68,7 @@ _LIFECYCLE_EVENTS = tuple(event for _, event, _ in LIFECYCLE)
 # The map value as 8-byte words (bpf/sockets.bpf.c): the identity (inode, process, addresses) in
 # the first 8, the six counts after it.
 _WORDS_IDENTITY = _IDENTITY.size // 8
+_WORDS_COUNTS = _WORDS_IDENTITY + len(_COUNTS)  # the end of the counts
 _TCP, _UNIX = PROTOCOLS.index("tcp"), PROTOCOLS.index("unix")
 
 
@@ -102,7 +103,8 @@ def _by_class(flat) -> list[tuple[int, ...]]:
 class SocketsProbe(BpfProbe):
     name = "sockets"
     source = "sockets.bpf.c"
-    maps = ("socket_traffic", "thread_traffic", "exited_traffic", "dropped")
+    maps = ("socket_traffic", "generation", "changed_even", "changed_odd", "thread_traffic", "exited_traffic",
+            "dropped")
     metrics = tuple(SOCKET.values()) + tuple(PROCESS.values()) + tuple(THREAD.values())
     paths = (
         AttachPath("raw_tracepoint",
@@ -132,6 +134,7 @@ class SocketsProbe(BpfProbe):
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)  # rows: each socket's row, as exported last
+        self._traffic: Marked | None = None  # socket_traffic, read as far as it changed
         self._names: dict[int, str] = {}  # pid -> its name in its sockets' rows
 
     def offsets(self, btf: Btf) -> dict[str, int]:
@@ -148,7 +151,11 @@ class SocketsProbe(BpfProbe):
 
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
-        keys, values, _ = self.read("socket_traffic")
+        if self._traffic is None or self._traffic.map is not self.opened["socket_traffic"]:
+            self._traffic = Marked(*(self.opened[name] for name in ("socket_traffic", "generation")),
+                                   (self.opened["changed_even"], self.opened["changed_odd"]))
+        keys, values, count = self._traffic.read()
+        self.status.map_fill["socket_traffic"] = count / self._traffic.map.max_entries
         m = self._entries.read(keys, values)
         words = m.words
         pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
@@ -165,8 +172,9 @@ class SocketsProbe(BpfProbe):
                 renamed.append(pid)
         stale = np.isin(pids, dead) | self._closed(m, pids, klass)
         if stale.any():
-            self.opened["socket_traffic"].delete_unchanged(
-                [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])])
+            entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])]
+            self._traffic.map.delete_unchanged(entries)
+            self._traffic.forget([key for key, _ in entries])
         live = ~stale
         # Sockets whose labels changed though the socket did not: its process was renamed, or (a
         # unix socket) the path it is bound to changed.
@@ -178,7 +186,7 @@ class SocketsProbe(BpfProbe):
                 relabel[i] = True
         # An idle socket's row is the very one of the last collect; only the others are made again.
         for i in np.flatnonzero(live & ~(m.same & ~relabel)).tolist():
-            counts = tuple(words[i, _WORDS_IDENTITY:].tolist())
+            counts = tuple(words[i, _WORDS_IDENTITY:_WORDS_COUNTS].tolist())
             if m.same_head[i] and not relabel[i]:
                 m.rows[i] = (m.rows[i][0], counts)  # the same socket, counted further
                 continue

@@ -642,3 +642,55 @@ def test_unix_sockets_are_named_by_their_bound_path(sockets_probe, collect, spaw
         assert counts == dict(ZERO, sent_bytes=size, send_calls=1)
         labels, counts = one_socket(snap, pid=os.getpid(), inode=inode(receiver))
         assert labels["local"] == receiver_path and counts["received_bytes"] == size
+
+
+def test_a_collect_looks_up_the_sockets_that_changed_and_keeps_the_idle_ones(sockets_probe, collect):
+    """bpf/sockets.bpf.c marks each socket it counts into or deletes; a collect looks up those, and
+    the rows of the idle ones stand as they were. 300 connections of this process each send once;
+    then, step after step, one sends and one closes. Each step's rows are exact; other tests'
+    traffic on the host may tip a collect into reading the map whole, so steps are taken until
+    enough of them were looked up."""
+    with tcp_listener() as lst:
+        pairs = []
+        for _ in range(300):
+            client = socket.create_connection(lst.getsockname())
+            pairs.append((client, lst.accept()[0]))
+    try:
+        for client, server in pairs:
+            client.sendall(b"x")
+            recv_exactly(server, 1)
+        collect(sockets_probe)  # 600 sockets new to the map: looked up, or the map read whole
+        expected = {inode(s): counts for s, counts in
+                    [(c, dict(ZERO, sent_bytes=1, send_calls=1)) for c, _ in pairs]
+                    + [(s, dict(ZERO, received_bytes=1, receive_calls=1)) for _, s in pairs]}
+
+        def rows() -> dict[int, dict]:
+            return {int(labels[-1]): counts for labels, counts in
+                    socket_rows(collect(sockets_probe), pid=os.getpid(), protocol="tcp").items()
+                    if int(labels[-1]) in inodes}
+        inodes = set(expected)
+        assert rows() == expected
+        traffic, looked_up = sockets_probe._traffic, 0
+        for step in range(1, 60):
+            client, server = pairs[step]
+            client.sendall(b"y" * step)
+            calls = recv_exactly(server, step)
+            expected[inode(client)] = dict(ZERO, sent_bytes=1 + step, send_calls=2)
+            expected[inode(server)] = dict(ZERO, received_bytes=1 + step, receive_calls=1 + calls)
+            closing = pairs[-step]
+            for sock in closing:
+                del expected[inode(sock)]
+                sock.close()
+            whole = traffic.whole_reads
+
+            def exact() -> None:  # a closed connection's entries go as the kernel finishes closing it
+                assert rows() == expected, step
+            eventually(exact, timeout=5)
+            looked_up += traffic.whole_reads == whole
+            if looked_up >= 20:
+                break
+        assert looked_up >= 20
+    finally:
+        for pair in pairs:
+            for sock in pair:
+                sock.close()
