@@ -241,7 +241,7 @@ def run(args) -> None:
         + f" (its whole process tree measured: {ours['processes']} process{'es' if ours['processes'] > 1 else ''})"
         + (f" with {args.agent_args}" if args.agent_args else " with its default budget") + ".",
         "a Drums cycle is one /metrics request timed by the client (collect + render + HTTP), over one "
-        "connection kept alive, as Prometheus scrapes; a psutil "
+        "connection kept alive and gzipped, as Prometheus scrapes; a psutil "
         "cycle is one poll of every process and of net_connections(), with nothing rendered or sent.",
         f"agent's own collect time (sum of drums_probe_collect_duration_seconds): median "
         f"{fmt(median(ours['collect']), 1)} ms; per probe: "

@@ -61,6 +61,34 @@ class Entries:
         rows[known] = self._rows[at[known]]
         return Matched(k, w, same_head, same, rows)
 
+    def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
+        """The entries of the last read (as kept) with these changed: a key's value, or None if
+        the key is gone. Matched as read() matches a whole map, at the cost of the changes."""
+        keys, words, rows = self._keys, self._words, self._rows
+        stays = ~np.isin(keys, np.frombuffer(b"".join(k for k, _ in changes), np.uint64))
+        present = [(k, v) for k, v in changes if v is not None]
+        new_keys = np.frombuffer(b"".join(k for k, _ in present), np.uint64)
+        new_words = np.frombuffer(b"".join(v for _, v in present), np.uint64).reshape(len(present), self.width)
+        # The changed entries matched against the last read, as read() matches every entry.
+        new_rows = np.full(len(new_keys), None, object)
+        head = value = np.zeros(len(new_keys), bool)
+        if len(keys):
+            at = np.minimum(np.searchsorted(keys, new_keys), len(keys) - 1)
+            known = keys[at] == new_keys
+            equal = words[at] == new_words
+            head = known & equal[:, :self.head].all(axis=1)
+            value = head & equal[:, self.head:].all(axis=1)
+            new_rows[known] = rows[at[known]]
+        kept = np.ones(int(stays.sum()), bool)  # the entries not changed: the same as last time
+        k = np.concatenate([keys[stays], new_keys])
+        order = np.argsort(k, kind="stable")
+        return Matched(k[order], np.concatenate([words[stays], new_words])[order],
+                       np.concatenate([kept, head])[order], np.concatenate([kept, value])[order],
+                       np.concatenate([rows[stays], new_rows])[order])
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
     def keep(self, matched: Matched, mask: np.ndarray) -> None:
         """What the next read is matched against: the entries of `matched` under `mask`, with the
         rows the caller put in matched.rows."""
@@ -82,35 +110,22 @@ class Marked:
 
     def __init__(self, entries: PinnedMap, generation: PinnedMap, marks: tuple[PinnedMap, PinnedMap]):
         self.map, self._generation, self._marks = entries, generation, marks
-        self._values: dict[bytes, bytes] | None = None  # key -> value, in the order first read
         self._gen = self._lost = -1
         self.whole_reads = 0
 
-    def read(self) -> tuple[bytes, bytes, int]:
-        """All entries, as PinnedMap.read gives them."""
+    def read(self, known: int) -> tuple[bytes, bytes, int] | list[tuple[bytes, bytes | None]]:
+        """The whole map, as PinnedMap.read gives it; or, to a caller who holds the `known`
+        entries of the last read, what changed since: (key, its value, None if it is gone)."""
         gen, lost = _GENERATION.unpack_from(self._generation.read()[1])
         self._generation.update(_FIRST, struct.pack("<Q", gen + 1))
         marked, _, n = self._marks[gen & 1].take()
-        values, size = self._values, self.map.key_size
         # Whole: at first, when marks were lost to a full set, or when the generation is not the
         # one this reader left (another reader of the pins moved it).
-        if values is None or (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(len(values), 64):
-            keys, all_values, count = self.map.read()
-            stride = self.map.value_stride
-            values = {keys[i * size:(i + 1) * size]: all_values[i * stride:(i + 1) * stride] for i in range(count)}
+        whole = (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)
+        self._gen, self._lost = gen + 1, lost
+        if whole:
             self.whole_reads += 1
-        else:
-            for i in range(n):
-                key = marked[i * size:(i + 1) * size]
-                value = self.map.lookup(key)
-                if value is None:
-                    values.pop(key, None)
-                else:
-                    values[key] = value
-        self._values, self._gen, self._lost = values, gen + 1, lost
-        return b"".join(values), b"".join(values.values()), len(values)
-
-    def forget(self, keys: list[bytes]) -> None:
-        """Entries the caller deleted: were one changed instead, its mark brings it back."""
-        for key in keys:
-            self._values.pop(key, None)
+            return self.map.read()
+        size = self.map.key_size
+        keys = [marked[i * size:(i + 1) * size] for i in range(n)]
+        return [(key, self.map.lookup(key)) for key in keys]

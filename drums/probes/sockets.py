@@ -154,9 +154,9 @@ class SocketsProbe(BpfProbe):
         if self._traffic is None or self._traffic.map is not self.opened["socket_traffic"]:
             self._traffic = Marked(*(self.opened[name] for name in ("socket_traffic", "generation")),
                                    (self.opened["changed_even"], self.opened["changed_odd"]))
-        keys, values, count = self._traffic.read()
-        self.status.map_fill["socket_traffic"] = count / self._traffic.map.max_entries
-        m = self._entries.read(keys, values)
+        got = self._traffic.read(len(self._entries))
+        m = self._entries.read(*got[:2]) if isinstance(got, tuple) else self._entries.update(got)
+        self.status.map_fill["socket_traffic"] = len(m.keys) / self._traffic.map.max_entries
         words = m.words
         pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
         klass = (words[:, 3] >> 16) & 0xFFFF
@@ -173,8 +173,7 @@ class SocketsProbe(BpfProbe):
         stale = np.isin(pids, dead) | self._closed(m, pids, klass)
         if stale.any():
             entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])]
-            self._traffic.map.delete_unchanged(entries)
-            self._traffic.forget([key for key, _ in entries])
+            self._traffic.map.delete_unchanged(entries)  # one that changed instead comes back marked
         live = ~stale
         # Sockets whose labels changed though the socket did not: its process was renamed, or (a
         # unix socket) the path it is bound to changed.

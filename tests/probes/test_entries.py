@@ -1,5 +1,8 @@
 """Map entries matched against the last read in bulk: what is new, counted on, changed or gone."""
+import random
 import struct
+
+import numpy as np
 
 from drums.probes.entries import Entries
 
@@ -37,3 +40,35 @@ def test_an_empty_map_reads_as_nothing():
     assert len(m.keys) == 0 and m.words.shape == (0, 2)
     e.keep(m, m.same)
     assert len(e.read(*entries((1, 1, 1))).keys) == 1
+
+
+def test_changes_applied_to_the_last_read_match_as_a_whole_read_does():
+    """Random steps of a map (keys come, go, are counted on, or reused for another thing): what
+    update() makes of the changes alone equals what read() makes of the whole map."""
+    rng = random.Random(7)
+    state: dict[int, tuple[int, int]] = {}  # key -> (head, count)
+    by_changes, by_reads = Entries(16, 8), Entries(16, 8)
+    for step in range(200):
+        changes = {}
+        for key in rng.sample(range(1, 60), rng.randint(0, 12)):
+            roll = rng.random()
+            if roll < 0.2:
+                state.pop(key, None)
+                changes[key] = None
+            else:
+                head, count = state.get(key, (rng.randint(1, 3), 0))
+                state[key] = (rng.randint(4, 6), 0) if roll < 0.3 else (head, count + rng.randint(0, 2))
+                changes[key] = struct.pack("<QQ", *state[key])
+        items = sorted(state.items(), key=lambda _: rng.random())  # a batch read's order is the kernel's
+        whole = by_reads.read(*entries(*[(k, h, c) for k, (h, c) in items]))
+        part = by_changes.update([(struct.pack("<Q", k), v) for k, v in changes.items()])
+        for m in (whole, part):
+            m.rows[m.rows == None] = [f"{k}@{step}" for k in m.keys[m.rows == None].tolist()]  # noqa: E711
+        assert part.keys.tolist() == whole.keys.tolist(), step
+        assert (part.words == whole.words).all() and part.same.tolist() == whole.same.tolist(), step
+        assert part.same_head.tolist() == whole.same_head.tolist() and part.rows.tolist() == whole.rows.tolist()
+        keep = np.array([rng.random() > 0.05 for _ in range(len(whole.keys))], bool)
+        by_reads.keep(whole, keep)
+        by_changes.keep(part, keep)
+        for k in whole.keys[~keep].tolist():  # not kept: the caller deleted it from the map
+            state.pop(k, None)
