@@ -34,6 +34,7 @@ def test_a_renderer_that_remembers_the_last_scrape_writes_what_a_fresh_one_write
     renderer = Renderer()
     scrapes = [snapshot({"1": 1.5, "2": 2}, None),
                snapshot({"1": 1.5, "2": 2}, Histogram([2, 3], 0.0125, 4)),
+               snapshot({"1": 1.5, "2": 2.0}, Histogram([2, 3], 0.0125, 4)),  # equal, but written 2.0
                snapshot({"1": 1.5, "2": 2.25}, Histogram([2, 3], 0.0125, 4)),
                snapshot({"2": 2.25}, Histogram([2, 4], 0.02, 5)),
                sent("3", "tcp", 10), sent("3", "tcp", 10), sent("3", "udp", 10)]

@@ -41,12 +41,12 @@ def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") ->
 class Renderer:
     """Renders snapshots, remembering each family's rows and text: from one scrape to the next most
     families are the same (their rows compare equal, at C speed), and their text is taken as it
-    was. In a family that changed, each series' text up to its value is remembered, and only the
-    numbers are formatted again. What a render did not use is forgotten."""
+    was. In a family that changed, each series' line is remembered with its value, and only the
+    lines whose value changed are written again. What a render did not use is forgotten."""
 
     def __init__(self):
         self._families: dict[Metric, tuple[list, str]] = {}  # metric -> (its rows, their text)
-        self._prefixes: dict[Metric, dict[tuple, str]] = {}
+        self._prefixes: dict[Metric, dict[tuple, tuple]] = {}  # metric -> labels -> (value, line)
 
     def __call__(self, snap: Snapshot) -> bytes:
         families, prefixes = self._families, self._prefixes
@@ -89,9 +89,10 @@ def _family(metric: Metric, rows, known: dict, kept: dict) -> str:
             lines.append(f"{name}_count{_labels(names, values)} {h.count}\n")
     else:
         for values, v in rows:
-            prefix = known.get(values)
-            if prefix is None:
-                prefix = f"{name}{_labels(names, values)} "
-            kept[values] = prefix
-            lines.append(f"{prefix}{_number(v)}\n")
+            last = known.get(values)
+            if last is None or last[0] != v or type(last[0]) is not type(v):  # 1 and 1.0 are written apart
+                line = last[1][:last[1].rindex(" ") + 1] if last else f"{name}{_labels(names, values)} "
+                last = (v, f"{line}{_number(v)}\n")
+            kept[values] = last
+            lines.append(last[1])
     return "".join(lines)
