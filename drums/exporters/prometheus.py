@@ -90,7 +90,7 @@ def _family(metric: Metric, rows, known: dict, kept: dict) -> str:
     else:
         for values, v in rows:
             last = known.get(values)
-            if last is None or last[0] != v or type(last[0]) is not type(v):  # 1 and 1.0 are written apart
+            if last is None or last[0] != v:  # (a value equal to the last, 2.0 after 2, is written as it was)
                 line = last[1][:last[1].rindex(" ") + 1] if last else f"{name}{_labels(names, values)} "
                 last = (v, f"{line}{_number(v)}\n")
             kept[values] = last
