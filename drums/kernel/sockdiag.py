@@ -66,7 +66,7 @@ _TCP_INFO = tuple((name, offset, struct.Struct("=" + fmt)) for name, offset, fmt
 _RECV_SIZE = 1 << 16  # the kernel fills at most 32 KiB of dump per read, so one read never truncates
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class TcpConnection:
     """One TCP socket; its tcp_info fields are 0 where the kernel gave none (TIME_WAIT, SYN_RECV).
 
