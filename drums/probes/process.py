@@ -40,8 +40,6 @@ START_TIME = Metric("drums_process_start_time_seconds", GAUGE, "Process start ti
                     additive=False)
 
 
-
-
 class _Read:
     """A process's values at its last read, and what tells whether they may have changed since."""
     __slots__ = ("at", "values", "refresh", "cpu")
