@@ -58,9 +58,10 @@ struct oncpu_t {
 };
 BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 
-// Processes whose leader was renamed, exec'd or exited since the agent last looked, each with when
-// that last happened: the agent reads their names and command lines again (and a PID that came
-// back is a new process), instead of every process's on every scrape.
+// Processes that were forked, or whose leader was renamed, exec'd or exited, since the agent last
+// looked, each with when that last happened: the agent reads their names and command lines again
+// (and a PID that came back is a new process), instead of every process's on every scrape; and
+// while none came or went, it does not list /proc at all.
 BPF_HASH(renamed, u32, u64, 16384);
 
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
@@ -271,6 +272,18 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
     struct thread_sched_t *t = thread_sched.lookup(&tid);
     if (t)
         bpf_probe_read_kernel_str(t->comm, sizeof(t->comm), (void *)ctx->args[1]);
+    return 0;
+}
+
+// sched:sched_process_fork (parent, child): a new process (not a new thread) is marked.
+int on_fork(struct bpf_raw_tracepoint_args *ctx)
+{
+    u64 child = ctx->args[1];
+    u32 tid = 0, tgid = 0;
+    bpf_probe_read_kernel(&tid, 4, (void *)(child + TASK_PID_OFF));
+    bpf_probe_read_kernel(&tgid, 4, (void *)(child + TASK_TGID_OFF));
+    if (tid == tgid)
+        mark_renamed(tgid);
     return 0;
 }
 

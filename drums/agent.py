@@ -236,7 +236,7 @@ class Agent:
 
     def _read(self, names: set[str]) -> Snapshot:
         """The rows of the probes called `names`."""
-        self.proctable.refresh(self._renamed())
+        self.proctable.refresh(self._renamed(), complete=True)
         pids = self._process_pids()
         for probe in self.probes:
             if hasattr(probe, "set_pids"):
@@ -261,8 +261,9 @@ class Agent:
         return raw
 
     def _renamed(self) -> set[int] | None:
-        """The processes whose names may have changed since the last collect, as the sched probe
-        saw them; None (read every name) without it, or when it lost some."""
+        """The processes that came, or whose names may have changed, since the last collect, as the
+        sched probe saw them; None (list /proc and read every name) without it, or when it lost
+        some."""
         for probe in self.probes:
             if probe.status.attached and hasattr(probe, "renamed"):
                 try:

@@ -71,11 +71,16 @@ class ProcessTable:
         self._cpu: dict[int, float] = {}  # what the sched probe said at the refresh _cpu_at
         self._cpu_at = -1
 
-    def refresh(self, renamed: Iterable[int] | None = ()) -> None:
+    def refresh(self, renamed: Iterable[int] | None = (), complete: bool = False) -> None:
         """List the processes. A name is read when its PID first appears, and again when the PID is
         in `renamed` (its process exec'd or was renamed, or exited: a PID that comes back is another
         process); its command line is then read anew when next asked for. `renamed` None: any may
-        have been, so every name is read."""
+        have been, so every name is read. `complete`: `renamed` also names every process forked
+        since the last refresh (the sched probe's does), so when it is empty nothing came, went or
+        changed its name, and /proc is not listed (1,000 processes: 2 ms)."""
+        if complete and renamed is not None and not renamed and self.refreshes:
+            self.refreshes += 1
+            return
         alive = set(self.listing())
         known = {} if renamed is None else self._names
         if renamed:

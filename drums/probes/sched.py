@@ -69,9 +69,11 @@ class SchedProbe(BpfProbe):
                     ("raw_tracepoint", "sched_process_free", "on_task_free"),
                     ("raw_tracepoint", "task_rename", "on_rename"),
                     ("raw_tracepoint", "sched_process_exec", "on_exec"),
-                    ("raw_tracepoint", "sched_process_exit", "on_exit")),
+                    ("raw_tracepoint", "sched_process_exit", "on_exit"),
+                    ("raw_tracepoint", "sched_process_fork", "on_fork")),
                    needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
-                                     "task_rename", "sched_process_exec", "sched_process_exit"),
+                                     "task_rename", "sched_process_exec", "sched_process_exit",
+                                     "sched_process_fork"),
                    "Linux >= 5.7 (raw tracepoint links that outlive the loader)"),
     )
 
@@ -96,8 +98,8 @@ class SchedProbe(BpfProbe):
         return d
 
     def renamed(self) -> set[int] | None:
-        """The processes renamed, exec'd or exited since the last call (for the process table);
-        None if some of those notices were lost to a full map."""
+        """The processes forked, renamed, exec'd or exited since the last call (for the process
+        table); None if some of those notices were lost to a full map."""
         keys, values, _ = self.read("renamed")
         m = self.opened["renamed"]
         m.delete_unchanged([(keys[i * 4:i * 4 + 4], values[i * 8:i * 8 + 8]) for i in range(len(keys) // 4)])

@@ -163,13 +163,15 @@ def test_the_auto_graph_dumps_the_connections_again_only_when_a_tcp_socket_chang
                               stdout=subprocess.PIPE, text=True)
     try:
         port = int(server.stdout.readline())
+        start = tcp_probe.transitions()
         nodes = {n.pid: n.name for n in adapter.poll().nodes}  # listening, no connection yet
         node = nodes[server.pid]
         quiet = 0
         for _ in range(50):
-            before, done = tcp_probe.transitions(), len(dumps)
+            # Quiet: the count held still from before the last poll (which read it) to after this one.
+            done, last_start, start = len(dumps), start, tcp_probe.transitions()
             adapter.poll()
-            if tcp_probe.transitions() == before:
+            if tcp_probe.transitions() == last_start:
                 quiet += 1
                 assert len(dumps) == done
         assert quiet >= 10

@@ -293,3 +293,36 @@ def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_
     finally:
         child.stdin.close()
         child.wait(10)
+
+
+def test_the_table_lists_proc_only_when_the_sched_probe_says_a_process_came_or_went(sched_probe):
+    """The sched probe marks every process forked, exec'd, renamed or ended: told so, a refresh
+    whose notices are empty lists nothing, and one that follows a fork or an exit has the process
+    in or out. Other tests' processes come and go on the host, so only quiet refreshes are checked
+    for having listed nothing."""
+    table = ProcessTable()
+    listings = []
+    listing = table.listing
+    table.listing = lambda: (listings.append(1), listing())[1]  # the real listing, counted
+    sched_probe.renamed()  # what came before this test
+    table.refresh(None)
+    child = subprocess.Popen(["sleep", "60"])
+    try:
+        def named() -> None:  # Popen returns as exec closes its files, before exec names the process
+            table.refresh(sched_probe.renamed(), complete=True)
+            assert table.name(child.pid) == "sleep"
+        eventually(named)
+        quiet = 0
+        for _ in range(40):
+            notices, before = sched_probe.renamed(), len(listings)
+            table.refresh(notices, complete=True)
+            if notices == set():
+                quiet += 1
+                assert len(listings) == before
+            time.sleep(0.01)
+        assert quiet >= 10 and table.alive(child.pid)
+    finally:
+        child.kill()
+        child.wait()
+    table.refresh(sched_probe.renamed(), complete=True)
+    assert not table.alive(child.pid)
