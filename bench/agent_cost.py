@@ -4,7 +4,8 @@ each second (cpu_times, memory_info, io_counters, num_threads, and net_connectio
 sockets). Both are measured alike, one after the other: CPU from /proc/<pid>/stat over the window,
 USS from smaps_rollup at its end. Goals: at most 0.5% of one core, 30 MB USS, /metrics in 20 ms.
 The agent runs twice: with the auto graph (no helper process), and with the ROS 2 graph, whose
-rclpy reader is a child: its whole tree is measured, goal 60 MB.
+rclpy reader is a child: its whole tree is measured, goal 60 MB. Then both again on a host of a
+tenth of the processes and sockets, goal 0.1% of one core.
 
     .venv/bin/python bench/agent_cost.py [--seconds 30] [--processes 1000] [--sockets 10000]
 """
@@ -25,7 +26,8 @@ from common import (Agent, BenchError, Scraper, cpu_seconds, drums_unload, fmt, 
                     memory, percentile, print_table, progress, ratio, require_root, samples, series_count,
                     terminate, tree, uss_bytes)
 
-GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 20, "tree_uss_mb": 60}
+GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 20, "tree_uss_mb": 60, "small_cpu": 0.1}
+SMALL = 10  # the small host: a tenth of the processes and sockets
 HOLDERS = 4  # processes that hold the sockets
 
 # Holds N loopback TCP connections (2N sockets). On "send" each socket sends a few bytes and reads
@@ -191,23 +193,26 @@ def poller(pid_file: str, interval: float) -> None:
     print(json.dumps(cycles), flush=True)
 
 
-def run(args) -> None:
-    require_root()
-    crowd = Crowd(args.processes, args.sockets)
+def measure_host(processes: int, sockets: int, seconds: float, interval: float, agent_args: list[str],
+                 with_ros: bool) -> tuple[dict, dict | None, dict]:
+    """The agent (and, with_ros, the agent with the ROS 2 graph) and the psutil poller on a host of
+    `processes` processes holding `sockets` sockets."""
+    crowd = Crowd(processes, sockets)
     pid_file = f"/tmp/drums-bench-pids-{os.getpid()}"
     try:
-        progress(f"starting {args.processes} processes holding {args.sockets} sockets")
+        progress(f"starting {processes} processes holding {sockets} sockets")
         crowd.start()
         drums_unload()
-        progress(f"agent: {args.seconds} s at one scrape per {args.interval:g} s")
+        progress(f"agent: {seconds} s at one scrape per {interval:g} s")
         # BPF counters exist only for traffic seen while the programs are attached: the holders
         # send once the agent is ready.
-        ours = measure_agent(args.seconds, args.interval, shlex.split(args.agent_args), on_ready=crowd.send)
-        progress(f"agent with the ROS 2 graph: {args.seconds} s")
-        ros = measure_agent(args.seconds, args.interval, shlex.split(args.agent_args) + ["--graph", "ros2"],
-                            on_ready=crowd.send)
-        progress(f"psutil poller: {args.seconds} s")
-        peer = measure_poller(args.seconds, args.interval, crowd.pids(), pid_file)
+        ours = measure_agent(seconds, interval, agent_args, on_ready=crowd.send)
+        ros = None
+        if with_ros:
+            progress(f"agent with the ROS 2 graph: {seconds} s")
+            ros = measure_agent(seconds, interval, agent_args + ["--graph", "ros2"], on_ready=crowd.send)
+        progress(f"psutil poller: {seconds} s")
+        peer = measure_poller(seconds, interval, crowd.pids(), pid_file)
     finally:
         crowd.close()
         drums_unload()
@@ -215,6 +220,15 @@ def run(args) -> None:
             os.unlink(pid_file)
         except OSError:
             pass
+    return ours, ros, peer
+
+
+def run(args) -> None:
+    require_root()
+    agent_args = shlex.split(args.agent_args)
+    ours, ros, peer = measure_host(args.processes, args.sockets, args.seconds, args.interval, agent_args, True)
+    small, _, small_peer = measure_host(args.processes // SMALL, args.sockets // SMALL, args.seconds, args.interval,
+                                        agent_args, False)
 
     lat, cyc = ours["latencies"], peer["cycles"]
     mb = 2 ** 20
@@ -232,6 +246,12 @@ def run(args) -> None:
          ratio(ros["cpu"], peer["cpu"])],
         [f"with the ROS 2 graph, whole tree: USS MB (goal <= {GOALS['tree_uss_mb']})", fmt(ros["uss"] / mb, 1),
          fmt(peer["uss"] / mb, 1), ratio(ros["uss"], peer["uss"])],
+        [f"at {args.processes // SMALL:,} processes / {args.sockets // SMALL:,} sockets: CPU, % of one core "
+         f"(goal <= {GOALS['small_cpu']})", fmt(small["cpu"]), fmt(small_peer["cpu"]),
+         ratio(small["cpu"], small_peer["cpu"])],
+        [f"at {args.processes // SMALL:,} processes / {args.sockets // SMALL:,} sockets: ms per cycle, median",
+         fmt(median(small["latencies"]), 1), fmt(median(small_peer["cycles"]), 1),
+         ratio(median(small["latencies"]), median(small_peer["cycles"]))],
     ]
     size, series = ours["sizes"]
     notes = [
@@ -253,6 +273,7 @@ def run(args) -> None:
         f"the first rows: the auto graph (no helper process); with the ROS 2 graph the tree is "
         f"{ros['processes']} processes (the agent and its rclpy graph reader), started and measured alike "
         f"after the first run, the holders' sockets sending again once it is ready",
+        "the last rows: the agent (auto graph) and the poller again on a host of a tenth of the processes and sockets",
     ]
     print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",
                 ["measure", "Drums agent", "psutil poller", "Drums / psutil"], rows, notes)
