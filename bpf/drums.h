@@ -69,7 +69,7 @@ static __always_inline void read_endpoints(u64 sk, u16 *family, u32 *netns, u16 
 }
 #endif
 
-// The process a task belongs to if the task is its leader (so the process is being reaped), else 0.
+// The process a task belongs to if the task is its leader (a process being forked or reaped), else 0.
 // Before Linux 5.12 a thread that execs shares the old leader's PID until that leader is released:
 // only the task that is its own group leader counts.
 #ifdef TASK_GROUP_LEADER_OFF

@@ -278,11 +278,8 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
 // sched:sched_process_fork (parent, child): a new process (not a new thread) is marked.
 int on_fork(struct bpf_raw_tracepoint_args *ctx)
 {
-    u64 child = ctx->args[1];
-    u32 tid = 0, tgid = 0;
-    bpf_probe_read_kernel(&tid, 4, (void *)(child + TASK_PID_OFF));
-    bpf_probe_read_kernel(&tgid, 4, (void *)(child + TASK_TGID_OFF));
-    if (tid == tgid)
+    u32 tgid = leader_tgid(ctx->args[1]);
+    if (tgid)
         mark_renamed(tgid);
     return 0;
 }

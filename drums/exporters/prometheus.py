@@ -46,11 +46,11 @@ class Renderer:
 
     def __init__(self):
         self._families: dict[Metric, tuple[list, str]] = {}  # metric -> (its rows, their text)
-        self._prefixes: dict[Metric, dict[tuple, tuple]] = {}  # metric -> labels -> (value, line)
+        self._lines: dict[Metric, dict[tuple, tuple]] = {}  # metric -> labels -> (value, line)
 
     def __call__(self, snap: Snapshot) -> bytes:
-        families, prefixes = self._families, self._prefixes
-        kept_families, kept_prefixes = {}, {}
+        families, lines = self._families, self._lines
+        kept_families, kept_lines = {}, {}
         out: list[str] = []
         for metric in sorted(snap.series, key=lambda m: m.name):
             rows = snap.series[metric]
@@ -59,13 +59,13 @@ class Renderer:
             last = families.get(metric)
             if last is not None and last[0] == rows:
                 text = last[1]
-                kept_prefixes[metric] = prefixes.get(metric, {})
+                kept_lines[metric] = lines.get(metric, {})
             else:
-                text = _family(metric, rows, prefixes.get(metric, {}), kept_prefixes.setdefault(metric, {}))
+                text = _family(metric, rows, lines.get(metric, {}), kept_lines.setdefault(metric, {}))
             kept_families[metric] = (rows.copy(), text)  # a copy: a snapshot may be added to after
             out.append(text)
         # Two renders at once: the last one's is kept, both are right.
-        self._families, self._prefixes = kept_families, kept_prefixes
+        self._families, self._lines = kept_families, kept_lines
         return "".join(out).encode()
 
 

@@ -123,26 +123,18 @@ class PinnedMap:
             os.close(self.fd)
             self.fd = -1
 
-    def read(self) -> tuple[bytes, bytes, int]:
-        """All entries as (keys, values, count): contiguous buffers, as the kernel returned them."""
+    def read(self, delete: bool = False) -> tuple[bytes, bytes, int]:
+        """All entries as (keys, values, count): contiguous buffers, as the kernel returned them.
+        `delete`: each entry is deleted as it is read (a hash map's)."""
         if self._batch_ok:
             try:
-                return self._read_batch()
+                return self._read_batch(delete)
             except _BatchError as e:
                 # Array maps before kernel 5.6 and some map types have no batch operations; any
                 # other failure (no memory, say) is this read's only.
                 self._batch_ok = e.errno not in _NO_BATCH
-        return self._read_each()
-
-    def take(self) -> tuple[bytes, bytes, int]:
-        """All entries, as read() gives them, deleted as they are read (a hash map's)."""
-        if self._batch_ok:
-            try:
-                return self._read_batch(delete=True)
-            except _BatchError as e:
-                self._batch_ok = e.errno not in _NO_BATCH
         keys, values, count = self._read_each()
-        for i in range(count):
+        for i in range(count if delete else 0):
             self.delete(keys[i * self.key_size:(i + 1) * self.key_size])
         return keys, values, count
 

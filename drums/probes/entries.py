@@ -118,7 +118,7 @@ class Marked:
         entries of the last read, what changed since: (key, its value, None if it is gone)."""
         gen, lost = _GENERATION.unpack_from(self._generation.read()[1])
         self._generation.update(_FIRST, struct.pack("<Q", gen + 1))
-        marked, _, n = self._marks[gen & 1].take()
+        marked, _, n = self._marks[gen & 1].read(delete=True)
         # Whole: at first, when marks were lost to a full set, or when the generation is not the
         # one this reader left (another reader of the pins moved it).
         whole = (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)

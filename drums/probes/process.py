@@ -40,6 +40,11 @@ START_TIME = Metric("drums_process_start_time_seconds", GAUGE, "Process start ti
                     additive=False)
 
 
+def _spread(pid: int) -> float:
+    """Where in [0, 1) a process's reads fall, by its PID: consecutive PIDs spread evenly."""
+    return (pid * GOLDEN) % 1.0
+
+
 class _Read:
     """A process's values at its last read, and what tells whether they may have changed since."""
     __slots__ = ("at", "values", "refresh", "cpu")
@@ -99,7 +104,7 @@ class ProcessProbe(Probe):
             return True
         cpu = table.cpu(pid)
         idle = cpu is not None and cpu == cached.cpu
-        wait = self.idle_interval * (1 + (pid * GOLDEN) % 1.0) / 2 if idle else self.interval
+        wait = self.idle_interval * (1 + _spread(pid)) / 2 if idle else self.interval
         return now - cached.at >= wait or (new_at is None and not self._procs[pid].is_running())
 
     def collect(self, snap: Snapshot) -> None:
@@ -116,7 +121,7 @@ class ProcessProbe(Probe):
                 # A process read for the first time is given a phase within the interval, so that
                 # a hundred processes found at once are read a few at each scrape afterwards, not
                 # all at every fifth one (a scrape of 50 ms at the 95th percentile).
-                phase = 0.0 if cached else (pid * GOLDEN) % 1.0 * self.interval
+                phase = 0.0 if cached else _spread(pid) * self.interval
                 cached = self._last[pid] = _Read(now - phase, values, table.refreshes, table.cpu(pid))
             labels = (str(pid), self.proctable.name(pid))
             for metric, value in cached.values:
