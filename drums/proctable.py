@@ -12,9 +12,14 @@ from __future__ import annotations
 import ctypes
 import os
 import threading
+import time
 from typing import Callable, Iterable
 
 OWN_NETNS = "DRUMS_OWN_NETNS"
+# A process found in another network namespace is looked at again for this long, and at least at
+# the next listing: `nsenter`, `ip netns exec` and container runtimes fork first and move the child
+# to its namespace a few milliseconds later, and a listing may fall in between.
+SETTLE = 2.0
 _PR_SET_NAME = 15
 
 
@@ -60,7 +65,9 @@ class ProcessTable:
         self.netns = netns(proc, "self") if os.environ.get(OWN_NETNS) == "1" else None
         self._names: dict[int, str] = {}
         self._cmdlines: dict[int, list[str]] = {}  # read when first asked for, kept while the PID lives
-        self._elsewhere: set[int] = set()  # PIDs in other network namespaces, at the last listing
+        # PIDs in other network namespaces at the last listing -> (when first found there, whether a
+        # later listing found it there too)
+        self._elsewhere: dict[int, tuple[float, bool]] = {}
         # For each PID, the refresh at which its process was last found new: it appeared, or was
         # renamed, exec'd, or exited and came back. Known while every refresh is told by the kernel
         # which processes were renamed (a set, as the agent's is by the sched probe) or reads every
@@ -88,16 +95,28 @@ class ProcessTable:
             for pid in renamed:
                 known.pop(pid, None)
                 self._cmdlines.pop(pid, None)
-                self._elsewhere.discard(pid)
-        if self.netns is not None:  # each PID is checked when it first appears, as its name is read
-            self._elsewhere = {pid for pid in alive if pid in self._elsewhere or (
-                pid not in known and netns(self.proc, pid) != self.netns)}
-            alive -= self._elsewhere
+                self._elsewhere.pop(pid, None)
+        if self.netns is not None:
+            self._elsewhere = self._still_elsewhere(alive, known)
+            alive -= self._elsewhere.keys()
         self.refreshes += 1
         self._told = self._told and (renamed is None or isinstance(renamed, set))
         self._new_at = {pid: self._new_at.get(pid, 0) if pid in known else self.refreshes for pid in alive}
         self._names = {pid: known.get(pid) or comm(self.proc, pid) for pid in alive}
         self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive and pid in known}
+
+    def _still_elsewhere(self, alive: set[int], known: dict) -> dict[int, tuple[float, bool]]:
+        """Of the PIDs alive, those in another network namespace: each is checked when it first
+        appears, as its name is read, and again while it may still be on its way to its own."""
+        now = time.monotonic()
+        out = {}
+        for pid in alive:
+            found = self._elsewhere.get(pid)
+            if found is not None and found[1] and now - found[0] >= SETTLE:
+                out[pid] = found
+            elif (found is not None or pid not in known) and netns(self.proc, pid) != self.netns:
+                out[pid] = (now, False) if found is None else (found[0], True)
+        return out
 
     def new_at(self, pid: int) -> int | None:
         """The refresh at which the process with this PID was last found new; None when that cannot
