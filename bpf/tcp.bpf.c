@@ -15,7 +15,7 @@ struct tcp_conn_t {
     u16 state;        // TCP_CLOSE: closed, kept until the agent has exported it once
     u8 laddr[16];
     u8 raddr[16];
-    u64 retransmits;
+    u64 retransmits;  // the kernel's own count (tcpi_total_retrans), as of the last retransmit
     u64 state_changes;
     u64 resets_sent;
     u64 resets_received;
@@ -116,21 +116,35 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
 }
 
 // tcp:tcp_retransmit_skb (sk, skb[, err])
+// The kernel counts segments, not events: one retransmit of a GSO skb is several, and an attempt
+// that fails after it was counted (the qdisc dropped it) is counted all the same; one that found
+// the segment still in a host queue is not. So the connection takes the kernel's own count
+// (tp->total_retrans, which the event follows), and the host what that count moved by.
 int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 sk = ctx->args[0];
+    u32 total = 0;
+    bpf_probe_read_kernel(&total, 4, (void *)(sk + TP_TOTAL_RETRANS_OFF));
+    u64 moved = 0;
+    struct tcp_conn_t *c = tcp_conns.lookup(&sk);
+    if (c) {
+        moved = (u32)(total - (u32)c->retransmits);
+        __sync_fetch_and_add(&c->retransmits, moved);
+    } else {
+        // A connection older than the agent (or one a full map made it forget): what it
+        // retransmitted before is in its own count, but only this attempt in the host's.
 #ifdef RETRANSMIT_HAS_ERR
-    // Kernels whose event carries err also fire it for attempts that failed (e.g. EBUSY while the
-    // segment still sits in a host queue); the kernel's own tcpi_total_retrans skips those.
-    if ((int)ctx->args[2] != 0)
-        return 0;
+        moved = (int)ctx->args[2] == 0;
+#else
+        moved = 1;
 #endif
+        c = conn_entry(sk);
+        if (c)
+            c->retransmits = total;
+    }
     struct tcp_totals_t *tot = totals();
     if (tot)
-        tot->retransmits++;
-    struct tcp_conn_t *c = conn_entry(sk);
-    if (c)
-        __sync_fetch_and_add(&c->retransmits, 1);
+        tot->retransmits += moved;
     return 0;
 }
 

@@ -22,7 +22,8 @@ from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_t
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
-                          "Segments this connection retransmitted", CONN_LABELS)
+                          "Segments this connection retransmitted, as the kernel counts them (tcpi_total_retrans)",
+                          CONN_LABELS)
 CONN_RESETS_SENT = Metric("drums_tcp_connection_resets_sent_total", COUNTER,
                           "Resets this connection sent", CONN_LABELS)
 CONN_RESETS_RECEIVED = Metric("drums_tcp_connection_resets_received_total", COUNTER,
@@ -87,6 +88,7 @@ class TcpProbe(BpfProbe):
         d = {"RETRANSMIT_HAS_ERR": 1} if len(btf.tracepoint_args("tcp_retransmit_skb") or ()) >= 3 else {}
         return d | offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
+            "TP_TOTAL_RETRANS_OFF": ("tcp_sock", "total_retrans"),
         })
 
     def collect(self, snap: Snapshot) -> None:

@@ -242,7 +242,7 @@ def ip(*args: str) -> None:
 @contextlib.contextmanager
 def peer_namespace(index: int):
     """A network namespace joined to this one by a veth pair: (namespace, its device, our
-    address, its address). Only there can the test lose packets on purpose: loopback never drops them."""
+    address, its address, our device). Only there can the test lose packets on purpose: loopback never drops them."""
     tag = f"{os.getpid() % 100000}{index}"
     ns, ours, theirs = f"drums_test_{tag}", f"drt{tag}a", f"drt{tag}b"
     local = f"10.213.{os.getpid() % 250}.{4 * index + 1}"
@@ -254,7 +254,7 @@ def peer_namespace(index: int):
         ip("link", "set", ours, "up")
         ip("-n", ns, "addr", "add", f"{remote}/30", "dev", theirs)
         ip("-n", ns, "link", "set", theirs, "up")
-        yield ns, theirs, local, remote
+        yield ns, theirs, local, remote, ours
     finally:
         # Deleting the namespace frees its end of the pair only later: delete ours first.
         subprocess.run(("ip", "link", "del", ours), capture_output=True)
@@ -265,7 +265,7 @@ def peer_namespace(index: int):
 def stalled_connection(index: int, cut):
     """A connection from this namespace to a receiver in a peer namespace that stops
     acknowledging after its first read: cut(ns, device, address) breaks the path."""
-    with peer_namespace(index) as (ns, device, local, remote):
+    with peer_namespace(index) as (ns, device, _, remote, _):
         port = 7000 + index
         receiver = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", RECEIVER, remote, str(port)),
                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -296,15 +296,21 @@ def tcp_ext(name: str) -> int:
     raise KeyError(name)
 
 
-def settled(tcp_probe, collect, sock, field: str, metric: str):
+def settled(tcp_probe, collect, sock, field: str, metric: str, counter: bool = False):
     """A connection's value of `metric` and the kernel's tcp_info `field`, from a collect between
-    two reads of tcp_info that agree: a late ACK or a retransmit can change the field at any time."""
-    for _ in range(20):
+    two reads of tcp_info that agree: a late ACK or a retransmit can change the field at any time.
+    A `counter` is read until the probe has caught up: the kernel adds a retransmit to tcp_info
+    before it hands the segment to the device, and fires the tracepoint the probe counts after."""
+    probe = kernel = None
+    for _ in range(40):
         kernel = tcp_info(sock)[field]
         snap = collect(tcp_probe)
         if tcp_info(sock)[field] == kernel:
-            return connection(snap, metric, sock), kernel
-    pytest.fail(f"tcp_info {field} kept changing")
+            probe = connection(snap, metric, sock)
+            if not counter or probe == kernel:
+                return probe, kernel
+        time.sleep(0.05)
+    pytest.fail(f"tcp_info {field} kept changing, or the probe never caught up with it: last {probe} for {kernel}")
 
 
 def test_retransmits_of_segments_lost_on_the_way(tcp_probe, collect):
@@ -316,9 +322,42 @@ def test_retransmits_of_segments_lost_on_the_way(tcp_probe, collect):
     with stalled_connection(1, unaddress) as sender:
         # About 0.6 s: a tail loss probe, then RTO retransmits after 0.2 s and 0.4 s more.
         wait_until(lambda: tcp_info(sender)["total_retrans"] >= 3, "three retransmits")
-        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans", "drums_tcp_connection_retransmits_total")
+        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans", "drums_tcp_connection_retransmits_total",
+                                 counter=True)
         assert probe == kernel >= 3
         assert host_totals(collect(tcp_probe))["retransmits"] - before >= kernel
+
+
+SINK = r"""
+import socket, sys
+lst = socket.create_server((sys.argv[1], int(sys.argv[2])))
+print("listening", flush=True)
+conn, _ = lst.accept()
+while conn.recv(1 << 20):
+    pass
+"""
+
+
+def test_retransmits_of_a_bulk_flow_are_the_segments_the_kernel_counts(tcp_probe, collect):
+    """A bulk flow through a queue that drops (a router's tail drop): the kernel retransmits
+    several segments at once (one GSO skb) and counts each, and a retransmit the queue drops too."""
+    with peer_namespace(3) as (ns, _, _, remote, ours):
+        subprocess.run(("tc", "qdisc", "add", "dev", ours, "root", "tbf", "rate", "20mbit", "burst", "8kb",
+                        "latency", "2ms"), check=True, capture_output=True)
+        sink = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", SINK, remote, "7003"),
+                                stdout=subprocess.PIPE, text=True)
+        try:
+            assert sink.stdout.readline() == "listening\n"
+            before = host_totals(collect(tcp_probe))["retransmits"]
+            with socket.create_connection((remote, 7003), timeout=30) as sender:
+                for _ in range(8):
+                    sender.sendall(b"x" * (1 << 20))
+                probe, kernel = settled(tcp_probe, collect, sender, "total_retrans",
+                                        "drums_tcp_connection_retransmits_total", counter=True)
+                assert probe == kernel >= 100
+                assert host_totals(collect(tcp_probe))["retransmits"] - before >= kernel
+        finally:
+            sink.wait(timeout=30)
 
 
 def test_retransmits_that_never_left_the_host_are_not_counted(tcp_probe, collect):
@@ -333,5 +372,6 @@ def test_retransmits_that_never_left_the_host_are_not_counted(tcp_probe, collect
         # may add to that count, so also give the timers time for a probe and two RTO attempts.
         time.sleep(0.7)
         wait_until(lambda: tcp_ext("TCPSpuriousRtxHostQueues") - still_queued >= 2, "two failed attempts")
-        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans", "drums_tcp_connection_retransmits_total")
+        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans", "drums_tcp_connection_retransmits_total",
+                                 counter=True)
         assert probe == kernel, f"the probe counts {probe} retransmits where the kernel made {kernel}"
