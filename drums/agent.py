@@ -193,7 +193,9 @@ class Agent:
         began = time.perf_counter()
         self._want_rtt()
         self._want_deadlines()
+        read_at = time.time()
         raw = self._read({p.name for p in self.probes})
+        read_at = (read_at + time.time()) / 2
         everything = self.selection.everything and self.proctable.netns is None
         selected = raw if everything else self._select(raw)
         joined = self._joined(selected)  # the processes not selected are in no node's, topic's or edge's rows
@@ -202,6 +204,7 @@ class Agent:
             snap.rows(metric).extend(rows)
         self._self_metrics(snap)
         snap.add(AGENT_COLLECT, (), time.perf_counter() - began)
+        snap.read_at = read_at
         return snap
 
     def tcp_changes(self) -> int | None:

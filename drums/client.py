@@ -27,6 +27,7 @@ import msgpack
 import zmq
 
 from drums.errors import DrumsError, UsageError
+from drums.exporters import READ_AT
 from drums.exporters.stream import client_keys, layout_id
 
 if TYPE_CHECKING:
@@ -79,19 +80,31 @@ class Agent:
             request.add_header("Content-Type", "application/json")
         if self.token:
             request.add_header("Authorization", f"Bearer {self.token}")
-        status, text = self._open(request, f"{method} {path}: ")
+        status, text, _ = self._open(request, f"{method} {path}: ")
         return status, json.loads(text) if text else None
 
     def page(self, path: str) -> str:
         """One of the agent's pages (e.g. "/graph?format=dot") as text."""
-        return self._open(urllib.request.Request(self.url + path))[1].decode()
+        return self.read(path)[0]
 
-    def _open(self, request: urllib.request.Request, what: str = "") -> tuple[int, bytes]:
-        """(status, body) of a request to the agent; an AgentError says why not: the agent's
-        reason for a 4xx or 5xx (JSON from the API, text from a page), or why it was not reached."""
+    def read(self, path: str) -> tuple[str, float]:
+        """(text, when its counters were read) of /metrics or /graph: the agent's time, else (an
+        older agent) the middle of the request."""
+        began = time.time()
+        _, body, headers = self._open(urllib.request.Request(self.url + path))
+        try:
+            at = float(headers.get(READ_AT) or "")
+        except ValueError:
+            at = (began + time.time()) / 2
+        return body.decode(), at
+
+    def _open(self, request: urllib.request.Request, what: str = "") -> tuple[int, bytes, dict]:
+        """(status, body, headers) of a request to the agent; an AgentError says why not: the
+        agent's reason for a 4xx or 5xx (JSON from the API, text from a page), or why it was not
+        reached."""
         try:
             with urllib.request.urlopen(request, timeout=self.timeout) as reply:
-                return reply.status, reply.read()
+                return reply.status, reply.read(), reply.headers
         except urllib.error.HTTPError as e:
             body = e.read().decode(errors="replace").strip()
             try:

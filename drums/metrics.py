@@ -72,6 +72,7 @@ class Snapshot:
     def __init__(self):
         self._series: dict[Metric, list[tuple[tuple[str, ...], object]]] = {}
         self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]]] = {}
+        self.read_at: float | None = None  # time.time() when the probes were read, if known
 
     @property
     def series(self) -> dict[Metric, list[tuple[tuple[str, ...], object]]]:

@@ -15,6 +15,7 @@ import urllib.request
 import psutil
 import pytest
 
+from drums.client import Agent
 from tests.agentproc import free_port, running_agent, samples, scrape
 from tests.conftest import eventually
 
@@ -40,6 +41,30 @@ def test_a_scrape_asked_for_gzip_is_the_same_page_gzipped(agent):
     assert [line.split(" ")[0] for line in text.splitlines() if "drums_probe_attached" in line] == \
         [line.split(" ")[0] for line in plain.splitlines() if "drums_probe_attached" in line]
     assert len(gzip.compress(text.encode())) * 5 < len(text)  # label text compresses at least 5 to 1
+
+
+def test_a_page_says_when_its_counters_were_read_so_a_rate_over_two_is_true(agent):
+    # Two reads of a process that burns one thread: its CPU seconds over the time between the
+    # agent's reads of its counters (not between the requests: each may wait on a loaded host)
+    # stay within what one core can give.
+    burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    client = Agent(agent.rsplit("/", 1)[0])
+    try:
+        reads = []
+        for _ in range(2):
+            began = time.time()
+            text, at = client.read("/metrics")
+            assert began <= at <= time.time()
+            cpu = samples(text, "drums_process_cpu_seconds_total")
+            reads.append((next((v for k, v in cpu.items() if dict(k)["pid"] == str(burner.pid)), None), at))
+            time.sleep(2)
+        (before, t0), (after, t1) = reads
+        assert before is not None and 0.3 <= (after - before) / (t1 - t0) <= 1.03, reads
+        _, at = client.read("/graph?format=json")
+        assert t1 < at <= time.time()
+    finally:
+        burner.kill()
+        burner.wait()
 
 
 def test_every_probe_attached_with_its_attach_type(agent):

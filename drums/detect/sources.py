@@ -83,14 +83,13 @@ class AgentSource:
         self.name = ""
 
     def read(self) -> list[Reading]:
-        began = time.time()
         try:
             if not self.name:
                 self.name = str(self.agent.info().get("host") or self.address)
-            text = self.agent.page("/metrics")
+            text, at = self.agent.read("/metrics")
         except AgentError as e:
             raise SourceError(str(e)) from None
-        return [parse_exposition(self.name, (began + time.time()) / 2, text, self.detail)]
+        return [parse_exposition(self.name, at, text, self.detail)]
 
 
 class PrometheusSource:

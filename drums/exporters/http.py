@@ -38,6 +38,7 @@ from aiohttp import web
 
 from drums.errors import DrumsError, UsageError
 from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body
+from drums.exporters import READ_AT
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 
 log = logging.getLogger("drums")
@@ -368,7 +369,10 @@ class HttpServer:
             picture = self._pictures.get(url.path)
             if picture is not None:
                 snap = await self._shared.snapshot()
-                return (200, *await self._shared.draw(picture, snap, query, gzipped))
+                body, content_type, headers = await self._shared.draw(picture, snap, query, gzipped)
+                if snap.read_at is not None:
+                    headers = {**headers, READ_AT: f"{snap.read_at:.6f}"}
+                return 200, body, content_type, headers
             page = self._pages.get(url.path)
             if page is None:
                 raise NotFound(f"not found: Drums serves {', '.join(self._links)}")

@@ -6,7 +6,6 @@ Parsed here, in the thread that fetched it, so that the screen only does arithme
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field
 
 from drums.client import Agent, AgentError
@@ -26,7 +25,7 @@ METRICS = (
 
 @dataclass
 class Poll:
-    graph_at: float  # time.time() when the graph's counters were read
+    graph_at: float  # Unix time when the agent read the graph's counters
     metrics_at: float  # and when /metrics was
     stale: str = ""  # why the agent's graph is stale ("" when it is current)
     hosts: dict[str, dict] = field(default_factory=dict)  # name -> vertex attributes
@@ -36,13 +35,6 @@ class Poll:
     endpoints: list[dict] = field(default_factory=list)
     edges: dict[tuple[str, str, str], dict] = field(default_factory=dict)  # (topic, pub, sub) -> attributes
     metrics: dict[str, exposition.Rows] = field(default_factory=dict)
-
-
-def _timed(read) -> tuple[float, object]:
-    """(the middle of the request, its answer): the agent collects while we wait."""
-    began = time.time()
-    answer = read()
-    return (began + time.time()) / 2, answer
 
 
 def graph_poll(graph: dict, graph_at: float, metrics_text: str, metrics_at: float) -> Poll:
@@ -70,8 +62,8 @@ def graph_poll(graph: dict, graph_at: float, metrics_text: str, metrics_at: floa
 
 
 def fetch(agent: Agent) -> Poll:
-    graph_at, text = _timed(lambda: agent.page("/graph?format=json"))
-    metrics_at, metrics = _timed(lambda: agent.page("/metrics"))
+    text, graph_at = agent.read("/graph?format=json")
+    metrics, metrics_at = agent.read("/metrics")
     try:
         return graph_poll(json.loads(text), graph_at, metrics, metrics_at)
     except (ValueError, KeyError, TypeError, AttributeError) as e:
