@@ -26,7 +26,7 @@ from common import (Agent, BenchError, Scraper, cpu_seconds, drums_unload, fmt, 
                     memory, percentile, print_table, progress, ratio, require_root, samples, series_count,
                     terminate, tree, uss_bytes)
 
-GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 20, "tree_uss_mb": 60, "small_cpu": 0.1}
+GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 10, "tree_uss_mb": 60, "small_cpu": 0.1}
 SMALL = 10  # the small host: a tenth of the processes and sockets
 HOLDERS = 4  # processes that hold the sockets
 
