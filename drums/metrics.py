@@ -136,5 +136,9 @@ class Monotonic:
         self._current[key] = value
         return value
 
+    def carry(self, held) -> None:
+        """Keep these (key, value) pairs, seen at the last collect, as seen in this one too."""
+        self._current.update(held)
+
     def next_collect(self) -> None:
         self._previous, self._current = self._current, {}

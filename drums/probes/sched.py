@@ -6,6 +6,7 @@ Process totals include threads that exited, so they never go backwards while the
 from __future__ import annotations
 
 import struct
+from dataclasses import dataclass
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
@@ -55,6 +56,15 @@ def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
     return Histogram(cumulative, total_ns / 1e9, waits)
 
 
+@dataclass
+class _Made:
+    """What one process's entries made at a collect, kept for the next while they stay the same."""
+    seen: tuple  # (its exited threads' entry, its live threads' (tid, entry), its name)
+    rows: dict  # metric -> rows
+    held: list  # (key, value) it gave the Monotonic
+    cpu: float  # its CPU seconds, for the process table
+
+
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
@@ -81,6 +91,7 @@ class SchedProbe(BpfProbe):
         super().__init__(features, **kw)
         self.proctable = proctable
         self._monotonic = Monotonic()
+        self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
         self._renames_lost = 0
 
     def offsets(self, btf: Btf) -> dict[str, int]:
@@ -131,46 +142,85 @@ class SchedProbe(BpfProbe):
         return out
 
     def collect(self, snap: Snapshot) -> None:
-        pt = self.proctable
-        totals = ProcessTotals()
+        """Rows are made again only for the processes whose entries changed since the last collect
+        (a thread ran, came or went): on a host of a thousand processes most sleep between two."""
+        pt, m = self.proctable, self._monotonic
+        exited: dict[int, bytes] = {}
         keys, values, _ = self.read("exited_sched")
-        for (tgid,), (start, *s) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
+        size = _PROCESS_VALUE.size
+        for i, (tgid,) in enumerate(_U32.iter_unpack(keys)):
             if pt.alive(tgid):
-                totals.add_exited(tgid, start, s)
+                exited[tgid] = values[i * size:(i + 1) * size]
             elif not pt.belongs(tgid):
                 # sched_process_free of the leader deletes the entry, but on a busy machine the free
                 # of one of its threads may come after it and fold into a new one: the process is
                 # gone, so is its entry.
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
-        m = self._monotonic
+        threads: dict[int, list[tuple[int, bytes]]] = {}
         keys, values, _ = self.read("thread_sched")
         running = self._running()
-        for (tid,), v in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
-            tgid, _pad, _enqueued, start, base, comm, *s = v
-            if not pt.alive(tgid):
-                continue
+        size = _THREAD_VALUE.size
+        for i, (tid,) in enumerate(_U32.iter_unpack(keys)):
+            raw = values[i * size:(i + 1) * size]
+            tgid = _U32.unpack_from(raw)[0]
+            if pt.alive(tgid):
+                threads.setdefault(tgid, []).append((tid, raw))
+        rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
+        made, self._made = self._made, {}
+        ran = {}
+        for tgid in threads.keys() | exited.keys():
+            live = threads.get(tgid, [])
+            seen = (exited.get(tgid), live, pt.name(tgid))
+            process = made.get(tgid)
+            if process is None or process.seen != seen or not running.keys().isdisjoint(tid for tid, _ in live):
+                process = self._make(tgid, seen, running)
+            else:
+                m.carry(process.held)
+            self._made[tgid] = process
+            ran[tgid] = process.cpu
+            for metric, made_rows in process.rows.items():
+                rows[metric] += made_rows
+        for metric, metric_rows in rows.items():
+            if metric_rows:
+                snap.rows(metric).extend(metric_rows)
+        pt.ran(ran)
+        m.next_collect()
+        self.read_dropped()
+
+    def _make(self, tgid: int, seen: tuple, running: dict[int, int]) -> _Made:
+        """The rows of one process and of its threads, from its entries in the two maps."""
+        exited, live, name = seen
+        m, held = self._monotonic, []
+
+        def hold(key, value):  # the monotonic value, remembered for the collects that reuse the rows
+            value = m(key, value)
+            held.append((key, value))
+            return value
+        totals = ProcessTotals()
+        if exited is not None:
+            start, *s = _PROCESS_VALUE.unpack(exited)
+            totals.add_exited(tgid, start, s)
+        rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
+        for tid, raw in live:
+            _, _pad, _enqueued, start, base, comm, *s = _THREAD_VALUE.unpack(raw)
             if tid in running:
                 s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))
-            oncpu = m((THREAD_CPU, tid, start), oncpu)  # with a running slice estimated here, never below the last
-            snap.add(THREAD_CPU, labels, oncpu / 1e9)
-            snap.add(THREAD_RUNQ, labels, runq_ns / 1e9)
-            snap.add(THREAD_RUNQ_WAITS, labels, runq_waits)
-            snap.add(THREAD_SWITCHES, labels + ("voluntary",), vol)
-            snap.add(THREAD_SWITCHES, labels + ("involuntary",), invol)
-        ran = {}
-        for (tgid, start), s in totals.items():
+            oncpu = hold((THREAD_CPU, tid, start), oncpu)  # with a running slice estimated here, never below the last
+            rows[THREAD_CPU].append((labels, oncpu / 1e9))
+            rows[THREAD_RUNQ].append((labels, runq_ns / 1e9))
+            rows[THREAD_RUNQ_WAITS].append((labels, runq_waits))
+            rows[THREAD_SWITCHES] += ((labels + ("voluntary",), vol), (labels + ("involuntary",), invol))
+        cpu = 0.0
+        for (_, start), s in totals.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
-            labels = (str(tgid), pt.name(tgid))
+            labels = (str(tgid), name)
             key = (tgid, start)
-            cpu = m((PROCESS_CPU, key), oncpu / 1e9)
-            ran[tgid] = cpu
-            snap.add(PROCESS_CPU, labels, cpu)
-            snap.add(PROCESS_RUNQ, labels, m((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits)))
+            cpu = hold((PROCESS_CPU, key), oncpu / 1e9)
+            rows[PROCESS_CPU].append((labels, cpu))
+            rows[PROCESS_RUNQ].append((labels, hold((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits))))
             for kind, n in (("voluntary", vol), ("involuntary", invol)):
-                snap.add(PROCESS_SWITCHES, labels + (kind,), m((PROCESS_SWITCHES, key, kind), n))
-        pt.ran(ran)
-        m.next_collect()
-        self.read_dropped()
+                rows[PROCESS_SWITCHES].append((labels + (kind,), hold((PROCESS_SWITCHES, key, kind), n)))
+        return _Made(seen, {metric: r for metric, r in rows.items() if r}, held, cpu)

@@ -14,6 +14,7 @@ import time
 import pytest
 
 from drums.metrics import Histogram
+from drums.probes import sched
 from drums.probes.sched import _PROCESS_VALUE, _THREAD_VALUE, RUNQ_BUCKETS
 from tests.conftest import series, wait_until
 
@@ -362,6 +363,27 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     # on 336 with three test lanes on a slow host: a few, and at most a percent more under contention.
     waits, k_waits = delta(THREAD_RUNQ_WAITS), k_after[2] - k_before[2]
     assert 0 <= k_waits - waits <= 3 + 0.01 * k_waits, (waits, k_waits)
+
+
+def test_a_collect_makes_again_only_the_rows_of_processes_whose_threads_ran(sched_probe, collect, spawn):
+    sleeper, burner = spawn(BURN_IN_THREAD, 0.2), spawn(BURN_IN_THREAD, 0.2)
+    for child in (sleeper, burner):
+        child.read()
+        settle(child.pid)
+
+    def rows(snap, pid):
+        return [row for metric in (sched.THREAD_CPU, sched.PROCESS_CPU, sched.PROCESS_RUNQ) for row in snap.of(metric)
+                if row[0][0] == str(pid)]
+    collect(sched_probe)
+    before, k_before = collect(sched_probe), process_schedstat(burner.pid)
+    burner.go()
+    burner.read()
+    settle(burner.pid)
+    after, k_after = collect(sched_probe), process_schedstat(burner.pid)
+    # The sleeper's rows are the very ones of the last collect; the burner's were made again, exact.
+    assert rows(before, sleeper.pid) and all(a is b for a, b in zip(rows(after, sleeper.pid), rows(before, sleeper.pid)))
+    cpu = value(after, PROCESS_CPU, pid=burner.pid) - value(before, PROCESS_CPU, pid=burner.pid)
+    assert 0.2 <= cpu and abs(cpu - (k_after - k_before) / 1e9) <= 1e-6, (cpu, k_after - k_before)
 
 
 def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spawn):
