@@ -91,6 +91,15 @@ class Crowd:
     def pids(self) -> list[int]:
         return [p.pid for p in self.sleepers + self.holders]
 
+    def restart(self) -> None:
+        """The crowd made anew, its sockets sending once: started after an agent, as on a robot
+        whose agent starts at boot, every process has run and every connection was opened under
+        the probes (a crowd older than the agent would be mostly invisible to them: a process that
+        never runs and a connection that never changes state leave no entry in their maps)."""
+        self.close()
+        self.start()
+        self.send()
+
     def close(self) -> None:
         for h in self.holders:
             try:
@@ -103,6 +112,7 @@ class Crowd:
             p.wait()
         for h in self.holders:
             terminate(h, timeout=5)
+        self.sleepers, self.holders = [], []
 
 
 def measure_agent(seconds: float, interval: float, agent_args: list[str], on_ready) -> dict:
@@ -200,18 +210,16 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
     crowd = Crowd(processes, sockets)
     pid_file = f"/tmp/drums-bench-pids-{os.getpid()}"
     try:
-        progress(f"starting {processes} processes holding {sockets} sockets")
-        crowd.start()
         drums_unload()
-        progress(f"agent: {seconds} s at one scrape per {interval:g} s")
-        # BPF counters exist only for traffic seen while the programs are attached: the holders
-        # send once the agent is ready.
-        ours = measure_agent(seconds, interval, agent_args, on_ready=crowd.send)
+        progress(f"agent: {seconds} s at one scrape per {interval:g} s, once {processes} processes holding "
+                 f"{sockets} sockets have started after it")
+        ours = measure_agent(seconds, interval, agent_args, on_ready=crowd.restart)
         ros = None
         if with_ros:
             progress(f"agent with the ROS 2 graph: {seconds} s")
-            ros = measure_agent(seconds, interval, agent_args + ["--graph", "ros2"], on_ready=crowd.send)
+            ros = measure_agent(seconds, interval, agent_args + ["--graph", "ros2"], on_ready=crowd.restart)
         progress(f"psutil poller: {seconds} s")
+        crowd.restart()
         peer = measure_poller(seconds, interval, crowd.pids(), pid_file)
     finally:
         crowd.close()
@@ -256,7 +264,9 @@ def run(args) -> None:
     size, series = ours["sizes"]
     notes = [
         f"{args.processes:,} processes ({HOLDERS} of them hold {args.sockets:,} loopback TCP sockets, each "
-        f"of which sent a few bytes), {args.seconds} s window after 2 unmeasured cycles, one cycle per "
+        f"of which sent a few bytes), all started after the agent was ready (as on a robot whose agent "
+        f"starts at boot: each process has run and each connection opened under the probes), "
+        f"{args.seconds} s window after 2 unmeasured cycles, one cycle per "
         f"{args.interval:g} s; the agent runs all probes"
         + f" (its whole process tree measured: {ours['processes']} process{'es' if ours['processes'] > 1 else ''})"
         + (f" with {args.agent_args}" if args.agent_args else " with its default budget") + ".",
@@ -272,7 +282,7 @@ def run(args) -> None:
         f"(drums_socket_sent_bytes_total): {ours['sockets']:,}",
         f"the first rows: the auto graph (no helper process); with the ROS 2 graph the tree is "
         f"{ros['processes']} processes (the agent and its rclpy graph reader), started and measured alike "
-        f"after the first run, the holders' sockets sending again once it is ready",
+        f"after the first run, with a crowd started anew once it is ready",
         "the last rows: the agent (auto graph) and the poller again on a host of a tenth of the processes and sockets",
     ]
     print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",
