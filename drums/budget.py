@@ -12,6 +12,7 @@ on an idle host with ten thousand sockets a collect is a few dict and set operat
 from __future__ import annotations
 
 import heapq
+from collections.abc import KeysView
 from dataclasses import dataclass, field
 from itertools import islice
 from operator import itemgetter
@@ -78,6 +79,8 @@ class _Group:
         self.folded: dict = {}  # labels -> the values of that row summed into `other` so far
         self._other: dict = {}  # dimension values -> (metrics, labels of the `other` row)
         self._touched: set = set()  # entities with rows new, changed or gone at this collect
+        self.came: list = []  # entities that got their first row in the group at this collect
+        self.left: list = []  # and those that lost their last
         self._emitted: list = []  # the rows emit() gave last, and for which entities
         self._emitted_for: set | None = None
 
@@ -111,17 +114,22 @@ class _Group:
         gone = last.keys() - now.keys()
         rows_of = self.rows_of
         touched = self._touched = set()
+        came, left = self.came, self.left = [], []
         for labels in gone:
             entity = entity_of(labels)
             touched.add(entity)
             rows_of[entity].discard(labels)
             if not rows_of[entity]:
                 del rows_of[entity]
+                left.append(entity)
         for labels, _ in changed:
             entity = entity_of(labels)
             touched.add(entity)
             if labels not in last:
-                rows_of.setdefault(entity, set()).add(labels)
+                if entity not in rows_of:
+                    rows_of[entity] = set()
+                    came.append(entity)
+                rows_of[entity].add(labels)
         self.last = now
         return changed, gone
 
@@ -144,10 +152,10 @@ class _Group:
 class _KindState:
     limit: int
     kept: set = field(default_factory=set)
+    entities: dict = field(default_factory=dict)  # entity -> how many groups hold rows of it
     groups: dict = field(default_factory=dict)  # metrics -> _Group
     totals: dict = field(default_factory=dict)  # (metrics, labels of other) -> values
     members: dict = field(default_factory=dict)  # the same key -> rows summed into it now (for gauges)
-    folded_set: set = field(default_factory=set)  # entities summed into `other` at the last collect
     folded_total: int = 0  # entities that went into `other`, ever
 
 
@@ -161,7 +169,7 @@ class Budget:
 
     def folded(self) -> dict[str, int]:
         """Entities of each kind whose series are currently summed into `other`."""
-        return {kind: len(st.folded_set) for kind, st in self.kinds.items()}
+        return {kind: len(st.entities) - len(st.kept) for kind, st in self.kinds.items()}
 
     def kept(self, kind: str) -> set:
         """Entities of a kind that had their own series at the last collect: a label value for
@@ -200,13 +208,15 @@ class Budget:
             g = st.groups.get(metrics) or st.groups.setdefault(metrics, _Group(metrics, kind, single))
             changed, gone = g.update(rows, grew)
             seen.append((g, changed, gone))
-        entities = set().union(*[g.rows_of.keys() for g in st.groups.values()])
+        new, ended = self._count_entities(st, [g for g, _, _ in seen])
+        entities = st.entities.keys()
         activity: dict = {}
         for per_entity in grew.values():
             whole = sum(per_entity.values())
             for entity, d in per_entity.items():  # a share of all, so bytes and seconds weigh alike
                 activity[entity] = activity.get(entity, 0.0) + d / whole
-        was_kept = st.kept & entities
+        st.kept -= ended  # entities that ended free their slots
+        was_kept = set(st.kept)
         self._choose(st, entities, activity)
         kept = st.kept
         promoted, demoted = kept - was_kept, was_kept - kept
@@ -214,15 +224,29 @@ class Budget:
             g.emit(out, kept)
             if g.additive:
                 self._fold(st, g, changed, gone, promoted, demoted)
-        folded_set = entities - kept
-        st.folded_total += len(folded_set - st.folded_set)
-        st.folded_set = folded_set
+        st.folded_total += sum(e not in kept for e in new) + len(demoted)
         for key, values in st.totals.items():
             metrics, labels = key
             if len(metrics) == 1:
                 out.rows(metrics[0]).append((labels, values[0]))
             else:
                 out.group_rows(metrics).append((labels, tuple(values)))
+
+    @staticmethod
+    def _count_entities(st: _KindState, groups: list) -> tuple[set, set]:
+        """Count in the entities the groups' rows came to or left at this collect: (the entities
+        new to the kind, those it no longer has). Per change, not per entity."""
+        came = [e for g in groups for e in g.came]
+        left = [e for g in groups for e in g.left]
+        was = {e for e in came + left if e in st.entities}
+        counts = st.entities
+        for e in left:
+            counts[e] -= 1
+            if not counts[e]:
+                del counts[e]
+        for e in came:
+            counts[e] = counts.get(e, 0) + 1
+        return {e for e in came if e not in was}, {e for e in left if e not in counts}
 
     @staticmethod
     def _fold(st: _KindState, g: _Group, changed: list, gone: set, promoted: set, demoted: set) -> None:
@@ -279,10 +303,9 @@ class Budget:
             st.members[key] = st.members.get(key, 0) + joined
 
     @staticmethod
-    def _choose(st: _KindState, entities: set, activity: dict) -> None:
+    def _choose(st: _KindState, entities: KeysView, activity: dict) -> None:
         # Activity is what an entity did since the last collect; a newcomer's is all it did so
         # far, so a busy new process can win a slot at once.
-        st.kept &= entities  # entities that ended free their slots
         kept = st.kept
         active = sorted((e for e in activity if e not in kept), key=activity.__getitem__, reverse=True)
         free = st.limit - len(kept)

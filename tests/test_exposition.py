@@ -172,6 +172,43 @@ def test_the_budget_gives_the_same_whether_an_idle_row_comes_as_the_last_object_
         assert outs[0] == outs[1], step
 
 
+def test_the_budget_counts_its_entities_by_their_changes_as_a_count_of_all_would():
+    """Processes come, go, are renamed (their rows change labels, the process stays) and hold rows
+    in some metrics only: what the budget keeps, folds and has ever folded is what counting every
+    process at every step gives."""
+    rng = random.Random(5)
+    b = Budget({"process": 3})
+    procs: dict[str, dict] = {}
+    folded_before, total = set(), 0
+    for step in range(120):
+        for _ in range(rng.randint(0, 3)):
+            procs[str(rng.randint(1, 30))] = {"name": "a", "cpu": 0.0, "sent": None, "mem": None}
+        for pid, p in list(procs.items()):
+            roll = rng.random()
+            if roll < 0.08:
+                del procs[pid]
+                continue
+            if roll < 0.12:
+                p["name"] = rng.choice("abc")
+            p["cpu"] += rng.choice((0.0, 0.0, rng.random()))
+            p["sent"] = rng.choice((None, (p["sent"] or 0) + rng.randint(0, 99)))
+            p["mem"] = rng.choice((None, rng.randint(1, 9)))
+        snap = Snapshot()
+        for pid, p in procs.items():
+            snap.add(CPU, (pid, p["name"]), p["cpu"])
+            if p["sent"] is not None:
+                snap.add(SENT, (pid, p["name"], "tcp"), p["sent"])
+            if p["mem"] is not None:
+                snap.add(MEM, (pid, p["name"]), p["mem"])
+        b.apply(snap)
+        kept = b.kept("process")
+        assert kept <= procs.keys() and len(kept) == min(3, len(procs)), step
+        folded = procs.keys() - kept
+        total += len(folded - folded_before)
+        folded_before = folded
+        assert (b.folded()["process"], b.folded_total()["process"]) == (len(folded), total), step
+
+
 def test_readme_metric_table_is_current():
     with open("README.md") as f:
         text = f.read()

@@ -37,8 +37,8 @@ from urllib.parse import parse_qs, urlsplit
 from aiohttp import web
 
 from drums.errors import DrumsError, UsageError
-from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body
 from drums.exporters import READ_AT
+from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 
 log = logging.getLogger("drums")

@@ -11,6 +11,8 @@ import struct
 import time
 from operator import add
 
+import numpy as np
+
 from drums.errors import KernelError
 from drums.kernel import sockdiag
 from drums.kernel.bpffs import sum_percpu
@@ -19,6 +21,7 @@ from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
+from drums.probes.entries import Entries
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
@@ -43,7 +46,10 @@ RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
 STATE_ENTERED = Metric("drums_tcp_state_transitions_total", COUNTER,
                        "TCP connections entering each state", ("state",))
 
-_CONN_VALUE = struct.Struct("<IHHHH16s16s4x4Q")
+_CONN_HEAD = struct.Struct("<IHHHH16s16s4x")  # what names a connection (and its state)
+_CONN_VALUE = struct.Struct(_CONN_HEAD.format + "4Q")  # then what it counted
+_HEAD_WORDS = _CONN_HEAD.size // 8
+_STATE_WORD, _STATE_SHIFT = 1, 16  # the state's 8-byte word and bit offset in a value
 ESTABLISHED, TCP_CLOSE = 1, 7
 # Reading tcp_info costs a netlink round trip per connection (a dump of every established one,
 # about 17 ms per 1,000), so RTT is sampled at this interval (seconds) rather than at every scrape.
@@ -73,7 +79,7 @@ class TcpProbe(BpfProbe):
         self._rtt: list = []
         self._rtt_at = float("-inf")
         self._carried: dict[tuple, tuple] = {}  # labels -> what closed connections with them counted
-        self._decoded: dict[bytes, tuple] = {}  # map value -> (labels, counts, state)
+        self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)  # rows: (labels, counts)
         self._wanted: set[tuple[str, str]] | None = None
 
     def want_rtt(self, connections: set[tuple[str, str]]) -> None:
@@ -92,43 +98,27 @@ class TcpProbe(BpfProbe):
         })
 
     def collect(self, snap: Snapshot) -> None:
+        """Rows are made again only for the connections whose entries changed since the last
+        collect: of ten thousand, most did nothing."""
         keys, values, _ = self.read("tcp_conns")
-        closed = []
-        rows = snap.group_rows(CONN_GROUP)
-        size = _CONN_VALUE.size
-        decoded, self._decoded = self._decoded, {}
-        # A connection's series is named by its addresses, which a later connection can reuse while
-        # the kernel still holds the earlier one: the two are one series, their counts summed.
-        series: dict[tuple, tuple] = {}
-        for i, key in enumerate(_U64.iter_unpack(keys)):
-            raw = values[i * size:(i + 1) * size]
-            row = decoded.get(raw)  # most connections did nothing since the last collect
-            if row is None:
-                netns, family, lport, rport, state, laddr, raddr, *counts = _CONN_VALUE.unpack(raw)
-                row = ((endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns)),
-                       tuple(counts), state)
-            self._decoded[raw] = row
-            labels, counts = row[0], row[1]
-            if labels in series:
-                counts = tuple(map(add, series[labels], counts))
-            series[labels] = counts
-            if row[2] == TCP_CLOSE:
-                closed.append((_U64.pack(*key), raw, labels, row[1]))
-        # A closed connection is exported once, with the reset that closed it, then forgotten. What it
-        # counted stays in its series while a connection with its addresses is in the next collect (a
-        # client that reconnects from its port at once): a series missing from a scrape is a new one
-        # to Prometheus anyway, and so no more counts are carried than connections were collected.
-        carried, self._carried = self._carried, {}
-        for labels, counts in series.items():
-            past = carried.get(labels)
-            if past:
-                self._carried[labels] = past
-                counts = tuple(map(add, counts, past))
-            rows.append((labels, counts))
-        for _, _, labels, counts in closed:
-            past = self._carried.get(labels)
-            self._carried[labels] = tuple(map(add, counts, past)) if past else counts
-        self.opened["tcp_conns"].delete_unchanged([(key, raw) for key, raw, _, _ in closed])
+        m = self._entries.read(keys, values)
+        words = m.words
+        for i in np.flatnonzero(~m.same).tolist():
+            counts = tuple(words[i, _HEAD_WORDS:].tolist())
+            if m.same_head[i]:
+                m.rows[i] = (m.rows[i][0], counts)  # the same connection, counted further
+                continue
+            netns, family, lport, rport, _state, laddr, raddr = _CONN_HEAD.unpack(words[i, :_HEAD_WORDS].tobytes())
+            m.rows[i] = ((endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns)), counts)
+        closed = (words[:, _STATE_WORD] >> _STATE_SHIFT & 0xFFFF) == TCP_CLOSE
+        rows = m.rows.tolist()
+        if closed.any() or self._carried:
+            rows = self._merged(rows, closed)
+        snap.group_rows(CONN_GROUP).extend(rows)
+        if closed.any():
+            self.opened["tcp_conns"].delete_unchanged(
+                [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])
+        self._entries.keep(m, ~closed)  # one not deleted (it counted on meanwhile) comes back as new
         _, values, _ = self.read("tcp_totals")
         totals = sum_percpu(values, _TOTALS_FMT, self.opened["tcp_totals"].ncpus)[0]
         snap.add(RETRANSMITS, (), totals[0])
@@ -148,6 +138,36 @@ class TcpProbe(BpfProbe):
         for labels, rtt in self._rtt:
             snap.add(CONN_RTT, labels, rtt)
         self.read_dropped()
+
+    def _merged(self, rows: list, closed) -> list:
+        """A connection's series is named by its addresses, which a later connection can reuse
+        while the kernel still holds the earlier one: the two are one series, their counts summed.
+        A closed connection is exported once, with the reset that closed it, then forgotten. What
+        it counted stays in its series while a connection with its addresses is in the next
+        collect (a client that reconnects from its port at once): a series missing from a scrape
+        is a new one to Prometheus anyway, and so no more counts are carried than connections
+        were collected. Only rows named like a closed connection, now or at the last collect, can
+        be summed with another."""
+        ended = [rows[i] for i in np.flatnonzero(closed).tolist()]
+        carried, self._carried = self._carried, {}
+        shared = {labels for labels, _ in ended} | carried.keys()
+        out, summed = [], {}
+        for row in rows:
+            labels = row[0]
+            if labels not in shared:
+                out.append(row)
+            else:
+                summed[labels] = tuple(map(add, summed[labels], row[1])) if labels in summed else row[1]
+        for labels, counts in summed.items():
+            past = carried.get(labels)
+            if past:
+                self._carried[labels] = past
+                counts = tuple(map(add, counts, past))
+            out.append((labels, counts))
+        for labels, counts in ended:
+            past = self._carried.get(labels)
+            self._carried[labels] = tuple(map(add, counts, past)) if past else counts
+        return out
 
     def transitions(self) -> int:
         """TCP state changes on the host (every network namespace's) since the programs were loaded:

@@ -14,6 +14,7 @@ from collections import Counter
 
 import pytest
 
+from drums.probes.tcp import CONN_GROUP
 from tests.conftest import eventually, series, wait_until
 
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
@@ -191,6 +192,27 @@ def test_one_connection_walks_the_state_machine(tcp_probe, collect):
         host_delta(tcp_probe, collect, open_and_close, {
             "syn_sent": 1, "syn_recv": 1, "established": 2, "fin_wait1": 1, "fin_wait2": 1,
             "close_wait": 1, "last_ack": 1, "close": 2})
+
+
+def test_a_collect_makes_rows_again_only_for_the_connections_whose_entries_changed(tcp_probe, collect):
+    with tcp_listener() as lst:
+        idle = socket.create_connection(lst.getsockname())
+        idle_peer, _ = lst.accept()
+        busy = socket.create_connection(lst.getsockname())
+        busy_peer, _ = lst.accept()
+        with idle, idle_peer, busy_peer:
+            first, second = (collect(tcp_probe).group_rows(CONN_GROUP) for _ in range(2))
+
+            idle_key, busy_key = ((name(end.getsockname()), name(end.getpeername()), NETNS) for end in (idle, busy))
+
+            def row(rows, key):
+                return next((r for r in rows if r[0] == key), None)
+            assert row(second, idle_key) is row(first, idle_key) is not None  # the very row: nothing made again
+            abort(busy)  # a reset and a close: made again, exported once more, then forgotten
+            third = collect(tcp_probe).group_rows(CONN_GROUP)
+            assert row(third, idle_key) is row(first, idle_key)
+            assert row(third, busy_key)[1] == (0, 3, 1, 0)  # SYN_SENT, ESTABLISHED, CLOSE; one reset sent
+            assert row(collect(tcp_probe).group_rows(CONN_GROUP), busy_key) is None
 
 
 # ---- RTT ----------------------------------------------------------------------------------------
