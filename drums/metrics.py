@@ -112,6 +112,16 @@ class Snapshot:
         return dict(self.series.get(metric, ()))
 
 
+def highest(prev, value):
+    """`value`, but never below `prev` (None: nothing before); a histogram bucket by bucket."""
+    if prev is None:
+        return value
+    if isinstance(value, Histogram):
+        return Histogram([max(a, b) for a, b in zip(prev.cumulative, value.cumulative)],
+                         max(prev.sum, value.sum), max(prev.count, value.count))
+    return max(prev, value)
+
+
 class Monotonic:
     """Holds per-process totals at their highest value from one collect to the next.
 
@@ -126,19 +136,8 @@ class Monotonic:
         self._current: dict = {}
 
     def __call__(self, key, value):
-        prev = self._previous.get(key)
-        if prev is not None:
-            if isinstance(value, Histogram):
-                value = Histogram([max(a, b) for a, b in zip(prev.cumulative, value.cumulative)],
-                                  max(prev.sum, value.sum), max(prev.count, value.count))
-            else:
-                value = max(prev, value)
-        self._current[key] = value
+        value = self._current[key] = highest(self._previous.get(key), value)
         return value
-
-    def carry(self, held) -> None:
-        """Keep these (key, value) pairs, seen at the last collect, as seen in this one too."""
-        self._current.update(held)
 
     def next_collect(self) -> None:
         self._previous, self._current = self._current, {}

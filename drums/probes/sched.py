@@ -9,7 +9,7 @@ import struct
 from dataclasses import dataclass
 
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
+from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines)
 from drums.proctable import ProcessTable
@@ -60,8 +60,8 @@ def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
 class _Made:
     """What one process's entries made at a collect, kept for the next while they stay the same."""
     seen: tuple  # (its exited threads' entry, its live threads' (tid, entry), its name)
-    rows: dict  # metric -> rows
-    held: list  # (key, value) it gave the Monotonic
+    rows: tuple  # its rows of each metric, in the probe's order
+    held: set  # its keys in the probe's highest values
     cpu: float  # its CPU seconds, for the process table
 
 
@@ -90,7 +90,10 @@ class SchedProbe(BpfProbe):
     def __init__(self, features, proctable: ProcessTable, **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
-        self._monotonic = Monotonic()
+        # The highest value each counter has had: a total is read as live threads plus exited ones
+        # from two maps one after the other, and a thread that exits between the two reads is in
+        # neither for that collect. Kept while its process lives.
+        self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
         self._renames_lost = 0
 
@@ -144,7 +147,7 @@ class SchedProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         """Rows are made again only for the processes whose entries changed since the last collect
         (a thread ran, came or went): on a host of a thousand processes most sleep between two."""
-        pt, m = self.proctable, self._monotonic
+        pt = self.proctable
         exited: dict[int, bytes] = {}
         keys, values, _ = self.read("exited_sched")
         size = _PROCESS_VALUE.size
@@ -157,6 +160,7 @@ class SchedProbe(BpfProbe):
                 # gone, so is its entry.
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
         threads: dict[int, list[tuple[int, bytes]]] = {}
+        hot = set()  # processes with a thread on a CPU now: its slice is estimated at each collect
         keys, values, _ = self.read("thread_sched")
         running = self._running()
         size = _THREAD_VALUE.size
@@ -165,36 +169,38 @@ class SchedProbe(BpfProbe):
             tgid = _U32.unpack_from(raw)[0]
             if pt.alive(tgid):
                 threads.setdefault(tgid, []).append((tid, raw))
-        rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
+                if tid in running:
+                    hot.add(tgid)
         made, self._made = self._made, {}
+        alive = threads.keys() | exited.keys()
+        for tgid in made.keys() - alive:  # ended: its highest values go with it
+            for key in made[tgid].held:
+                self._highest.pop(key, None)
         ran = {}
-        for tgid in threads.keys() | exited.keys():
+        for tgid in alive:
             live = threads.get(tgid, [])
             seen = (exited.get(tgid), live, pt.name(tgid))
-            process = made.get(tgid)
-            if process is None or process.seen != seen or not running.keys().isdisjoint(tid for tid, _ in live):
-                process = self._make(tgid, seen, running)
-            else:
-                m.carry(process.held)
+            process = before = made.get(tgid)
+            if before is None or before.seen != seen or tgid in hot:
+                process = self._make(tgid, seen, running, before)
             self._made[tgid] = process
             ran[tgid] = process.cpu
-            for metric, made_rows in process.rows.items():
-                rows[metric] += made_rows
-        for metric, metric_rows in rows.items():
-            if metric_rows:
-                snap.rows(metric).extend(metric_rows)
+        processes = self._made.values()
+        for i, metric in enumerate(self.metrics):
+            rows = [row for process in processes for row in process.rows[i]]
+            if rows:
+                snap.rows(metric).extend(rows)
         pt.ran(ran)
-        m.next_collect()
         self.read_dropped()
 
-    def _make(self, tgid: int, seen: tuple, running: dict[int, int]) -> _Made:
+    def _make(self, tgid: int, seen: tuple, running: dict[int, int], before: _Made | None) -> _Made:
         """The rows of one process and of its threads, from its entries in the two maps."""
         exited, live, name = seen
-        m, held = self._monotonic, []
+        top, held = self._highest, set()
 
-        def hold(key, value):  # the monotonic value, remembered for the collects that reuse the rows
-            value = m(key, value)
-            held.append((key, value))
+        def hold(key, value):  # never below what the key had
+            value = top[key] = highest(top.get(key), value)
+            held.add(key)
             return value
         totals = ProcessTotals()
         if exited is not None:
@@ -223,4 +229,6 @@ class SchedProbe(BpfProbe):
             rows[PROCESS_RUNQ].append((labels, hold((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits))))
             for kind, n in (("voluntary", vol), ("involuntary", invol)):
                 rows[PROCESS_SWITCHES].append((labels + (kind,), hold((PROCESS_SWITCHES, key, kind), n)))
-        return _Made(seen, {metric: r for metric, r in rows.items() if r}, held, cpu)
+        for key in before.held - held if before else ():  # threads that ended, a start that changed
+            top.pop(key, None)
+        return _Made(seen, tuple(rows[metric] for metric in self.metrics), held, cpu)
