@@ -142,9 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--own-netns", action="store_true",
                        help="monitor only processes in the agent's network namespace (one agent per "
                             "namespace or container standing for a host)")
-    # A socket's own series are six, with seven labels each: 100 of them are already 600 series a scrape.
-    # The rest still count in their process's rows and in the graph's edges.
-    for kind, default in (("processes", 100), ("threads", 200), ("sockets", 100), ("connections", 500)):
+    # A socket's own series are six, with seven labels each, a connection's five: 100 of either are
+    # already 500-600 series a scrape. The rest still count in their process's rows, the host's TCP
+    # counters and the graph's edges.
+    for kind, default in (("processes", 100), ("threads", 200), ("sockets", 100), ("connections", 100)):
         agent.add_argument(f"--max-{kind}", type=_positive, default=default,
                            help=f"{kind} with series of their own; the rest are summed as other "
                                 f"(default {default})")
