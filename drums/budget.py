@@ -19,7 +19,7 @@ from operator import itemgetter
 
 import numpy as np
 
-from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
+from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
 DIMENSIONS = {"protocol", "kind"}
@@ -83,6 +83,7 @@ class _Group:
         self.left: list = []  # and those that lost their last
         self._emitted: list = []  # the rows emit() gave last, and for which entities
         self._emitted_for: set | None = None
+        self.mark: int | None = None  # the probe's collect whose rows `last` holds, if it said
 
     def other_key(self, labels: tuple) -> tuple:
         dimvals = tuple([labels[i] for i in self.dims])
@@ -94,13 +95,25 @@ class _Group:
             key = self._other[dimvals] = (self.metrics, tuple(template))
         return key
 
-    def update(self, rows: list, grew: dict) -> tuple[list, set]:
+    def update(self, rows: list, grew: dict, told: Changes | None = None) -> tuple[list, set]:
         """Take this collect's rows: (rows that are new or changed, labels of rows that are gone).
-        What each entity's ranking counters grew by is added to grew[metric name][entity]."""
-        now, last, entity_of = dict(rows), self.last, self.entity_of
-        # An idle entity's row is often the very tuple of the last collect: `is` settles it.
-        changed = [(labels, values) for labels, values in now.items()
-                   if (was := last.get(labels)) is not values and was != values]
+        What each entity's ranking counters grew by is added to grew[metric name][entity]. `told`:
+        the same rows as changes, applied when they follow the collect `last` holds."""
+        last, entity_of = self.last, self.entity_of
+        if told is not None and told.since == self.mark:
+            now = None  # `last` is brought up to date in place below, once it has served as the old values
+            rows = dict(told.rows)
+            changed = [(labels, values) for labels, values in rows.items()
+                       if (was := last.get(labels)) is not values and was != values]
+            gone = {labels for labels in told.gone if labels in last}.difference(rows)
+        else:
+            now = dict(rows)
+            # An idle entity's row is often the very tuple of the last collect: `is` settles it.
+            changed = [(labels, values) for labels, values in now.items()
+                       if (was := last.get(labels)) is not values and was != values]
+            gone = last.keys() - now.keys()
+        self.mark = told.mark if told is not None else None
+        came_as = changed  # as they came: a single metric's value, a group's tuple
         if self.single:
             changed = [(labels, (value,)) for labels, value in changed]
         for i, name in self.rank:
@@ -111,7 +124,6 @@ class _Group:
                 if d > 0:
                     entity = entity_of(labels)
                     into[entity] = into.get(entity, 0.0) + d
-        gone = last.keys() - now.keys()
         rows_of = self.rows_of
         touched = self._touched = set()
         came, left = self.came, self.left = [], []
@@ -130,7 +142,12 @@ class _Group:
                     rows_of[entity] = set()
                     came.append(entity)
                 rows_of[entity].add(labels)
-        self.last = now
+        if now is None:
+            for labels in gone:
+                del last[labels]
+            last.update(came_as)
+        else:
+            self.last = now
         return changed, gone
 
     def values(self, labels: tuple, rows: dict | None = None) -> tuple | None:
@@ -195,10 +212,10 @@ class Budget:
             else:
                 by_kind[kind][metrics] = (rows, False)
         for kind, groups in by_kind.items():
-            self._apply_kind(self.kinds[kind], kind, groups, out)
+            self._apply_kind(self.kinds[kind], kind, groups, snap.changes, out)
         return out
 
-    def _apply_kind(self, st: _KindState, kind: str, groups: dict, out: Snapshot) -> None:
+    def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, out: Snapshot) -> None:
         # Ten thousand sockets pass here at each scrape, few of which did anything since the last:
         # only changed rows get per-row work, the rest is dict and set operations.
         seen = []  # (group, changed rows, labels gone)
@@ -206,7 +223,7 @@ class Budget:
         for metrics in groups.keys() | st.groups.keys():  # a group absent this time lost all its rows
             rows, single = groups.get(metrics, ([], False))
             g = st.groups.get(metrics) or st.groups.setdefault(metrics, _Group(metrics, kind, single))
-            changed, gone = g.update(rows, grew)
+            changed, gone = g.update(rows, grew, told.get(metrics))
             seen.append((g, changed, gone))
         new, ended = self._count_entities(st, [g for g, _, _ in seen])
         entities = st.entities.keys()

@@ -61,6 +61,17 @@ class Histogram:
         return out
 
 
+@dataclass
+class Changes:
+    """A probe's rows of one group (or one metric) told as what changed since its last collect,
+    beside the rows themselves: a consumer that holds the rows of collect `since` may apply these
+    instead of comparing every row. A probe says nothing (None) when it cannot tell."""
+    since: int  # the probe's collect these follow
+    mark: int  # this one
+    rows: list  # (labels, values) new or changed; maybe some that did not change
+    gone: list  # labels in collect `since` and no longer
+
+
 class Snapshot:
     """What the agent knows at one instant: metric -> [(label values, value)].
 
@@ -73,6 +84,7 @@ class Snapshot:
         self._series: dict[Metric, list[tuple[tuple[str, ...], object]]] = {}
         self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]]] = {}
         self.read_at: float | None = None  # time.time() when the probes were read, if known
+        self.changes: dict[tuple[Metric, ...], Changes] = {}  # by group (a metric alone: a group of one)
 
     @property
     def series(self) -> dict[Metric, list[tuple[tuple[str, ...], object]]]:

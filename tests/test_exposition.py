@@ -7,7 +7,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from drums import docs
 from drums.budget import Budget
 from drums.exporters.prometheus import Renderer, render
-from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Histogram, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Changes, Histogram, Metric, Snapshot
 
 CPU = Metric("drums_process_cpu_seconds_total", COUNTER, "cpu", ("pid", "process"))
 MEM = Metric("drums_process_resident_memory_bytes", GAUGE, "rss", ("pid", "process"))
@@ -168,6 +168,41 @@ def test_the_budget_gives_the_same_whether_an_idle_row_comes_as_the_last_object_
         for budget, given in ((reused, rows), (fresh, [(labels, tuple(values)) for labels, values in rows])):
             snap = Snapshot()
             snap.group_rows((SOCKET_SENT, SOCKET_RECEIVED)).extend(given)
+            outs.append({m.name: sorted(r) for m, r in budget.apply(snap).series.items()})
+        assert outs[0] == outs[1], step
+
+
+def test_a_budget_told_the_changes_gives_what_one_that_compares_every_row_gives():
+    """Sockets come, go, count on, are reused and renamed; one budget is told each collect's
+    changes (some collects are not told, or told against another collect than its last), the
+    other compares every row: both give the same series."""
+    rng = random.Random(7)
+    told, compared = Budget({"socket": 5}), Budget({"socket": 5})
+    rows: dict[tuple, tuple] = {}
+    group = (SOCKET_SENT, SOCKET_RECEIVED)
+    for step in range(150):
+        before = dict(rows)
+        for _ in range(rng.randint(0, 6)):
+            rows[("1", str(rng.randint(1, 40)), "tcp")] = (rng.randint(0, 9), rng.randint(0, 9))
+        for labels in list(rows):
+            roll = rng.random()
+            if roll < 0.08:
+                del rows[labels]
+            elif roll < 0.1:  # renamed: the same socket under other labels
+                rows[(rng.choice("123"), labels[1], "tcp")] = rows.pop(labels)
+            elif roll < 0.5:
+                rows[labels] = (rows[labels][0] + rng.randint(0, 99), rows[labels][1] + rng.randint(0, 9))
+        changed = [(labels, values) for labels, values in rows.items() if before.get(labels) != values]
+        changed += rng.sample(list(rows.items()), min(2, len(rows)))  # a probe may tell of rows that did not change
+        # and of a row as gone that it tells of again (a socket made anew under the same labels)
+        gone = [labels for labels in before if labels not in rows] + [labels for labels, _ in changed[:1]]
+        outs = []
+        for budget, changes in ((told, Changes(step - rng.choice((1, 1, 1, 1, 2)), step, changed, gone)),
+                                (compared, None)):
+            snap = Snapshot()
+            snap.group_rows(group).extend(rows.items())
+            if changes is not None and rng.random() < 0.9:
+                snap.changes[group] = changes
             outs.append({m.name: sorted(r) for m, r in budget.apply(snap).series.items()})
         assert outs[0] == outs[1], step
 

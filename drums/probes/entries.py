@@ -25,6 +25,7 @@ class Matched:
     # names the entry): the same thing, counted on
     same: np.ndarray  # (n,) bool: ... with the very same value
     rows: np.ndarray  # (n,) object: what the caller kept for the key at the previous read (None if new)
+    gone: np.ndarray  # object: what the caller kept for the keys of the previous read that are gone
 
 
 class Entries:
@@ -52,20 +53,21 @@ class Entries:
         rows = np.full(len(k), None, object)
         if not len(self._keys):
             new = np.zeros(len(k), bool)
-            return Matched(k, w, new, new, rows)
+            return Matched(k, w, new, new, rows, self._rows)
         at = np.minimum(np.searchsorted(self._keys, k), len(self._keys) - 1)
         known = self._keys[at] == k
         equal = self._words[at] == w
         same_head = known & equal[:, :self.head].all(axis=1)
         same = same_head & equal[:, self.head:].all(axis=1)
         rows[known] = self._rows[at[known]]
-        return Matched(k, w, same_head, same, rows)
+        return Matched(k, w, same_head, same, rows, self._rows[~np.isin(self._keys, k)])
 
     def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
         """The entries of the last read (as kept) with these changed: a key's value, or None if
         the key is gone. Matched as read() matches a whole map, at the cost of the changes."""
         keys, words, rows = self._keys, self._words, self._rows
         stays = ~np.isin(keys, np.frombuffer(b"".join(k for k, _ in changes), np.uint64))
+        gone = np.isin(keys, np.frombuffer(b"".join(k for k, v in changes if v is None), np.uint64))
         present = [(k, v) for k, v in changes if v is not None]
         new_keys = np.frombuffer(b"".join(k for k, _ in present), np.uint64)
         new_words = np.frombuffer(b"".join(v for _, v in present), np.uint64).reshape(len(present), self.width)
@@ -84,7 +86,7 @@ class Entries:
         order = np.argsort(k, kind="stable")
         return Matched(k[order], np.concatenate([words[stays], new_words])[order],
                        np.concatenate([kept, head])[order], np.concatenate([kept, value])[order],
-                       np.concatenate([rows[stays], new_rows])[order])
+                       np.concatenate([rows[stays], new_rows])[order], rows[gone])
 
     def __len__(self) -> int:
         return len(self._keys)

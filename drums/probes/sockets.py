@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, Metric, Monotonic, Snapshot
+from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
                               needs_fentry, needs_kprobes, needs_tracepoints, offset_defines)
@@ -132,6 +132,7 @@ class SocketsProbe(BpfProbe):
         self.proctable = proctable
         self.proc_net_unix = proc_net_unix
         self._monotonic = Monotonic()
+        self._collects = 0
         self._fds_read_at: dict[int, float] = {}
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)  # rows: each socket's row, as exported last
         self._traffic: Marked | None = None  # socket_traffic, read as far as it changed
@@ -151,6 +152,7 @@ class SocketsProbe(BpfProbe):
 
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
+        self._collects += 1  # first: a collect that fails is one the next cannot be told against
         if self._traffic is None or self._traffic.map is not self.opened["socket_traffic"]:
             self._traffic = Marked(*(self.opened[name] for name in ("socket_traffic", "generation")),
                                    (self.opened["changed_even"], self.opened["changed_odd"]))
@@ -184,7 +186,10 @@ class SocketsProbe(BpfProbe):
             if m.rows[i] is not None and m.rows[i][0][3] != paths.get(int(words[i, 0]), ""):
                 relabel[i] = True
         # An idle socket's row is the very one of the last collect; only the others are made again.
-        for i in np.flatnonzero(live & ~(m.same & ~relabel)).tolist():
+        remade = np.flatnonzero(live & ~(m.same & ~relabel)).tolist()
+        # What the last collect gave and this one does not: sockets gone, and old names.
+        gone = [row[0] for row in m.gone.tolist() + m.rows[stale].tolist() + m.rows[remade].tolist() if row]
+        for i in remade:
             counts = tuple(words[i, _WORDS_IDENTITY:_WORDS_COUNTS].tolist())
             if m.same_head[i] and not relabel[i]:
                 m.rows[i] = (m.rows[i][0], counts)  # the same socket, counted further
@@ -195,6 +200,7 @@ class SocketsProbe(BpfProbe):
             m.rows[i] = ((str(pid), self._names[pid], protocol, local, remote, str(netns), str(ino)), counts)
         self._entries.keep(m, live)
         snap.group_rows(SOCKET_GROUP).extend(m.rows[live].tolist())
+        snap.changes[SOCKET_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)
 
         totals = ProcessTotals()
         keys, values, _ = self.read("exited_traffic")

@@ -17,7 +17,7 @@ from drums.errors import KernelError
 from drums.kernel import sockdiag
 from drums.kernel.bpffs import sum_percpu
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, Changes, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
@@ -80,6 +80,8 @@ class TcpProbe(BpfProbe):
         self._rtt_at = float("-inf")
         self._carried: dict[tuple, tuple] = {}  # labels -> what closed connections with them counted
         self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)  # rows: (labels, counts)
+        self._collects = 0
+        self._told = False  # whether the last collect's rows are the entries' own (no sums)
         self._wanted: set[tuple[str, str]] | None = None
 
     def want_rtt(self, connections: set[tuple[str, str]]) -> None:
@@ -100,10 +102,13 @@ class TcpProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         """Rows are made again only for the connections whose entries changed since the last
         collect: of ten thousand, most did nothing."""
+        self._collects += 1  # first: a collect that fails is one the next cannot be told against
         keys, values, _ = self.read("tcp_conns")
         m = self._entries.read(keys, values)
         words = m.words
-        for i in np.flatnonzero(~m.same).tolist():
+        remade = np.flatnonzero(~m.same).tolist()
+        gone = [row[0] for row in m.gone.tolist() + m.rows[remade].tolist() if row]
+        for i in remade:
             counts = tuple(words[i, _HEAD_WORDS:].tolist())
             if m.same_head[i]:
                 m.rows[i] = (m.rows[i][0], counts)  # the same connection, counted further
@@ -112,8 +117,12 @@ class TcpProbe(BpfProbe):
             m.rows[i] = ((endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns)), counts)
         closed = (words[:, _STATE_WORD] >> _STATE_SHIFT & 0xFFFF) == TCP_CLOSE
         rows = m.rows.tolist()
-        if closed.any() or self._carried:
+        merged = closed.any() or self._carried
+        if merged:
             rows = self._merged(rows, closed)
+        elif self._told:  # as changes too, unless this collect or the last summed rows
+            snap.changes[CONN_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)
+        self._told = not merged
         snap.group_rows(CONN_GROUP).extend(rows)
         if closed.any():
             self.opened["tcp_conns"].delete_unchanged(

@@ -31,7 +31,7 @@ def test_entries_are_matched_by_key_head_and_value_and_keep_what_the_caller_made
     # caller's to make again
     m = e.read(*entries((10, 9, 5), (30, 1, 6)))
     assert m.same_head.tolist() == [False, True] and m.same.tolist() == [False, True]
-    assert m.rows.tolist() == ["a", "c"]
+    assert m.rows.tolist() == ["a", "c"] and m.gone.tolist() == [None, None]  # 20 and 40: kept, never made
 
 
 def test_an_empty_map_reads_as_nothing():
@@ -67,6 +67,7 @@ def test_changes_applied_to_the_last_read_match_as_a_whole_read_does():
         assert part.keys.tolist() == whole.keys.tolist(), step
         assert (part.words == whole.words).all() and part.same.tolist() == whole.same.tolist(), step
         assert part.same_head.tolist() == whole.same_head.tolist() and part.rows.tolist() == whole.rows.tolist()
+        assert sorted(part.gone.tolist()) == sorted(whole.gone.tolist()), step  # the rows of keys gone
         keep = np.array([rng.random() > 0.05 for _ in range(len(whole.keys))], bool)
         by_reads.keep(whole, keep)
         by_changes.keep(part, keep)
