@@ -9,7 +9,7 @@ import struct
 from dataclasses import dataclass
 
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot, highest
+from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines)
 from drums.proctable import ProcessTable
@@ -95,6 +95,7 @@ class SchedProbe(BpfProbe):
         # neither for that collect. Kept while its process lives.
         self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
+        self._collects = 0
         self._renames_lost = 0
 
     def offsets(self, btf: Btf) -> dict[str, int]:
@@ -148,6 +149,7 @@ class SchedProbe(BpfProbe):
         """Rows are made again only for the processes whose entries changed since the last collect
         (a thread ran, came or went): on a host of a thousand processes most sleep between two."""
         pt = self.proctable
+        self._collects += 1  # first: a collect that fails is one the next cannot be told against
         exited: dict[int, bytes] = {}
         keys, values, _ = self.read("exited_sched")
         size = _PROCESS_VALUE.size
@@ -173,16 +175,20 @@ class SchedProbe(BpfProbe):
                     hot.add(tgid)
         made, self._made = self._made, {}
         alive = threads.keys() | exited.keys()
-        for tgid in made.keys() - alive:  # ended: its highest values go with it
-            for key in made[tgid].held:
+        was = [made.pop(tgid) for tgid in made.keys() - alive]  # ended, and made again: their last rows
+        for ended in was:  # its highest values go with it
+            for key in ended.held:
                 self._highest.pop(key, None)
-        ran = {}
+        remade, ran = [], {}
         for tgid in alive:
             live = threads.get(tgid, [])
             seen = (exited.get(tgid), live, pt.name(tgid))
             process = before = made.get(tgid)
             if before is None or before.seen != seen or tgid in hot:
                 process = self._make(tgid, seen, running, before)
+                remade.append(process)
+                if before is not None:
+                    was.append(before)
             self._made[tgid] = process
             ran[tgid] = process.cpu
         processes = self._made.values()
@@ -190,6 +196,9 @@ class SchedProbe(BpfProbe):
             rows = [row for process in processes for row in process.rows[i]]
             if rows:
                 snap.rows(metric).extend(rows)
+            snap.changes[(metric,)] = Changes(self._collects - 1, self._collects,
+                                              [row for process in remade for row in process.rows[i]],
+                                              [labels for process in was for labels, _ in process.rows[i]])
         pt.ran(ran)
         self.read_dropped()
 

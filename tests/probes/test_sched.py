@@ -68,6 +68,23 @@ go.set()
 sys.stdin.read()
 '''
 
+# A thread says its tid and waits; on "go" it ends, and the child says so once the kernel has let it go.
+LEAVING_THREAD = r'''
+go = threading.Event()
+def worker():
+    say(tid=threading.get_native_id())
+    go.wait()
+t = threading.Thread(target=worker)
+t.start()
+sys.stdin.readline()
+go.set()
+t.join()
+while len(os.listdir("/proc/self/task")) > 1:
+    time.sleep(0.001)
+say(left=True)
+sys.stdin.read()
+'''
+
 # On "go", a thread burns argv[1] seconds of CPU and exits; once the kernel has released it, the child
 # says its tid and measured CPU. On each further line it says the CPU time and context switches of the
 # whole process (which include those of released threads) and of its main thread alone.
@@ -384,6 +401,39 @@ def test_a_collect_makes_again_only_the_rows_of_processes_whose_threads_ran(sche
     assert rows(before, sleeper.pid) and all(a is b for a, b in zip(rows(after, sleeper.pid), rows(before, sleeper.pid)))
     cpu = value(after, PROCESS_CPU, pid=burner.pid) - value(before, PROCESS_CPU, pid=burner.pid)
     assert 0.2 <= cpu and abs(cpu - (k_after - k_before) / 1e9) <= 1e-6, (cpu, k_after - k_before)
+
+
+def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sched_probe, collect, spawn):
+    """What the budget applies instead of comparing every row: per metric, the rows of the last
+    collect, less those told gone, with those told changed, are this collect's rows. Children
+    start, burn and end between collects."""
+    children = [spawn(BURN_IN_THREAD, 0.05) for _ in range(3)]
+    leaver = spawn(LEAVING_THREAD)
+    for child in children:
+        child.read()
+    tid = leaver.read()["tid"]
+    snap = collect(sched_probe)
+    assert series(snap, THREAD_CPU, tid=tid)
+    for step in range(7):
+        if step < 3:
+            children[step].go()
+            children[step].read()
+        elif step == 3:  # a thread ends, its process goes on
+            leaver.go()
+            leaver.read()
+            wait_until(lambda: tid not in thread_entries(sched_probe), "the thread's entry gone", timeout=FREED_WITHIN)
+        else:
+            children[step - 4].end()
+        before = {metric: (dict(snap.of(metric)), snap.changes[(metric,)].mark) for metric in sched_probe.metrics}
+        snap = collect(sched_probe)
+        for metric, (rows, mark) in before.items():
+            told = snap.changes[(metric,)]
+            assert told.since == mark
+            for labels in told.gone:
+                rows.pop(labels, None)
+            rows.update(told.rows)
+            assert rows == dict(snap.of(metric)), (step, metric.name)
+    assert not series(snap, THREAD_CPU, tid=tid)
 
 
 def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spawn):
