@@ -8,10 +8,13 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+import numpy as np
+
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines)
+from drums.probes.entries import Entries
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -59,7 +62,7 @@ def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
 @dataclass
 class _Made:
     """What one process's entries made at a collect, kept for the next while they stay the same."""
-    seen: tuple  # (its exited threads' entry, its live threads' (tid, entry), its name)
+    seen: tuple  # (its exited threads' entry, its name)
     rows: tuple  # its rows of each metric, in the probe's order
     held: set  # its keys in the probe's highest values
     cpu: float  # its CPU seconds, for the process table
@@ -95,6 +98,7 @@ class SchedProbe(BpfProbe):
         # neither for that collect. Kept while its process lives.
         self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
+        self._threads = Entries(_THREAD_VALUE.size, 0)  # rows: each thread's tgid
         self._collects = 0
         self._renames_lost = 0
 
@@ -161,34 +165,45 @@ class SchedProbe(BpfProbe):
                 # of one of its threads may come after it and fold into a new one: the process is
                 # gone, so is its entry.
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
-        threads: dict[int, list[tuple[int, bytes]]] = {}
-        hot = set()  # processes with a thread on a CPU now: its slice is estimated at each collect
         keys, values, _ = self.read("thread_sched")
         running = self._running()
-        size = _THREAD_VALUE.size
-        for i, (tid,) in enumerate(_U32.iter_unpack(keys)):
-            raw = values[i * size:(i + 1) * size]
-            tgid = _U32.unpack_from(raw)[0]
-            if pt.alive(tgid):
-                threads.setdefault(tgid, []).append((tid, raw))
-                if tid in running:
-                    hot.add(tgid)
+        # The thread entries matched against the last read in bulk: only processes with a thread
+        # new, changed, gone or on a CPU now are made again.
+        m = self._threads.read(np.frombuffer(keys, np.uint32).astype(np.uint64).tobytes(), values)
+        tgids = m.words[:, 0] & 0xFFFFFFFF
+        dirty = set(tgids[~m.same].tolist())
+        dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)
+        if running:
+            tids = np.fromiter(running, np.uint64, len(running))
+            at = np.minimum(np.searchsorted(m.keys, tids), max(len(m.keys) - 1, 0))
+            dirty.update(tgids[at[m.keys[at] == tids]].tolist() if len(m.keys) else ())
+        m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
+        self._threads.keep(m, np.ones(len(m.keys), bool))
         made, self._made = self._made, {}
-        alive = threads.keys() | exited.keys()
+        alive = {tgid for tgid in np.unique(tgids).tolist() if pt.alive(tgid)} | exited.keys()
         was = [made.pop(tgid) for tgid in made.keys() - alive]  # ended, and made again: their last rows
         for ended in was:  # its highest values go with it
             for key in ended.held:
                 self._highest.pop(key, None)
-        remade, ran = [], {}
+        ran, again = {}, {}
         for tgid in alive:
-            live = threads.get(tgid, [])
-            seen = (exited.get(tgid), live, pt.name(tgid))
-            process = before = made.get(tgid)
-            if before is None or before.seen != seen or tgid in hot:
-                process = self._make(tgid, seen, running, before)
-                remade.append(process)
-                if before is not None:
-                    was.append(before)
+            seen = (exited.get(tgid), pt.name(tgid))
+            before = made.get(tgid)
+            if before is None or tgid in dirty or before.seen != seen:
+                again[tgid] = seen
+            else:
+                self._made[tgid] = before
+                ran[tgid] = before.cpu
+        threads: dict[int, list[tuple[int, bytes]]] = {tgid: [] for tgid in again}
+        for i in np.flatnonzero(np.isin(tgids, np.fromiter(again, np.uint64, len(again)))).tolist():
+            threads[int(tgids[i])].append((int(m.keys[i]), m.words[i].tobytes()))
+        remade = []
+        for tgid, seen in again.items():
+            before = made.get(tgid)
+            process = self._make(tgid, seen, threads[tgid], running, before)
+            remade.append(process)
+            if before is not None:
+                was.append(before)
             self._made[tgid] = process
             ran[tgid] = process.cpu
         processes = self._made.values()
@@ -202,9 +217,10 @@ class SchedProbe(BpfProbe):
         pt.ran(ran)
         self.read_dropped()
 
-    def _make(self, tgid: int, seen: tuple, running: dict[int, int], before: _Made | None) -> _Made:
+    def _make(self, tgid: int, seen: tuple, live: list[tuple[int, bytes]], running: dict[int, int],
+              before: _Made | None) -> _Made:
         """The rows of one process and of its threads, from its entries in the two maps."""
-        exited, live, name = seen
+        exited, name = seen
         top, held = self._highest, set()
 
         def hold(key, value):  # never below what the key had
