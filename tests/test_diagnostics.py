@@ -22,6 +22,7 @@ import psutil
 import pytest
 
 from tests.agentproc import running_agent, scrape
+from tests.conftest import ros_domain_id
 
 INTERVAL = 0.5
 CONFIG = f"""
@@ -67,8 +68,8 @@ class Role:
 
 @pytest.fixture(scope="module")
 def ros_domain():
-    """A DDS domain of this session's own, apart from the graph tests' (1 + PID % 100)."""
-    env = {"ROS_DOMAIN_ID": str(1 + (os.getpid() + 50) % 100), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    """A DDS domain of this session's own, apart from the graph tests'."""
+    env = {"ROS_DOMAIN_ID": str(ros_domain_id(2)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     old = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     yield

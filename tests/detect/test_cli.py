@@ -17,6 +17,7 @@ from contextlib import contextmanager
 import pytest
 
 from tests.agentproc import running_agent
+from tests.conftest import ros_domain_id
 from tests.deploy.promproc import running_prometheus
 
 pytestmark = pytest.mark.lane2  # a minute and a half of its own: make test runs it in a lane beside the rest
@@ -27,7 +28,7 @@ BURST = 4 << 20  # bytes a second after
 
 
 # A DDS domain of this module's own, apart from the graph tests' and /diagnostics' domains.
-ROS_ENV = {**os.environ, "ROS_DOMAIN_ID": str(1 + (os.getpid() + 25) % 100), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+ROS_ENV = {**os.environ, "ROS_DOMAIN_ID": str(ros_domain_id(1)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 LISTENER = r"""
 import json, sys, threading, rclpy
 from diagnostic_msgs.msg import DiagnosticArray

@@ -12,14 +12,14 @@ import pytest
 from drums.graph.adapter import Follower
 from drums.graph.model import Graph
 from drums.graph.ros2 import Ros2Adapter
+from tests.conftest import ros_domain_id
 
 NODES = os.path.join(os.path.dirname(__file__), "rosnodes.py")
 
 
 @pytest.fixture(scope="session", autouse=True)
 def ros_domain():
-    # Domain ids 0-101 are safe for any host; a session picks one by its PID.
-    os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
+    os.environ["ROS_DOMAIN_ID"] = str(ros_domain_id())
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
