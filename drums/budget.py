@@ -104,10 +104,10 @@ class _Group:
         last, entity_of = self.last, self.entity_of
         if told is not None and told.since == self.mark:
             now = None  # `last` is brought up to date in place below, once it has served as the old values
-            rows = dict(told.rows)
-            changed = [(labels, values) for labels, values in rows.items()
+            told_rows = dict(told.rows)  # `rows` (all of them) go unread
+            changed = [(labels, values) for labels, values in told_rows.items()
                        if (was := last.get(labels)) is not values and was != values]
-            gone = {labels for labels in told.gone if labels in last}.difference(rows)
+            gone = {labels for labels in told.gone if labels in last}.difference(told_rows)
         else:
             now = dict(rows)
             # An idle entity's row is often the very tuple of the last collect: `is` settles it.
