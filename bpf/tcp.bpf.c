@@ -19,6 +19,7 @@ struct tcp_conn_t {
     u64 state_changes;
     u64 resets_sent;
     u64 resets_received;
+    u64 marked;       // the generation in which the connection was last marked changed (see below)
 };
 
 // Host-wide totals: never deleted, so they never go backwards when connections close.
@@ -50,6 +51,33 @@ static __always_inline void count_drop(int which)
 static __always_inline void read_identity(struct tcp_conn_t *c, u64 sk)
 {
     read_endpoints(sk, &c->family, &c->netns, &c->lport, &c->rport, c->laddr, c->raddr);
+}
+
+// Which connections changed since the agent last read them, so that a scrape reads those and not
+// the ten thousand that sat idle: as in bpf/sockets.bpf.c (a connection is marked once per
+// generation, in the set of the generation's parity, while the agent empties the other).
+// [0]: the generation; [1]: marks lost to a full set (the agent then reads the map whole).
+BPF_ARRAY(generation, u64, 2);
+BPF_HASH(changed_even, u64, u8, 16384);
+BPF_HASH(changed_odd, u64, u8, 16384);
+
+static __always_inline void mark_changed(u64 sk, struct tcp_conn_t *c)
+{
+    int zero = 0;
+    u64 *g = generation.lookup(&zero);
+    if (!g || (c && c->marked == *g + 1))
+        return;
+    u64 gen = *g;
+    if (c)
+        c->marked = gen + 1;  // + 1: an entry made with marked 0 is not yet marked in generation 0
+    u8 yes = 1;
+    int err = gen & 1 ? changed_odd.update(&sk, &yes) : changed_even.update(&sk, &yes);
+    if (err) {
+        int lost = 1;
+        u64 *n = generation.lookup(&lost);
+        if (n)
+            __sync_fetch_and_add(n, 1);
+    }
 }
 
 static __always_inline struct tcp_conn_t *conn_entry(u64 sk)
@@ -94,9 +122,12 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
         if (next) {
             u64 moved = (__sync_fetch_and_add(next, 1) << 1) | 1;
             struct tcp_conn_t closed = *c;
-            tcp_conns.update(&moved, &closed);
+            closed.marked = 0;
+            if (tcp_conns.update(&moved, &closed) == 0)
+                mark_changed(moved, 0);
         }
         tcp_conns.delete(&sk);
+        mark_changed(sk, 0);  // whether or not a fresh entry takes its place
         c = 0;
     }
     if (!c) {
@@ -112,6 +143,7 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
         read_identity(c, sk);
     c->state = newstate;
     __sync_fetch_and_add(&c->state_changes, 1);
+    mark_changed(sk, c);
     return 0;
 }
 
@@ -142,6 +174,8 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
         if (c)
             c->retransmits = total;
     }
+    if (c)
+        mark_changed(sk, c);
     struct tcp_totals_t *tot = totals();
     if (tot)
         tot->retransmits += moved;
@@ -160,8 +194,10 @@ static __always_inline void count_reset(u64 sk, int sent)
     if (!sk)
         return;  // a reset answering a segment for no socket
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
-    if (c)
+    if (c) {
         __sync_fetch_and_add(sent ? &c->resets_sent : &c->resets_received, 1);
+        mark_changed(sk, c);
+    }
 }
 
 // tcp:tcp_send_reset (sk, skb[, reason])

@@ -41,8 +41,9 @@ def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") ->
 class Renderer:
     """Renders snapshots, remembering each family's rows and text: from one scrape to the next most
     families are the same (their rows compare equal, at C speed), and their text is taken as it
-    was. In a family that changed, each series' line is remembered with its value, and only the
-    lines whose value changed are written again. What a render did not use is forgotten."""
+    was. In a family that changed, each series' text (a line, or a histogram's buckets, sum and
+    count) is remembered with its value, and only that of series whose value changed is written
+    again. What a render did not use is forgotten."""
 
     def __init__(self):
         self._families: dict[Metric, tuple[list, str]] = {}  # metric -> (its rows, their text)
@@ -80,19 +81,24 @@ def _family(metric: Metric, rows, known: dict, kept: dict) -> str:
     name, names = metric.name, metric.labels
     if metric.kind == HISTOGRAM:
         bounds = ['le="' + _number(b) + '"' for b in metric.buckets]
-        for values, h in rows:
-            own = bounds if h.bounds is None else ['le="' + _number(b) + '"' for b in h.bounds]
-            for bound, count in zip(own, h.cumulative):
-                lines.append(f"{name}_bucket{_labels(names, values, bound)} {count}\n")
-            lines.append(f"{name}_bucket{_labels(names, values, _INF)} {h.count}\n")
-            lines.append(f"{name}_sum{_labels(names, values)} {_number(h.sum)}\n")
-            lines.append(f"{name}_count{_labels(names, values)} {h.count}\n")
-    else:
-        for values, v in rows:
-            last = known.get(values)
-            if last is None or last[0] != v:  # (a value equal to the last, 2.0 after 2, is written as it was)
+    for values, v in rows:
+        last = known.get(values)
+        if last is None or last[0] != v:  # (a value equal to the last, 2.0 after 2, is written as it was)
+            if metric.kind == HISTOGRAM:
+                last = (v, _histogram(name, names, values, v, bounds))
+            else:
                 line = last[1][:last[1].rindex(" ") + 1] if last else f"{name}{_labels(names, values)} "
                 last = (v, f"{line}{_number(v)}\n")
-            kept[values] = last
-            lines.append(last[1])
+        kept[values] = last
+        lines.append(last[1])
+    return "".join(lines)
+
+
+def _histogram(name: str, names: tuple[str, ...], values: tuple[str, ...], h, bounds: list[str]) -> str:
+    """The lines of one histogram series: its buckets, sum and count."""
+    own = bounds if h.bounds is None else ['le="' + _number(b) + '"' for b in h.bounds]
+    lines = [f"{name}_bucket{_labels(names, values, bound)} {count}\n" for bound, count in zip(own, h.cumulative)]
+    lines.append(f"{name}_bucket{_labels(names, values, _INF)} {h.count}\n")
+    lines.append(f"{name}_sum{_labels(names, values)} {_number(h.sum)}\n")
+    lines.append(f"{name}_count{_labels(names, values)} {h.count}\n")
     return "".join(lines)

@@ -96,14 +96,6 @@ INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
 GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
 
 
-def _by_pid(raw: Snapshot, metric: Metric) -> dict[str, list[tuple[tuple[str, ...], object]]]:
-    """The metric's rows by their pid label (the first label of every per-process metric)."""
-    out = defaultdict(list)
-    for labels, value in raw.of(metric):
-        out[labels[0]].append((labels, value))
-    return out
-
-
 def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connection], raw: Snapshot,
          out: Snapshot) -> None:
     """Add the graph's metrics to `out`, computed from the probes' rows in `raw`."""
@@ -114,12 +106,13 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     pid_of = {n.name: str(n.pid) for n in nodes if n.pid is not None}
 
     def per_node(metric: Metric, source: Metric, extra_labels: int = 0):
-        for pid, rows in _by_pid(raw, source).items():
-            for name in by_pid.get(pid, ()):
-                for labels, value in rows:
-                    out.add(metric, (name,) + tuple(labels[len(labels) - extra_labels:]), value)
+        # A host's thousand processes pass here, a few of which hold nodes: a lookup each.
+        rows = [((name,) + tuple(labels[len(labels) - extra_labels:]), value)
+                for labels, value in raw.of(source) for name in by_pid.get(labels[0], ())]
+        if rows:
+            out.rows(metric).extend(rows)
 
-    names = {pid: rows[0][0][1] for pid, rows in _by_pid(raw, process.RESIDENT_MEMORY).items()}
+    names = {labels[0]: labels[1] for labels, _ in raw.of(process.RESIDENT_MEMORY) if labels[0] in by_pid}
     for n in nodes:
         pid = pid_of.get(n.name, "")
         out.add(NODE_INFO, (n.name, pid, names.get(pid, ""), n.mapped_by, str(len(by_pid.get(pid, ())))), 1)

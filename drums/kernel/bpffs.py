@@ -19,6 +19,7 @@ BPFFS = "/sys/fs/bpf"
 PIN_ROOT = os.path.join(BPFFS, "drums")
 PERCPU_TYPES = {5, 6, 10}  # BPF_MAP_TYPE_PERCPU_HASH, PERCPU_ARRAY, LRU_PERCPU_HASH
 ARRAY_TYPES = {2, 6}  # BPF_MAP_TYPE_ARRAY, PERCPU_ARRAY
+LRU_TYPES = {9, 10}  # BPF_MAP_TYPE_LRU_HASH, LRU_PERCPU_HASH: the kernel evicts entries from them
 _BATCH = 4096  # entries of one batch read at most
 _BATCH_BYTES = 1 << 18  # and this many bytes of values: a buffer for 4,096 of 8 KiB each would be 32 MiB
 # What bpf_map_lookup_batch fails with where the map type or kernel has no batch operations.

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drums.kernel.bpffs import PinnedMap
+from drums.kernel.bpffs import LRU_TYPES, PinnedMap
 
 
 @dataclass
@@ -114,7 +114,9 @@ class Marked:
     count into or delete, once per generation, in one of two sets (by the generation's parity);
     a read moves the generation on, takes the set of the one before and looks up those keys only
     (a lookup costs about four times what an entry of a whole read does, so past an eighth of the
-    entries the map is read whole). Ten thousand idle sockets cost a scrape three small calls."""
+    entries the map is read whole). Ten thousand idle sockets cost a scrape three small calls.
+    An LRU map evicts its oldest entries, unmarked, to make room once it is nearly full: past half
+    full it is read whole."""
 
     WHOLE_ABOVE = 8  # read whole when more than 1/WHOLE_ABOVE of the entries were marked
 
@@ -131,7 +133,8 @@ class Marked:
         marked, _, n = self._marks[gen & 1].read(delete=True)
         # Whole: at first, when marks were lost to a full set, or when the generation is not the
         # one this reader left (another reader of the pins moved it).
-        whole = (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)
+        whole = ((gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)
+                 or (self.map.type in LRU_TYPES and 2 * known > self.map.max_entries))
         self._gen, self._lost = gen + 1, lost
         if whole:
             self.whole_reads += 1

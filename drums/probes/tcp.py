@@ -21,7 +21,7 @@ from drums.metrics import COUNTER, GAUGE, Changes, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
-from drums.probes.entries import Entries
+from drums.probes.entries import Entries, Marked
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
@@ -47,8 +47,9 @@ STATE_ENTERED = Metric("drums_tcp_state_transitions_total", COUNTER,
                        "TCP connections entering each state", ("state",))
 
 _CONN_HEAD = struct.Struct("<IHHHH16s16s4x")  # what names a connection (and its state)
-_CONN_VALUE = struct.Struct(_CONN_HEAD.format + "4Q")  # then what it counted
+_CONN_VALUE = struct.Struct(_CONN_HEAD.format + "4QQ")  # then what it counted, and the generation marked in
 _HEAD_WORDS = _CONN_HEAD.size // 8
+_COUNT_WORDS = _HEAD_WORDS + 4  # the end of the counts
 _STATE_WORD, _STATE_SHIFT = 1, 16  # the state's 8-byte word and bit offset in a value
 ESTABLISHED, TCP_CLOSE = 1, 7
 # Reading tcp_info costs a netlink round trip per connection (a dump of every established one,
@@ -62,7 +63,7 @@ EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_re
 class TcpProbe(BpfProbe):
     name = "tcp"
     source = "tcp.bpf.c"
-    maps = ("tcp_conns", "tcp_totals", "closed_seq", "dropped")
+    maps = ("tcp_conns", "tcp_totals", "closed_seq", "dropped", "generation", "changed_even", "changed_odd")
     metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_RESETS_RECEIVED, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
                RESETS_RECEIVED, STATE_ENTERED)
     paths = (
@@ -80,6 +81,7 @@ class TcpProbe(BpfProbe):
         self._rtt_at = float("-inf")
         self._carried: dict[tuple, tuple] = {}  # labels -> what closed connections with them counted
         self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)  # rows: (labels, counts)
+        self._conns: Marked | None = None  # tcp_conns, read as far as it changed
         self._collects = 0
         self._told = False  # whether the last collect's rows are the entries' own (no sums)
         self._wanted: set[tuple[str, str]] | None = None
@@ -103,13 +105,17 @@ class TcpProbe(BpfProbe):
         """Rows are made again only for the connections whose entries changed since the last
         collect: of ten thousand, most did nothing."""
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
-        keys, values, _ = self.read("tcp_conns")
-        m = self._entries.read(keys, values)
+        if self._conns is None or self._conns.map is not self.opened["tcp_conns"]:
+            self._conns = Marked(*(self.opened[name] for name in ("tcp_conns", "generation")),
+                                 (self.opened["changed_even"], self.opened["changed_odd"]))
+        got = self._conns.read(len(self._entries))
+        m = self._entries.read(*got[:2]) if isinstance(got, tuple) else self._entries.update(got)
+        self.status.map_fill["tcp_conns"] = len(m.keys) / self._conns.map.max_entries
         words = m.words
         remade = np.flatnonzero(~m.same).tolist()
         gone = [row[0] for row in m.gone.tolist() + m.rows[remade].tolist() if row]
         for i in remade:
-            counts = tuple(words[i, _HEAD_WORDS:].tolist())
+            counts = tuple(words[i, _HEAD_WORDS:_COUNT_WORDS].tolist())
             if m.same_head[i]:
                 m.rows[i] = (m.rows[i][0], counts)  # the same connection, counted further
                 continue
@@ -125,7 +131,7 @@ class TcpProbe(BpfProbe):
         self._told = not merged
         snap.group_rows(CONN_GROUP).extend(rows)
         if closed.any():
-            self.opened["tcp_conns"].delete_unchanged(
+            self._conns.map.delete_unchanged(  # one that changed instead comes back marked
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])
         self._entries.keep(m, ~closed)  # one not deleted (it counted on meanwhile) comes back as new
         _, values, _ = self.read("tcp_totals")

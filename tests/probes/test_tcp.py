@@ -215,6 +215,52 @@ def test_a_collect_makes_rows_again_only_for_the_connections_whose_entries_chang
             assert row(collect(tcp_probe).group_rows(CONN_GROUP), busy_key) is None
 
 
+def test_a_collect_looks_up_the_connections_that_changed_and_keeps_the_idle_ones(tcp_probe, collect):
+    """bpf/tcp.bpf.c marks each connection it counts into or moves; a collect looks up those, and
+    the rows of the idle ones stand as they were. 300 connections sit idle; step after step one is
+    reset: its two ends' rows are exported once with the reset and the close, then forgotten, and
+    every other row is the very one of the first collect. Other tests' TCP traffic may tip a
+    collect into reading the map whole, so steps are taken until enough of them were looked up."""
+    with tcp_listener() as lst:
+        pairs = []
+        for _ in range(300):
+            client = socket.create_connection(lst.getsockname())
+            pairs.append((client, lst.accept()[0]))
+    try:
+        def ours(rows) -> dict:
+            return {labels: row for row in rows if (labels := row[0]) in keys}
+        keys = {(name(s.getsockname()), name(s.getpeername()), NETNS) for pair in pairs for s in pair}
+        first = {}
+        eventually(lambda: first.update(ours(collect(tcp_probe).group_rows(CONN_GROUP))) or len(first) == 600,
+                   timeout=5)
+        conns, looked_up = tcp_probe._conns, 0
+        for step in range(60):
+            client, server = pairs[step]
+            ends = {(name(s.getsockname()), name(s.getpeername()), NETNS): moved
+                    for s, moved in ((client, (0, 1, 1, 0)), (server, (0, 1, 0, 1)))}
+            whole = conns.whole_reads
+            abort(client)
+            rows = {}
+
+            def exported() -> bool:  # the peer's reset arrives in the same softirq, as a rule
+                rows.update(ours(collect(tcp_probe).group_rows(CONN_GROUP)))
+                return all(rows.get(k, (k, None))[1] != first[k][1] for k in ends)
+            eventually(exported, timeout=5)
+            for key, moved in ends.items():
+                assert rows.pop(key)[1] == tuple(a + b for a, b in zip(first[key][1], moved))
+                del first[key]
+            assert rows.keys() == first.keys(), step  # the closed ones of earlier steps are forgotten
+            assert all(row is first[key] for key, row in rows.items())  # nothing made again
+            looked_up += conns.whole_reads == whole
+            if looked_up >= 20:
+                break
+        assert looked_up >= 20
+    finally:
+        for pair in pairs:
+            for sock in pair:
+                sock.close()
+
+
 # ---- RTT ----------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("asked", [False, True], ids=["every-connection", "asked-for"])
