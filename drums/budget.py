@@ -80,10 +80,11 @@ class _Group:
         self.rows_of: dict = {}  # entity -> labels of its rows
         self.folded: dict = {}  # labels -> the values of that row summed into `other` so far
         self._other: dict = {}  # dimension values -> (metrics, labels of the `other` row)
-        self._touched: set = set()  # entities with rows new, changed or gone at this collect
+        self._changed: list = []  # rows new or changed at this collect, as they came
+        self._gone: set = set()  # and labels of rows gone
         self.came: list = []  # entities that got their first row in the group at this collect
         self.left: list = []  # and those that lost their last
-        self._emitted: list = []  # the rows emit() gave last, and for which entities
+        self._emitted: dict = {}  # labels -> values as they came: the rows emit() gave last, and for which entities
         self._emitted_for: set | None = None
         self.mark: int | None = None  # the probe's collect whose rows `last` holds, if it said
 
@@ -115,7 +116,8 @@ class _Group:
                        if (was := last.get(labels)) is not values and was != values]
             gone = last.keys() - now.keys()
         self.mark = told.mark if told is not None else None
-        came_as = changed  # as they came: a single metric's value, a group's tuple
+        came_as = self._changed = changed  # as they came: a single metric's value, a group's tuple
+        self._gone = gone
         if self.single:
             changed = [(labels, (value,)) for labels, value in changed]
         for i, name in self.rank:
@@ -127,19 +129,16 @@ class _Group:
                     entity = entity_of(labels)
                     into[entity] = into.get(entity, 0.0) + d
         rows_of = self.rows_of
-        touched = self._touched = set()
         came, left = self.came, self.left = [], []
         for labels in gone:
             entity = entity_of(labels)
-            touched.add(entity)
             rows_of[entity].discard(labels)
             if not rows_of[entity]:
                 del rows_of[entity]
                 left.append(entity)
         for labels, _ in changed:
-            entity = entity_of(labels)
-            touched.add(entity)
             if labels not in last:
+                entity = entity_of(labels)
                 if entity not in rows_of:
                     rows_of[entity] = set()
                     came.append(entity)
@@ -158,13 +157,20 @@ class _Group:
         return (values,) if self.single and values is not None else values
 
     def emit(self, out: Snapshot, entities: set) -> None:
-        """The rows of these entities, as they came: those of the last collect when neither the
-        entities nor their rows changed (on an idle host, most collects)."""
-        if entities != self._emitted_for or not self._touched.isdisjoint(entities):
+        """The rows of these entities, as they came: those of the last emit brought up to date with
+        this collect's changes, or made anew when the entities are not those of the last or when
+        more rows changed than are emitted (the changes of entities not kept are passed over)."""
+        emitted = self._emitted
+        if entities != self._emitted_for or len(self._changed) + len(self._gone) > len(emitted):
             last, rows_of = self.last, self.rows_of
-            self._emitted = [(labels, last[labels]) for entity in entities for labels in rows_of.get(entity, ())]
+            emitted = self._emitted = {labels: last[labels] for entity in entities for labels in rows_of.get(entity, ())}
             self._emitted_for = set(entities)
-        (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(self._emitted)
+        else:
+            entity_of = self.entity_of
+            for labels in self._gone:
+                emitted.pop(labels, None)
+            emitted.update((labels, values) for labels, values in self._changed if entity_of(labels) in entities)
+        (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(emitted.items())
 
 
 @dataclass

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import os
 import signal
@@ -332,6 +333,12 @@ def run_agent(args) -> int:
         agent.start(strict=args.strict)
         follower.start(wait=args.strict)  # without --strict a graph that fails is logged and marked stale
         features.release_btf()
+        # What startup made (modules, probes, the graph) lives as long as the agent: frozen out of
+        # the collector's scans. A scrape makes and drops tens of thousands of rows, freed by their
+        # reference counts; at the default threshold (700) the collector ran twice a scrape at
+        # 1,000 processes, rescanning the rows in flight: 2 ms of a 25 ms scrape.
+        gc.freeze()
+        gc.set_threshold(10_000, 10, 10)
         server.start()
         jobs.start()
         if diagnostics:
