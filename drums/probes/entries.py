@@ -71,30 +71,42 @@ class Entries:
         return Matched(k, w, same_head, same, rows, self._rows[~_within(self._keys, k)])
 
     def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
-        """The entries of the last read (as kept) with these changed: a key's value, or None if
-        the key is gone. Matched as read() matches a whole map, at the cost of the changes."""
+        """The entries of the last read (as kept) with these changes: a key's value, or None if the
+        key is gone; each key at most once. Matched as read() matches a whole map, at the cost of
+        the changes: values are written in place, and the arrays are copied only when keys come
+        or go."""
         keys, words, rows = self._keys, self._words, self._rows
-        stays = ~_within(keys, np.sort(np.frombuffer(b"".join(k for k, _ in changes), np.uint64)))
-        gone = _within(keys, np.sort(np.frombuffer(b"".join(k for k, v in changes if v is None), np.uint64)))
-        present = [(k, v) for k, v in changes if v is not None]
-        new_keys = np.frombuffer(b"".join(k for k, _ in present), np.uint64)
-        new_words = np.frombuffer(b"".join(v for _, v in present), np.uint64).reshape(len(present), self.width)
-        # The changed entries matched against the last read, as read() matches every entry.
-        new_rows = np.full(len(new_keys), None, object)
-        head = value = np.zeros(len(new_keys), bool)
-        if len(keys):
-            at = np.minimum(np.searchsorted(keys, new_keys), len(keys) - 1)
-            known = keys[at] == new_keys
-            equal = words[at] == new_words
-            head = known & equal[:, :self.head].all(axis=1)
-            value = head & equal[:, self.head:].all(axis=1)
-            new_rows[known] = rows[at[known]]
-        kept = np.ones(int(stays.sum()), bool)  # the entries not changed: the same as last time
-        k = np.concatenate([keys[stays], new_keys])
-        order = np.argsort(k, kind="stable")
-        return Matched(k[order], np.concatenate([words[stays], new_words])[order],
-                       np.concatenate([kept, head])[order], np.concatenate([kept, value])[order],
-                       np.concatenate([rows[stays], new_rows])[order], rows[gone])
+        if not words.flags.writeable:
+            words = words.copy()
+        changed = np.frombuffer(b"".join(k for k, _ in changes), np.uint64)
+        present = np.fromiter((v is not None for _, v in changes), bool, len(changes))
+        values = np.frombuffer(b"".join(v for _, v in changes if v is not None), np.uint64).reshape(-1, self.width)
+        at = np.searchsorted(keys, changed)
+        known = np.zeros(len(changed), bool)
+        inside = at < len(keys)
+        known[inside] = keys[at[inside]] == changed[inside]
+        same_head, same = np.ones(len(keys), bool), np.ones(len(keys), bool)
+        counted = known & present  # a key of the last read, with a value now: compared, then written
+        if counted.any():
+            pos, now = at[counted], values[counted[present]]
+            equal = words[pos] == now
+            same_head[pos] = equal[:, :self.head].all(axis=1)
+            same[pos] = same_head[pos] & equal[:, self.head:].all(axis=1)
+            words[pos] = now
+        ended, new = known & ~present, ~known & present
+        gone = rows[at[ended]]
+        if ended.any():
+            stays = np.ones(len(keys), bool)
+            stays[at[ended]] = False
+            keys, words, rows, same_head, same = (a[stays] for a in (keys, words, rows, same_head, same))
+        if new.any():
+            order = np.argsort(changed[new])
+            new_keys, new_words = changed[new][order], values[new[present]][order]
+            pos = np.searchsorted(keys, new_keys)
+            keys, words = np.insert(keys, pos, new_keys), np.insert(words, pos, new_words, axis=0)
+            rows = np.insert(rows, pos, None)
+            same_head, same = np.insert(same_head, pos, False), np.insert(same, pos, False)
+        return Matched(keys, words, same_head, same, rows, gone)
 
     def __len__(self) -> int:
         return len(self._keys)
@@ -102,7 +114,10 @@ class Entries:
     def keep(self, matched: Matched, mask: np.ndarray) -> None:
         """What the next read is matched against: the entries of `matched` under `mask`, with the
         rows the caller put in matched.rows."""
-        self._keys, self._words, self._rows = matched.keys[mask], matched.words[mask], matched.rows[mask]
+        if mask.all():  # as a rule: no copies
+            self._keys, self._words, self._rows = matched.keys, matched.words, matched.rows
+        else:
+            self._keys, self._words, self._rows = matched.keys[mask], matched.words[mask], matched.rows[mask]
 
 
 _GENERATION = struct.Struct("<QQ")  # a `generation` array's two entries: the generation, marks lost
