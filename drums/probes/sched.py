@@ -98,6 +98,7 @@ class SchedProbe(BpfProbe):
         # neither for that collect. Kept while its process lives.
         self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
+        self._rows: list[dict] = [{} for _ in self.metrics]  # per metric: labels -> row, of every process made
         self._threads = Entries(_THREAD_VALUE.size, 0)  # rows: each thread's tgid
         self._collects = 0
         self._renames_lost = 0
@@ -206,14 +207,17 @@ class SchedProbe(BpfProbe):
                 was.append(before)
             self._made[tgid] = process
             ran[tgid] = process.cpu
-        processes = self._made.values()
+        # Every process's rows, brought up to date with those of the processes made again or gone
+        # (a thousand processes, a few of which ran: no walk over all of them).
         for i, metric in enumerate(self.metrics):
-            rows = [row for process in processes for row in process.rows[i]]
+            rows, changed = self._rows[i], [row for process in remade for row in process.rows[i]]
+            gone = [labels for process in was for labels, _ in process.rows[i]]
+            for labels in gone:
+                del rows[labels]
+            rows.update((row[0], row) for row in changed)
             if rows:
-                snap.rows(metric).extend(rows)
-            snap.changes[(metric,)] = Changes(self._collects - 1, self._collects,
-                                              [row for process in remade for row in process.rows[i]],
-                                              [labels for process in was for labels, _ in process.rows[i]])
+                snap.rows(metric).extend(rows.values())
+            snap.changes[(metric,)] = Changes(self._collects - 1, self._collects, changed, gone)
         pt.ran(ran)
         self.read_dropped()
 
