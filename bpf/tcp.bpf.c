@@ -87,6 +87,11 @@ static __always_inline struct tcp_conn_t *conn_entry(u64 sk)
         return c;
     struct tcp_conn_t fresh = {};
     read_identity(&fresh, sk);
+    // What a connection older than the entry retransmitted is in its own count from the start,
+    // so that its next retransmit adds to the host total only itself.
+    u32 total = 0;
+    bpf_probe_read_kernel(&total, 4, (void *)(sk + TP_TOTAL_RETRANS_OFF));
+    fresh.retransmits = total;
     if (tcp_conns.insert(&sk, &fresh) != 0) {
         count_drop(0);
         return 0;
@@ -171,8 +176,6 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
         moved = 1;
 #endif
         c = conn_entry(sk);
-        if (c)
-            c->retransmits = total;
     }
     if (c)
         mark_changed(sk, c);
