@@ -84,7 +84,7 @@ class _Group:
         self._gone: set = set()  # and labels of rows gone
         self.came: list = []  # entities that got their first row in the group at this collect
         self.left: list = []  # and those that lost their last
-        self._emitted: dict = {}  # labels -> values as they came: the rows emit() gave last, and for which entities
+        self._emitted: dict = {}  # labels -> row as it came: the rows emit() gave last, and for which entities
         self._emitted_for: set | None = None
         self.mark: int | None = None  # the probe's collect whose rows `last` holds, if it said
 
@@ -163,14 +163,15 @@ class _Group:
         emitted = self._emitted
         if entities != self._emitted_for or len(self._changed) + len(self._gone) > len(emitted):
             last, rows_of = self.last, self.rows_of
-            emitted = self._emitted = {labels: last[labels] for entity in entities for labels in rows_of.get(entity, ())}
+            emitted = self._emitted = {labels: (labels, last[labels])
+                                       for entity in entities for labels in rows_of.get(entity, ())}
             self._emitted_for = set(entities)
         else:
             entity_of = self.entity_of
             for labels in self._gone:
                 emitted.pop(labels, None)
-            emitted.update((labels, values) for labels, values in self._changed if entity_of(labels) in entities)
-        (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(emitted.items())
+            emitted.update((row[0], row) for row in self._changed if entity_of(row[0]) in entities)
+        (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(emitted.values())
 
 
 @dataclass
