@@ -413,71 +413,70 @@ while conn.recv(1 << 20):
 """
 
 
-def test_retransmits_of_a_bulk_flow_are_the_segments_the_kernel_counts(tcp_probe, collect):
-    """A bulk flow through a queue that drops (a router's tail drop): the kernel retransmits
-    several segments at once (one GSO skb) and counts each, and a retransmit the queue drops too."""
-    with peer_namespace(3) as (ns, _, _, remote, ours):
+@contextlib.contextmanager
+def bulk_flow(index: int):
+    """8 MB sent to a peer namespace through a queue that drops (a router's tail drop), the
+    kernel retransmitting what it lost: (namespace, its device, its address, the sending socket).
+    The sink is killed at the end, whatever state the connection was left in."""
+    with peer_namespace(index) as (ns, device, _, remote, ours):
         subprocess.run(("tc", "qdisc", "add", "dev", ours, "root", "tbf", "rate", "20mbit", "burst", "8kb",
                         "latency", "2ms"), check=True, capture_output=True)
-        sink = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", SINK, remote, "7003"),
+        port = str(7000 + index)
+        sink = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", SINK, remote, port),
                                 stdout=subprocess.PIPE, text=True)
         try:
             assert sink.stdout.readline() == "listening\n"
-            before = host_totals(collect(tcp_probe))["retransmits"]
-            with socket.create_connection((remote, 7003), timeout=30) as sender:
-                for _ in range(8):
-                    sender.sendall(b"x" * (1 << 20))
-                probe, kernel = settled(tcp_probe, collect, sender, "total_retrans",
-                                        "drums_tcp_connection_retransmits_total", counter=True)
-                assert probe == kernel >= 100
-                assert host_totals(collect(tcp_probe))["retransmits"] - before >= kernel
-        finally:
-            sink.wait(timeout=30)
-
-
-
-
-def test_a_connection_met_late_adds_to_the_host_only_what_it_retransmits_after(tcp_probe, collect):
-    """A connection older than the agent (or one a full map made it forget) whose first event is
-    a state change: its series starts at the kernel's count, and the host total moves by what it
-    retransmits afterwards, not by what it retransmitted before. A bulk flow through a dropping
-    queue retransmits a hundred segments; its entry is deleted; its peer's address goes and it
-    shuts down, so its FIN is retransmitted."""
-    with peer_namespace(4) as (ns, device, _, remote, ours):
-        subprocess.run(("tc", "qdisc", "add", "dev", ours, "root", "tbf", "rate", "20mbit", "burst", "8kb",
-                        "latency", "2ms"), check=True, capture_output=True)
-        sink = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", SINK, remote, "7004"),
-                                stdout=subprocess.PIPE, text=True)
-        try:
-            assert sink.stdout.readline() == "listening\n"
-            sender = socket.create_connection((remote, 7004), timeout=30)
+            sender = socket.create_connection((remote, int(port)), timeout=30)
             try:
                 for _ in range(8):
                     sender.sendall(b"x" * (1 << 20))
-                wait_until(lambda: unacknowledged(sender) == 0, "the flow acknowledged", timeout=20)
-                _, before = settled(tcp_probe, collect, sender, "total_retrans",
-                                    "drums_tcp_connection_retransmits_total", counter=True)
-                assert before >= 100
-                labels = (name(sender.getsockname()), name(sender.getpeername()), NETNS)
-                entries = tcp_probe._entries
-                (key,) = [k for k, row in zip(entries._keys.tolist(), entries._rows.tolist()) if row[0] == labels]
-                tcp_probe.opened["tcp_conns"].delete(struct.pack("<Q", key))
-                tcp_probe._conns = None  # a deletion the programs did not mark: the next collect reads whole
-                assert connection(collect(tcp_probe), "drums_tcp_connection_retransmits_total", sender) is None
-                ip("-n", ns, "addr", "del", f"{remote}/30", "dev", device)
-                host = host_totals(collect(tcp_probe))["retransmits"]
-                sender.shutdown(socket.SHUT_WR)  # FIN_WAIT1: the entry is made again
-                wait_until(lambda: tcp_info(sender)["total_retrans"] >= before + 2, "two retransmits of the FIN")
-                probe, kernel = settled(tcp_probe, collect, sender, "total_retrans",
-                                        "drums_tcp_connection_retransmits_total", counter=True)
-                assert probe == kernel
-                moved = host_totals(collect(tcp_probe))["retransmits"] - host
-                assert kernel - before <= moved < before, (moved, kernel, before)  # others' may add a few
+                yield ns, device, remote, sender
             finally:
                 abort(sender)
         finally:
             sink.kill()
             sink.wait(timeout=10)
+
+
+def test_retransmits_of_a_bulk_flow_are_the_segments_the_kernel_counts(tcp_probe, collect):
+    """The kernel retransmits several segments at once (one GSO skb) and counts each, and a
+    retransmit the queue drops too."""
+    before = host_totals(collect(tcp_probe))["retransmits"]
+    with bulk_flow(3) as (_, _, _, sender):
+        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans",
+                                "drums_tcp_connection_retransmits_total", counter=True)
+        assert probe == kernel >= 100
+        assert host_totals(collect(tcp_probe))["retransmits"] - before >= kernel
+
+
+def test_a_connection_met_late_adds_to_the_host_only_what_it_retransmits_after(tcp_probe, collect):
+    """A connection older than the agent (or one a full map made it forget) whose first event is
+    a state change: its series starts at the kernel's count, and the host total moves by what it
+    retransmits afterwards, not by what it retransmitted before. A bulk flow retransmits a hundred
+    segments; its entry is deleted; its peer's address goes and it shuts down, so its FIN is
+    retransmitted."""
+    with bulk_flow(4) as (ns, device, remote, sender):
+        wait_until(lambda: unacknowledged(sender) == 0, "the flow acknowledged", timeout=20)
+        _, before = settled(tcp_probe, collect, sender, "total_retrans",
+                            "drums_tcp_connection_retransmits_total", counter=True)
+        assert before >= 100
+        labels = (name(sender.getsockname()), name(sender.getpeername()), NETNS)
+        entries = tcp_probe._entries
+        (key,) = [k for k, row in zip(entries._keys.tolist(), entries._rows.tolist()) if row[0] == labels]
+        tcp_probe.opened["tcp_conns"].delete(struct.pack("<Q", key))
+        tcp_probe._conns = None  # a deletion the programs did not mark: the next collect reads whole
+        assert connection(collect(tcp_probe), "drums_tcp_connection_retransmits_total", sender) is None
+        ip("-n", ns, "addr", "del", f"{remote}/30", "dev", device)
+        host = host_totals(collect(tcp_probe))["retransmits"]
+        sender.shutdown(socket.SHUT_WR)  # FIN_WAIT1: the entry is made again
+        wait_until(lambda: tcp_info(sender)["total_retrans"] >= before + 2, "two retransmits of the FIN")
+        probe, kernel = settled(tcp_probe, collect, sender, "total_retrans",
+                                "drums_tcp_connection_retransmits_total", counter=True)
+        assert probe == kernel
+        moved = host_totals(collect(tcp_probe))["retransmits"] - host
+        assert kernel - before <= moved < before, (moved, kernel, before)  # others' may add a few
+
+
 def test_retransmits_that_never_left_the_host_are_not_counted(tcp_probe, collect):
     """The receiver's link goes down: retransmissions fail in the sender's own queue (-EBUSY),
     and the kernel does not count them as retransmitted segments."""
