@@ -20,6 +20,7 @@ from drums.kernel import bpffs, loader
 from drums.kernel.btf import Btf
 from drums.kernel.features import Features
 from drums.probes.base import Probe
+from drums.probes.entries import Entries, Marked, Matched
 
 # Values of DRUMS_ATTACH in bpf/drums.h.
 ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3, "tracepoint": 4, "uprobe": 5}
@@ -109,6 +110,7 @@ class BpfProbe(Probe):
         self.opened: dict[str, bpffs.PinnedMap] = {}
         self.pin_dir = ""
         self._in_process = None  # the bcc object, for paths the kernel cannot pin
+        self._marked: dict[str, Marked] = {}  # maps read as far as their programs marked them changed
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         """-D definitions for the C code: kernel struct offsets and tracepoint shapes."""
@@ -170,6 +172,19 @@ class BpfProbe(Probe):
         if m.type not in bpffs.ARRAY_TYPES:  # arrays are always full; hash maps fill up
             self.status.map_fill[name] = count / m.max_entries
         return keys, values, count
+
+    def read_marked(self, name: str, entries: Entries) -> Matched:
+        """The map `name`, whose programs mark the keys they change (in the maps `generation`,
+        `changed_even` and `changed_odd`), matched against `entries`: looked up as far as it
+        changed, read whole when much did."""
+        marked = self._marked.get(name)
+        if marked is None or marked.map is not self.opened[name]:
+            marked = self._marked[name] = Marked(self.opened[name], self.opened["generation"],
+                                                 (self.opened["changed_even"], self.opened["changed_odd"]))
+        got = marked.read(len(entries))
+        m = entries.read(*got[:2]) if isinstance(got, tuple) else entries.update(got)
+        self.status.map_fill[name] = len(m.keys) / marked.map.max_entries
+        return m
 
     def read_dropped(self) -> None:
         """Events lost to full maps: every program counts them in its `dropped` array."""

@@ -16,7 +16,7 @@ from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
                               needs_fentry, needs_kprobes, needs_tracepoints, offset_defines)
-from drums.probes.entries import Entries, Marked, Matched
+from drums.probes.entries import Entries, Matched
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -135,7 +135,6 @@ class SocketsProbe(BpfProbe):
         self._collects = 0
         self._fds_read_at: dict[int, float] = {}
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)  # rows: each socket's row, as exported last
-        self._traffic: Marked | None = None  # socket_traffic, read as far as it changed
         self._names: dict[int, str] = {}  # pid -> its name in its sockets' rows
 
     def offsets(self, btf: Btf) -> dict[str, int]:
@@ -153,12 +152,7 @@ class SocketsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
-        if self._traffic is None or self._traffic.map is not self.opened["socket_traffic"]:
-            self._traffic = Marked(*(self.opened[name] for name in ("socket_traffic", "generation")),
-                                   (self.opened["changed_even"], self.opened["changed_odd"]))
-        got = self._traffic.read(len(self._entries))
-        m = self._entries.read(*got[:2]) if isinstance(got, tuple) else self._entries.update(got)
-        self.status.map_fill["socket_traffic"] = len(m.keys) / self._traffic.map.max_entries
+        m = self.read_marked("socket_traffic", self._entries)
         words = m.words
         pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
         klass = (words[:, 3] >> 16) & 0xFFFF
@@ -175,7 +169,7 @@ class SocketsProbe(BpfProbe):
         stale = np.isin(pids, dead) | self._closed(m, pids, klass)
         if stale.any():
             entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])]
-            self._traffic.map.delete_unchanged(entries)  # one that changed instead comes back marked
+            self.opened["socket_traffic"].delete_unchanged(entries)  # one that changed instead comes back marked
         live = ~stale
         # Sockets whose labels changed though the socket did not: its process was renamed, or (a
         # unix socket) the path it is bound to changed.

@@ -21,7 +21,7 @@ from drums.metrics import COUNTER, GAUGE, Changes, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
-from drums.probes.entries import Entries, Marked
+from drums.probes.entries import Entries
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
@@ -81,7 +81,6 @@ class TcpProbe(BpfProbe):
         self._rtt_at = float("-inf")
         self._carried: dict[tuple, tuple] = {}  # labels -> what closed connections with them counted
         self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)  # rows: (labels, counts)
-        self._conns: Marked | None = None  # tcp_conns, read as far as it changed
         self._collects = 0
         self._told = False  # whether the last collect's rows are the entries' own (no sums)
         self._wanted: set[tuple[str, str]] | None = None
@@ -105,12 +104,7 @@ class TcpProbe(BpfProbe):
         """Rows are made again only for the connections whose entries changed since the last
         collect: of ten thousand, most did nothing."""
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
-        if self._conns is None or self._conns.map is not self.opened["tcp_conns"]:
-            self._conns = Marked(*(self.opened[name] for name in ("tcp_conns", "generation")),
-                                 (self.opened["changed_even"], self.opened["changed_odd"]))
-        got = self._conns.read(len(self._entries))
-        m = self._entries.read(*got[:2]) if isinstance(got, tuple) else self._entries.update(got)
-        self.status.map_fill["tcp_conns"] = len(m.keys) / self._conns.map.max_entries
+        m = self.read_marked("tcp_conns", self._entries)
         words = m.words
         remade = np.flatnonzero(~m.same).tolist()
         gone = [row[0] for row in m.gone.tolist() + m.rows[remade].tolist() if row]
@@ -131,7 +125,7 @@ class TcpProbe(BpfProbe):
         self._told = not merged
         snap.group_rows(CONN_GROUP).extend(rows)
         if closed.any():
-            self._conns.map.delete_unchanged(  # one that changed instead comes back marked
+            self.opened["tcp_conns"].delete_unchanged(  # one that changed instead comes back marked
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])
         self._entries.keep(m, ~closed)  # one not deleted (it counted on meanwhile) comes back as new
         _, values, _ = self.read("tcp_totals")

@@ -671,7 +671,7 @@ def test_a_collect_looks_up_the_sockets_that_changed_and_keeps_the_idle_ones(soc
                     if int(labels[-1]) in inodes}
         inodes = set(expected)
         assert rows() == expected
-        traffic, looked_up = sockets_probe._traffic, 0
+        traffic, looked_up = sockets_probe._marked["socket_traffic"], 0
         for step in range(1, 60):
             client, server = pairs[step]
             client.sendall(b"y" * step)

@@ -240,7 +240,7 @@ def test_a_collect_looks_up_the_connections_that_changed_and_keeps_the_idle_ones
         first = {}
         eventually(lambda: first.update(ours(collect(tcp_probe).group_rows(CONN_GROUP))) or len(first) == 600,
                    timeout=5)
-        conns, looked_up = tcp_probe._conns, 0
+        conns, looked_up = tcp_probe._marked["tcp_conns"], 0
         for step in range(60):
             client, server = pairs[step]
             ends = {(name(s.getsockname()), name(s.getpeername()), NETNS): moved
@@ -464,7 +464,7 @@ def test_a_connection_met_late_adds_to_the_host_only_what_it_retransmits_after(t
         entries = tcp_probe._entries
         (key,) = [k for k, row in zip(entries._keys.tolist(), entries._rows.tolist()) if row[0] == labels]
         tcp_probe.opened["tcp_conns"].delete(struct.pack("<Q", key))
-        tcp_probe._conns = None  # a deletion the programs did not mark: the next collect reads whole
+        del tcp_probe._marked["tcp_conns"]  # a deletion the programs did not mark: the next collect reads whole
         assert connection(collect(tcp_probe), "drums_tcp_connection_retransmits_total", sender) is None
         ip("-n", ns, "addr", "del", f"{remote}/30", "dev", device)
         host = host_totals(collect(tcp_probe))["retransmits"]
