@@ -20,6 +20,7 @@ OWN_NETNS = "DRUMS_OWN_NETNS"
 # the next listing: `nsenter`, `ip netns exec` and container runtimes fork first and move the child
 # to its namespace a few milliseconds later, and a listing may fall in between.
 SETTLE = 2.0
+RENAMES_KEPT = 8  # refreshes whose renamed PIDs are kept, for renamed_since()
 _PR_SET_NAME = 15
 
 
@@ -77,6 +78,8 @@ class ProcessTable:
         self._told = True
         self._cpu: dict[int, float] = {}  # what the sched probe said at the refresh _cpu_at
         self._cpu_at = -1
+        # The last refreshes: (refresh, the PIDs whose names it read, None if it read every one).
+        self._renames: list[tuple[int, set[int] | None]] = []
 
     def refresh(self, renamed: Iterable[int] | None = (), complete: bool = False) -> None:
         """List the processes. A name is read when its PID first appears, and again when the PID is
@@ -87,6 +90,7 @@ class ProcessTable:
         changed its name, and /proc is not listed (1,000 processes: 2 ms)."""
         if complete and renamed is not None and not renamed and self.refreshes:
             self.refreshes += 1
+            self._renamed_at(set())
             return
         alive = set(self.listing())
         known = {} if renamed is None else self._names
@@ -103,6 +107,7 @@ class ProcessTable:
         self._told = self._told and (renamed is None or isinstance(renamed, set))
         self._new_at = {pid: self._new_at.get(pid, 0) if pid in known else self.refreshes for pid in alive}
         self._names = {pid: known.get(pid) or comm(self.proc, pid) for pid in alive}
+        self._renamed_at(None if renamed is None else alive - known.keys())
         self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive and pid in known}
 
     def _still_elsewhere(self, alive: set[int], known: dict) -> dict[int, tuple[float, bool]]:
@@ -117,6 +122,22 @@ class ProcessTable:
             elif (found is not None or pid not in known) and netns(self.proc, pid) != self.netns:
                 out[pid] = (now, False) if found is None else (found[0], True)
         return out
+
+    def _renamed_at(self, pids: set[int] | None) -> None:
+        self._renames = self._renames[-RENAMES_KEPT + 1:] + [(self.refreshes, pids)]
+
+    def renamed_since(self, refresh: int) -> set[int] | None:
+        """The PIDs whose names may have changed after that refresh (they came, or were renamed,
+        exec'd, or exited and came back); None when it cannot say (a refresh read every name, or
+        the refresh is too long ago): any may have."""
+        later = [pids for at, pids in self._renames if at > refresh]
+        if len(later) != self.refreshes - refresh or any(pids is None for pids in later):
+            return None
+        return set().union(*later)
+
+    def alive_among(self, pids: Iterable[int]) -> set[int]:
+        """Those of the PIDs whose processes are in the table."""
+        return self._names.keys() & pids
 
     def new_at(self, pid: int) -> int | None:
         """The refresh at which the process with this PID was last found new; None when that cannot

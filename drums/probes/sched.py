@@ -99,6 +99,8 @@ class SchedProbe(BpfProbe):
         self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
         self._rows: list[dict] = [{} for _ in self.metrics]  # per metric: labels -> row, of every process made
+        self._cpu: dict[int, float] = {}  # tgid -> CPU seconds of every process made, for the process table
+        self._refreshed = -1  # the process table's refresh at the last collect
         self._threads = Entries(_THREAD_VALUE.size, 0)  # rows: each thread's tgid
         self._collects = 0
         self._renames_lost = 0
@@ -153,6 +155,14 @@ class SchedProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         """Rows are made again only for the processes whose entries changed since the last collect
         (a thread ran, came or went): on a host of a thousand processes most sleep between two."""
+        try:
+            self._collect(snap)
+        except BaseException:
+            # What it kept may be half brought up to date: the next collect makes every row anew.
+            self._made, self._rows, self._cpu = {}, [{} for _ in self.metrics], {}
+            raise
+
+    def _collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
         exited: dict[int, bytes] = {}
@@ -180,21 +190,26 @@ class SchedProbe(BpfProbe):
             dirty.update(tgids[at[m.keys[at] == tids]].tolist() if len(m.keys) else ())
         m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
-        made, self._made = self._made, {}
-        alive = {tgid for tgid in np.unique(tgids).tolist() if pt.alive(tgid)} | exited.keys()
-        was = [made.pop(tgid) for tgid in made.keys() - alive]  # ended, and made again: their last rows
-        for ended in was:  # its highest values go with it
-            for key in ended.held:
+        made, cpu = self._made, self._cpu
+        alive = pt.alive_among(np.unique(tgids).tolist()) | exited.keys()
+        ended = made.keys() - alive
+        was = [made.pop(tgid) for tgid in ended]  # ended, and made again: their last rows
+        for tgid in ended:
+            del cpu[tgid]
+        for process in was:  # its highest values go with it
+            for key in process.held:
                 self._highest.pop(key, None)
-        ran, again = {}, {}
-        for tgid in alive:
+        # Made again: a process new, with a thread new, changed, gone or on a CPU, with exited threads
+        # whose entry changed, or renamed since the last collect; of a thousand, few.
+        renamed = pt.renamed_since(self._refreshed)
+        self._refreshed = pt.refreshes
+        suspects = alive if renamed is None else (alive - made.keys()) | (alive & (dirty | exited.keys() | renamed))
+        again = {}
+        for tgid in suspects:
             seen = (exited.get(tgid), pt.name(tgid))
             before = made.get(tgid)
             if before is None or tgid in dirty or before.seen != seen:
                 again[tgid] = seen
-            else:
-                self._made[tgid] = before
-                ran[tgid] = before.cpu
         threads: dict[int, list[tuple[int, bytes]]] = {tgid: [] for tgid in again}
         for i in np.flatnonzero(np.isin(tgids, np.fromiter(again, np.uint64, len(again)))).tolist():
             threads[int(tgids[i])].append((int(m.keys[i]), m.words[i].tobytes()))
@@ -205,8 +220,8 @@ class SchedProbe(BpfProbe):
             remade.append(process)
             if before is not None:
                 was.append(before)
-            self._made[tgid] = process
-            ran[tgid] = process.cpu
+            made[tgid] = process
+            cpu[tgid] = process.cpu
         # Every process's rows, brought up to date with those of the processes made again or gone
         # (a thousand processes, a few of which ran: no walk over all of them).
         for i, metric in enumerate(self.metrics):
@@ -218,7 +233,7 @@ class SchedProbe(BpfProbe):
             if rows:
                 snap.rows(metric).extend(rows.values())
             snap.changes[(metric,)] = Changes(self._collects - 1, self._collects, changed, gone)
-        pt.ran(ran)
+        pt.ran(dict(cpu))
         self.read_dropped()
 
     def _make(self, tgid: int, seen: tuple, live: list[tuple[int, bytes]], running: dict[int, int],
