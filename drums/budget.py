@@ -77,7 +77,9 @@ class _Group:
         self.step = _growth if self.counters else _change
         self.rank = [(i, m.name) for i, m in enumerate(metrics) if m.name in rank_names]
         self.last: dict = {}  # labels -> values at the last collect
-        self.rows_of: dict = {}  # entity -> labels of its rows
+        # entity -> the labels of its one row, or a set of those of its rows when it has more: ten
+        # thousand sockets of one row each, without ten thousand sets (6 MB)
+        self._rows_of: dict = {}
         self.folded: dict = {}  # labels -> the values of that row summed into `other` so far
         self._other: dict = {}  # dimension values -> (metrics, labels of the `other` row)
         self._changed: list = []  # rows new or changed at this collect, as they came
@@ -128,21 +130,29 @@ class _Group:
                 if d > 0:
                     entity = entity_of(labels)
                     into[entity] = into.get(entity, 0.0) + d
-        rows_of = self.rows_of
+        rows_of = self._rows_of
         came, left = self.came, self.left = [], []
         for labels in gone:
             entity = entity_of(labels)
-            rows_of[entity].discard(labels)
-            if not rows_of[entity]:
+            held = rows_of[entity]
+            if type(held) is not set:
                 del rows_of[entity]
                 left.append(entity)
+            else:
+                held.discard(labels)
+                if len(held) == 1:
+                    rows_of[entity] = next(iter(held))
         for labels, _ in changed:
             if labels not in last:
                 entity = entity_of(labels)
-                if entity not in rows_of:
-                    rows_of[entity] = set()
+                held = rows_of.get(entity)
+                if held is None:
+                    rows_of[entity] = labels
                     came.append(entity)
-                rows_of[entity].add(labels)
+                elif type(held) is set:
+                    held.add(labels)
+                else:
+                    rows_of[entity] = {held, labels}
         if now is None:
             for labels in gone:
                 del last[labels]
@@ -150,6 +160,11 @@ class _Group:
         else:
             self.last = now
         return changed, gone
+
+    def rows_of(self, entity) -> tuple | set:
+        """The labels of the entity's rows."""
+        held = self._rows_of.get(entity, ())
+        return held if type(held) is set or not held else (held,)
 
     def values(self, labels: tuple, rows: dict | None = None) -> tuple | None:
         """The values of a row at the last collect (or in `rows`), as a tuple."""
@@ -164,7 +179,7 @@ class _Group:
         if entities != self._emitted_for or len(self._changed) + len(self._gone) > len(emitted):
             last, rows_of = self.last, self.rows_of
             emitted = self._emitted = {labels: (labels, last[labels])
-                                       for entity in entities for labels in rows_of.get(entity, ())}
+                                       for entity in entities for labels in rows_of(entity)}
             self._emitted_for = set(entities)
         else:
             entity_of = self.entity_of
@@ -280,7 +295,7 @@ class Budget:
         entity that left it (ended, or got its own series) had summed into it; a gauge's is the sum
         of the entities folded now."""
         leaving = [labels for labels in gone if labels in g.folded]
-        leaving += [labels for e in promoted for labels in g.rows_of.get(e, ()) if labels in g.folded]
+        leaving += [labels for e in promoted for labels in g.rows_of(e) if labels in g.folded]
         for labels in leaving:
             values = g.folded.pop(labels)
             key = g.other_key(labels)
@@ -292,7 +307,7 @@ class Budget:
         kept, entity_of = st.kept, g.entity_of
         entering = {labels: values for labels, values in changed if entity_of(labels) not in kept}
         for e in demoted:
-            entering.update((labels, g.values(labels)) for labels in g.rows_of.get(e, ()))
+            entering.update((labels, g.values(labels)) for labels in g.rows_of(e))
         if not entering:
             return
         if any(isinstance(v, Histogram) for v in next(iter(entering.values()))):
