@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import struct
 import time
+from sys import intern
 
 import numpy as np
 
@@ -191,7 +192,10 @@ class SocketsProbe(BpfProbe):
             ino, pid, netns, protocol, local, remote = _identity(words[i, :_WORDS_IDENTITY].tobytes())
             if protocol == "unix":
                 local = paths.get(ino, "")
-            m.rows[i] = ((str(pid), self._names[pid], protocol, local, remote, str(netns), str(ino)), counts)
+            # Interned: the label values ten thousand sockets share (their process's pid, their
+            # namespace), and the addresses the tcp probe's rows name too, are one string each.
+            m.rows[i] = ((intern(str(pid)), self._names[pid], protocol, intern(local), intern(remote),
+                          intern(str(netns)), str(ino)), counts)
         self._entries.keep(m, live)
         snap.group_rows(SOCKET_GROUP).extend(m.rows[live].tolist())
         snap.changes[SOCKET_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)

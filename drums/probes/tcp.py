@@ -10,6 +10,7 @@ import socket
 import struct
 import time
 from operator import add
+from sys import intern
 
 import numpy as np
 
@@ -114,7 +115,8 @@ class TcpProbe(BpfProbe):
                 m.rows[i] = (m.rows[i][0], counts)  # the same connection, counted further
                 continue
             netns, family, lport, rport, _state, laddr, raddr = _CONN_HEAD.unpack(words[i, :_HEAD_WORDS].tobytes())
-            m.rows[i] = ((endpoint(family, laddr, lport), endpoint(family, raddr, rport), str(netns)), counts)
+            m.rows[i] = ((intern(endpoint(family, laddr, lport)), intern(endpoint(family, raddr, rport)),
+                          intern(str(netns))), counts)  # as the sockets probe's labels: one string each
         closed = (words[:, _STATE_WORD] >> _STATE_SHIFT & 0xFFFF) == TCP_CLOSE
         rows = m.rows.tolist()
         merged = closed.any() or self._carried
