@@ -27,6 +27,7 @@ from drums.probes.sockdiag_sockets import SockDiagSocketsProbe, application_byte
 from drums.probes import tcp
 from drums.probes.sockets import SOCKET
 from drums.proctable import ProcessTable
+from tests.conftest import wait_until
 
 STATE = {name: number for number, name in TCP_STATES.items()}
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
@@ -294,6 +295,8 @@ def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, coll
         assert extra_last[1] >= 50
         before = collect(probe).values(PROCESS_SWITCHES)
         assert _command(child, "join\n") == "joined"
+        # The join returns once the thread cleared its TID, a moment before the kernel releases it.
+        wait_until(lambda: not os.path.exists(f"/proc/{child.pid}/task/{extra}"), "the joined thread released")
         stop(child.pid)
         after = collect(probe).values(PROCESS_SWITCHES)
         truth = switches_now(child.pid)
