@@ -9,10 +9,12 @@ import urllib.request
 from urllib.parse import urlsplit
 
 import psutil
+import pytest
 
 from tests.agentproc import running_agent, samples, scrape
 from tests.test_api import PROBES, call
 
+pytestmark = pytest.mark.lane2  # a minute of fuzzing its own agent: make test runs it in a lane beside the rest
 TOKEN = "fuzz-token"
 READ_ONLY = (["info"], ["jobs"], ["openapi.json"])  # paths under /drums/v1 that take only GET
 MIN_REQUESTS = 2000
