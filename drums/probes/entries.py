@@ -28,7 +28,7 @@ class Matched:
     gone: np.ndarray  # object: what the caller kept for the keys of the previous read that are gone
 
 
-def _within(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
+def within(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
     """Whether each of `keys` is among `sorted_keys`: a binary search each (np.isin hashes both,
     ten times slower for ten thousand keys)."""
     if not len(sorted_keys):
@@ -64,11 +64,11 @@ class Entries:
             return Matched(k, w, new, new, rows, self._rows)
         at = np.minimum(np.searchsorted(self._keys, k), len(self._keys) - 1)
         known = self._keys[at] == k
-        equal = self._words[at] == w
-        same_head = known & equal[:, :self.head].all(axis=1)
-        same = same_head & equal[:, self.head:].all(axis=1)
+        head, value = self._compare(self._words[at], w)
+        same_head = known & head
+        same = same_head & value
         rows[known] = self._rows[at[known]]
-        return Matched(k, w, same_head, same, rows, self._rows[~_within(self._keys, k)])
+        return Matched(k, w, same_head, same, rows, self._rows[~within(self._keys, k)])
 
     def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
         """The entries of the last read (as kept) with these changes: a key's value, or None if the
@@ -76,8 +76,6 @@ class Entries:
         the changes: values are written in place, and the arrays are copied only when keys come
         or go."""
         keys, words, rows = self._keys, self._words, self._rows
-        if not words.flags.writeable:
-            words = words.copy()
         changed = np.frombuffer(b"".join(k for k, _ in changes), np.uint64)
         present = np.fromiter((v is not None for _, v in changes), bool, len(changes))
         values = np.frombuffer(b"".join(v for _, v in changes if v is not None), np.uint64).reshape(-1, self.width)
@@ -89,9 +87,7 @@ class Entries:
         counted = known & present  # a key of the last read, with a value now: compared, then written
         if counted.any():
             pos, now = at[counted], values[counted[present]]
-            equal = words[pos] == now
-            same_head[pos] = equal[:, :self.head].all(axis=1)
-            same[pos] = same_head[pos] & equal[:, self.head:].all(axis=1)
+            same_head[pos], same[pos] = self._compare(words[pos], now)
             words[pos] = now
         ended, new = known & ~present, ~known & present
         gone = rows[at[ended]]
@@ -107,6 +103,12 @@ class Entries:
             rows = np.insert(rows, pos, None)
             same_head, same = np.insert(same_head, pos, False), np.insert(same, pos, False)
         return Matched(keys, words, same_head, same, rows, gone)
+
+    def _compare(self, old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per entry: whether the head is the same, and whether the whole value is."""
+        equal = old == new
+        head = equal[:, :self.head].all(axis=1)
+        return head, head & equal[:, self.head:].all(axis=1)
 
     def __len__(self) -> int:
         return len(self._keys)

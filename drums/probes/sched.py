@@ -14,7 +14,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines)
-from drums.probes.entries import Entries
+from drums.probes.entries import Entries, within
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -185,9 +185,7 @@ class SchedProbe(BpfProbe):
         dirty = set(tgids[~m.same].tolist())
         dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)
         if running:
-            tids = np.fromiter(running, np.uint64, len(running))
-            at = np.minimum(np.searchsorted(m.keys, tids), max(len(m.keys) - 1, 0))
-            dirty.update(tgids[at[m.keys[at] == tids]].tolist() if len(m.keys) else ())
+            dirty.update(tgids[within(m.keys, np.sort(np.fromiter(running, np.uint64, len(running))))].tolist())
         m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
         made, cpu = self._made, self._cpu
