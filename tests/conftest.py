@@ -2,10 +2,12 @@
 session's own, so that a running agent or another test session is left alone."""
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import glob
 import os
 import shutil
+import socket
 import time
 
 import pytest
@@ -123,6 +125,23 @@ def wait_until(condition, what: str, timeout: float = 5.0) -> None:
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout} s waiting for {what}")
         time.sleep(0.01)
+
+
+@contextlib.contextmanager
+def connected_pairs(count: int):
+    """`count` loopback TCP connections of this process, as (client, server) pairs, closed at the
+    end whatever the test did with them."""
+    pairs = []
+    try:
+        with socket.create_server(("127.0.0.1", 0)) as lst:
+            for _ in range(count):
+                client = socket.create_connection(lst.getsockname())
+                pairs.append((client, lst.accept()[0]))
+        yield pairs
+    finally:
+        for pair in pairs:
+            for sock in pair:
+                sock.close()
 
 
 def pytest_sessionstart(session):

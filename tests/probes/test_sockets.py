@@ -17,7 +17,7 @@ import pytest
 
 from drums.probes import sockets
 from drums.probes.sockets import _SOCKET_VALUE
-from tests.conftest import eventually, series, wait_until
+from tests.conftest import connected_pairs, eventually, series, wait_until
 
 COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
 ZERO = dict.fromkeys(COUNTS, 0)
@@ -651,12 +651,7 @@ def test_a_collect_looks_up_the_sockets_that_changed_and_keeps_the_idle_ones(soc
     then, step after step, one sends and one closes. Each step's rows are exact; other tests'
     traffic on the host may tip a collect into reading the map whole, so steps are taken until
     enough of them were looked up."""
-    with tcp_listener() as lst:
-        pairs = []
-        for _ in range(300):
-            client = socket.create_connection(lst.getsockname())
-            pairs.append((client, lst.accept()[0]))
-    try:
+    with connected_pairs(300) as pairs:
         for client, server in pairs:
             client.sendall(b"x")
             recv_exactly(server, 1)
@@ -691,10 +686,6 @@ def test_a_collect_looks_up_the_sockets_that_changed_and_keeps_the_idle_ones(soc
             if looked_up >= 20:
                 break
         assert looked_up >= 20
-    finally:
-        for pair in pairs:
-            for sock in pair:
-                sock.close()
 
 
 def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sockets_probe, collect):

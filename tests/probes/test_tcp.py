@@ -17,7 +17,7 @@ from collections import Counter
 import pytest
 
 from drums.probes.tcp import CONN_GROUP
-from tests.conftest import eventually, series, wait_until
+from tests.conftest import connected_pairs, eventually, series, wait_until
 
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
 LOOPBACK = {socket.AF_INET: "127.0.0.1", socket.AF_INET6: "::1"}
@@ -228,12 +228,7 @@ def test_a_collect_looks_up_the_connections_that_changed_and_keeps_the_idle_ones
     reset: its two ends' rows are exported once with the reset and the close, then forgotten, and
     every other row is the very one of the first collect. Other tests' TCP traffic may tip a
     collect into reading the map whole, so steps are taken until enough of them were looked up."""
-    with tcp_listener() as lst:
-        pairs = []
-        for _ in range(300):
-            client = socket.create_connection(lst.getsockname())
-            pairs.append((client, lst.accept()[0]))
-    try:
+    with connected_pairs(300) as pairs:
         def ours(rows) -> dict:
             return {labels: row for row in rows if (labels := row[0]) in keys}
         keys = {(name(s.getsockname()), name(s.getpeername()), NETNS) for pair in pairs for s in pair}
@@ -262,10 +257,6 @@ def test_a_collect_looks_up_the_connections_that_changed_and_keeps_the_idle_ones
             if looked_up >= 20:
                 break
         assert looked_up >= 20
-    finally:
-        for pair in pairs:
-            for sock in pair:
-                sock.close()
 
 
 # ---- RTT ----------------------------------------------------------------------------------------
