@@ -181,7 +181,7 @@ class BpfProbe(Probe):
         if marked is None or marked.map is not self.opened[name]:
             marked = self._marked[name] = Marked(self.opened[name], self.opened["generation"],
                                                  (self.opened["changed_even"], self.opened["changed_odd"]))
-        got = marked.read(len(entries))
+        got = marked.read(len(entries), whole=not entries.kept)
         m = entries.read(*got[:2]) if isinstance(got, tuple) else entries.update(got)
         self.status.map_fill[name] = len(m.keys) / marked.map.max_entries
         return m

@@ -51,8 +51,15 @@ class Entries:
         self._read_keys = np.empty(0, np.uint64)  # the keys as the last read returned them, and
         self._order = np.empty(0, np.intp)  # the order that sorted them: a map that did not change
         # hands its keys back in the same order, and sorting ten thousand is then skipped
+        # Whether the caller kept the last read (keep()). One that failed between the two may have
+        # left values written in place (update) beside rows that do not show them: the next read
+        # must be of the whole map, and makes every row anew.
+        self.kept = True
 
     def read(self, keys: bytes, values: bytes) -> Matched:
+        if not self.kept:
+            self._keys, self._words, self._rows = self._keys[:0], self._words[:0], self._rows[:0]
+        self.kept = False
         k = np.frombuffer(keys, np.uint64)
         w = np.frombuffer(values, np.uint64).reshape(len(k), self.width)
         if not np.array_equal(k, self._read_keys):
@@ -74,7 +81,10 @@ class Entries:
         """The entries of the last read (as kept) with these changes: a key's value, or None if the
         key is gone; each key at most once. Matched as read() matches a whole map, at the cost of
         the changes: values are written in place, and the arrays are copied only when keys come
-        or go."""
+        or go. Only after a read that was kept."""
+        if not self.kept:
+            raise ValueError("the last read was not kept: read the whole map")
+        self.kept = False
         keys, words, rows = self._keys, self._words, self._rows
         changed = np.frombuffer(b"".join(k for k, _ in changes), np.uint64)
         present = np.fromiter((v is not None for _, v in changes), bool, len(changes))
@@ -116,6 +126,7 @@ class Entries:
     def keep(self, matched: Matched, mask: np.ndarray) -> None:
         """What the next read is matched against: the entries of `matched` under `mask`, with the
         rows the caller put in matched.rows."""
+        self.kept = True
         if mask.all():  # as a rule: no copies
             self._keys, self._words, self._rows = matched.keys, matched.words, matched.rows
         else:
@@ -142,15 +153,16 @@ class Marked:
         self._gen = self._lost = -1
         self.whole_reads = 0
 
-    def read(self, known: int) -> tuple[bytes, bytes, int] | list[tuple[bytes, bytes | None]]:
+    def read(self, known: int, whole: bool = False) -> tuple[bytes, bytes, int] | list[tuple[bytes, bytes | None]]:
         """The whole map, as PinnedMap.read gives it; or, to a caller who holds the `known`
-        entries of the last read, what changed since: (key, its value, None if it is gone)."""
+        entries of the last read, what changed since: (key, its value, None if it is gone).
+        `whole`: the caller does not hold them (its last collect failed, after the marks were taken)."""
         gen, lost = _GENERATION.unpack_from(self._generation.read()[1])
         self._generation.update(_FIRST, struct.pack("<Q", gen + 1))
         marked, _, n = self._marks[gen & 1].read(delete=True)
-        # Whole: at first, when marks were lost to a full set, or when the generation is not the
-        # one this reader left (another reader of the pins moved it).
-        whole = ((gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)
+        # Whole: when asked, at first, when marks were lost to a full set, or when the generation is
+        # not the one this reader left (another reader of the pins moved it).
+        whole = (whole or (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)
                  or (self.map.type in LRU_TYPES and 2 * known > self.map.max_entries))
         self._gen, self._lost = gen + 1, lost
         if whole:

@@ -3,6 +3,7 @@ import random
 import struct
 
 import numpy as np
+import pytest
 
 from drums.probes.entries import Entries
 
@@ -73,3 +74,23 @@ def test_changes_applied_to_the_last_read_match_as_a_whole_read_does():
         by_changes.keep(part, keep)
         for k in whole.keys[~keep].tolist():  # not kept: the caller deleted it from the map
             state.pop(k, None)
+
+
+def test_a_read_the_caller_did_not_keep_makes_the_next_read_make_every_row_anew():
+    """A collect that fails between update() and keep() leaves values written in place beside rows
+    that do not show them: the next read is of the whole map (update() refuses), and no row of the
+    last kept read is taken as still current."""
+    e = Entries(16, 8)
+    m = e.read(*entries((10, 1, 5), (20, 1, 5)))
+    m.rows[:] = ["a", "b"]
+    e.keep(m, m.keys > 0)
+    assert e.kept
+    e.update([(struct.pack("<Q", 10), struct.pack("<QQ", 1, 6))])  # then the collect fails
+    assert not e.kept
+    with pytest.raises(ValueError):
+        e.update([])
+    m = e.read(*entries((10, 1, 6), (20, 1, 5)))
+    assert m.rows.tolist() == [None, None] and not m.same_head.any() and not m.same.any()
+    assert m.words[:, 1].tolist() == [6, 5]
+    e.keep(m, m.keys > 0)
+    assert e.kept
