@@ -119,11 +119,12 @@ def eventually(check, timeout: float = 3.0):
             time.sleep(0.02)
 
 
-def wait_until(condition, what: str, timeout: float = 5.0) -> None:
+def wait_until(condition, what, timeout: float = 5.0) -> None:
+    """`what`: a string, or a function that says what was awaited and what was seen at the end."""
     deadline = time.monotonic() + timeout
     while not condition():
         if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+            pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")
         time.sleep(0.01)
 
 

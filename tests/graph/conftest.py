@@ -49,6 +49,10 @@ class RosProcess:
         self.proc.stdin.flush()
         return [int(ns) for ns in self.proc.stdout.readline().split()[1:]]
 
+    def matched(self) -> list[int]:
+        """The reactor's: how many subscribers each of its /reaction publishers has matched."""
+        return self.times("matched")
+
     def go(self) -> None:
         """Start the burst of a publisher run with DRUMS_TEST_BURST."""
         self.proc.stdin.write("go\n")

@@ -14,7 +14,8 @@ $DRUMS_TEST_DEADLINE_MS, and on a line "latencies" prints for each message the n
 to the callback's start; "ages" the ns from the RMW's source stamp to right after rclpy took it, and
 "transports" the RMW's received less source stamps, as the message info says), reactor
 (takes /beat, sleeps 15 ms and publishes /reaction; a timer publishes /status every 50 ms; on a line
-"reactions" it prints how long each callback took from its start to its publish, in ns). Several NAMEs
+"reactions" it prints how long each callback took from its start to its publish, in ns; on a line
+"matched" how many subscribers its /reaction publisher has matched). Several NAMEs
 put several nodes in one process; arguments after --ros-args go to ROS (remapping). Prints
 "ready <pid>" once its nodes exist, and on each line of input "count <n>" with the messages it
 published or received so far (a line "go" starts a burst instead: see DRUMS_TEST_BURST). With
@@ -83,11 +84,14 @@ def forwards(node, pub):
 
 
 def qos():
-    """Depth 10, and the Deadline QoS $DRUMS_TEST_DEADLINE_MS if set."""
+    """Reliable, with a history that holds a whole burst (at least 10), and the Deadline QoS
+    $DRUMS_TEST_DEADLINE_MS if set. A reliable writer sends again only what its history still
+    holds: with a depth of 10, a subscriber that matched late or lost fragments of 1 MB samples over
+    UDP to a full socket buffer missed 6 of 30 on a busy host."""
     from rclpy.duration import Duration
     from rclpy.qos import QoSProfile
     deadline = int(os.environ.get("DRUMS_TEST_DEADLINE_MS", "0"))
-    return QoSProfile(depth=10, deadline=Duration(nanoseconds=deadline * 1_000_000)) if deadline else 10
+    return QoSProfile(depth=max(10, burst), deadline=Duration(nanoseconds=deadline * 1_000_000))
 
 
 def make(role: str, name: str) -> Node:
@@ -98,14 +102,14 @@ def make(role: str, name: str) -> Node:
         node.create_subscription(String, "chatter", lambda m: counted.__setitem__(0, counted[0] + 1), qos())
     elif role == "producer":
         msg = UInt8MultiArray(data=bytes(IMAGE_BYTES))
-        node.create_timer(0.1, publishes(node.create_publisher(UInt8MultiArray, "image", 10), msg))
+        node.create_timer(0.1, publishes(node.create_publisher(UInt8MultiArray, "image", qos()), msg))
     elif role == "viewer":
-        node.create_subscription(UInt8MultiArray, "image", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
+        node.create_subscription(UInt8MultiArray, "image", lambda m: counted.__setitem__(0, counted[0] + 1), qos())
     elif role == "processor":
-        pub = node.create_publisher(UInt8MultiArray, "processed", 10)
-        node.create_subscription(UInt8MultiArray, "image", forwards(node, pub), 10)
+        pub = node.create_publisher(UInt8MultiArray, "processed", qos())
+        node.create_subscription(UInt8MultiArray, "image", forwards(node, pub), qos())
     elif role == "sink":
-        node.create_subscription(UInt8MultiArray, "processed", lambda m: counted.__setitem__(0, counted[0] + 1), 10)
+        node.create_subscription(UInt8MultiArray, "processed", lambda m: counted.__setitem__(0, counted[0] + 1), qos())
     elif role == "leaker":
         leak_bytes = int(os.environ.get("DRUMS_TEST_LEAK_BYTES", 100_000))
         kept = []
@@ -122,6 +126,7 @@ def make(role: str, name: str) -> Node:
         node.create_subscription(String, "beat", receive, qos())
     elif role == "reactor":
         out = node.create_publisher(String, "reaction", 10)
+        reacting.append(out)
 
         def react(msg):
             began = time.monotonic_ns()
@@ -144,6 +149,7 @@ reactions = []  # ns from the start of each of the reactor's callbacks to its pu
 latencies = []  # ns from the stamp of each message the receiver took to its callback's start
 ages, transports = [], []  # ns from the RMW's source stamp to the take, and to its received stamp
 took = [0]  # CLOCK_REALTIME in ns right after the executor's last take
+reacting = []  # the reactor's /reaction publishers
 
 
 class TakeClock(SingleThreadedExecutor):
@@ -202,6 +208,9 @@ def main() -> None:
                      "transports": transports}.get(line.strip())
             if asked is not None:
                 print(line.strip(), *asked, flush=True)
+                continue
+            if line.strip() == "matched":
+                print("matched", *(pub.get_subscription_count() for pub in reacting), flush=True)
                 continue
             print("count", counted[0], flush=True)
         os._exit(0)  # input closed: the test is done with us

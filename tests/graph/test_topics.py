@@ -45,8 +45,12 @@ def _run(procs, agent):
     procs["producer"].go()
     # 3 s at 10 Hz, once each publisher has matched its subscribers (pairwise DDS discovery, which
     # a host busy with three lanes of make test can hold up for tens of seconds)
-    wait_until(lambda: all(p.count() == BURST for p in procs.values()),
-               f"every node to publish or receive {BURST} messages", timeout=60)
+    counts = {}
+
+    def done() -> bool:
+        counts.update((role, p.count()) for role, p in procs.items())
+        return all(n == BURST for n in counts.values())
+    wait_until(done, lambda: f"every node to publish or receive {BURST} messages (they did {counts})", timeout=60)
     return agent.collect()
 
 
