@@ -23,10 +23,18 @@ GOLDEN = 0.6180339887  # spreads consecutive PIDs evenly over the unit interval
 INTERVAL, IDLE_INTERVAL = 5.0, 60.0
 _READ = (f"read at most every {INTERVAL:g} s; one that has not run since, every {IDLE_INTERVAL / 2:g} to "
          f"{IDLE_INTERVAL:g} s")
+# USS comes from smaps_rollup, for which the kernel walks the process's page tables: the dearest
+# read of a process by far (0.3 ms and more for a large one). Unique memory changes with resident
+# memory, which statm gives cheaply: USS is read again when RSS moved by more than 1/USS_MOVED of
+# itself since, or once it is USS_EVERY seconds old. A process without resident memory (a kernel
+# thread) has no unique memory either: nothing to walk.
+USS_MOVED, USS_EVERY = 32, 60.0
 
 RESIDENT_MEMORY = Metric("drums_process_resident_memory_bytes", GAUGE, f"Resident set size ({_READ})", LABELS)
 UNIQUE_MEMORY = Metric(
-    "drums_process_unique_memory_bytes", GAUGE, f"Memory freed if the process exited (USS; {_READ})", LABELS
+    "drums_process_unique_memory_bytes", GAUGE,
+    f"Memory freed if the process exited (USS; read with RSS when RSS moved by more than 1/{USS_MOVED} since, "
+    f"else every {USS_EVERY:g} s)", LABELS
 )
 THREADS = Metric("drums_process_threads", GAUGE, "Threads in the process", LABELS)
 OPEN_FDS = Metric("drums_process_open_fds", GAUGE, "Open file descriptors", LABELS)
@@ -46,11 +54,21 @@ def _spread(pid: int) -> float:
 
 
 class _Read:
-    """A process's values at its last read, and what tells whether they may have changed since."""
-    __slots__ = ("at", "values", "refresh", "cpu")
+    """A process's values at its last read, what tells whether they may have changed since, and its
+    USS with the time and RSS it was read at."""
+    __slots__ = ("at", "values", "refresh", "cpu", "uss")
 
-    def __init__(self, at: float, values: list, refresh: int, cpu: float | None):
-        self.at, self.values, self.refresh, self.cpu = at, values, refresh, cpu
+    def __init__(self, at: float, values: list, refresh: int, cpu: float | None, uss: tuple | None):
+        self.at, self.values, self.refresh, self.cpu, self.uss = at, values, refresh, cpu, uss
+
+
+def _allowed(read):
+    """What `read()` gives, None where the kernel denies it: a process of another user namespace,
+    or one made undumpable, shows its statm, stat and status but not its smaps_rollup or io."""
+    try:
+        return read()
+    except psutil.AccessDenied:
+        return None
 
 
 def open_fds(pid: int) -> int:
@@ -113,7 +131,7 @@ class ProcessProbe(Probe):
             cached = self._last.get(pid)
             if self._due(pid, cached, now):
                 try:
-                    values = self._read(pid)
+                    values, uss = self._read(pid, cached.uss if cached else None, now)
                 except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
                     self._procs.pop(pid, None)
                     self._last.pop(pid, None)
@@ -122,33 +140,39 @@ class ProcessProbe(Probe):
                 # a hundred processes found at once are read a few at each scrape afterwards, not
                 # all at every fifth one (a scrape of 50 ms at the 95th percentile).
                 phase = 0.0 if cached else _spread(pid) * self.interval
-                cached = self._last[pid] = _Read(now - phase, values, table.refreshes, table.cpu(pid))
+                cached = self._last[pid] = _Read(now - phase, values, table.refreshes, table.cpu(pid), uss)
             labels = (str(pid), self.proctable.name(pid))
             for metric, value in cached.values:
                 snap.add(metric, labels, value)
 
-    def _read(self, pid: int) -> list[tuple[Metric, float]]:
+    def _read(self, pid: int, uss: tuple | None, now: float) -> tuple[list[tuple[Metric, float]], tuple | None]:
+        """The process's values, leaving out those the kernel denies, and its USS as (value, when
+        read, RSS then): the one given if still fresh, else read anew."""
         proc = self._procs.get(pid)
-        if proc is None:
+        if proc is None:  # a process not read before, or another one at its PID: its USS is unknown
             proc = self._procs[pid] = psutil.Process(pid)
+            uss = None
         with proc.oneshot():
             # A zombie has exited: psutil 7 reads its memory as zeros rather than raising.
             if proc.status() == psutil.STATUS_ZOMBIE:
                 raise psutil.ZombieProcess(pid)
-            # memory_full_info reads smaps_rollup for USS and includes RSS, so one call gives both.
-            mem = proc.memory_full_info()
-            io = proc.io_counters()
+            rss = proc.memory_info().rss
+            if not rss:
+                uss = (0, now, 0)
+            elif uss is None or now - uss[1] >= USS_EVERY or abs(rss - uss[2]) * USS_MOVED > uss[2]:
+                full = _allowed(proc.memory_full_info)
+                uss = (full.uss, now, rss) if full else None
+            io = _allowed(proc.io_counters)
             values = [
-                (RESIDENT_MEMORY, mem.rss),
-                (UNIQUE_MEMORY, mem.uss),
+                (RESIDENT_MEMORY, rss),
+                *([(UNIQUE_MEMORY, uss[0])] if uss else ()),
                 (THREADS, proc.num_threads()),
                 (OPEN_FDS, open_fds(pid)),
-                (READ_BYTES, io.read_bytes),
-                (WRITTEN_BYTES, io.write_bytes),
+                *([(READ_BYTES, io.read_bytes), (WRITTEN_BYTES, io.write_bytes)] if io else ()),
                 (START_TIME, proc.create_time()),
             ]
         # The cached object keeps the create_time of the process it was made for. Checking it after the
         # reads also catches a PID reused while they ran; the new owner gets a fresh object next time.
         if not proc.is_running():
             raise psutil.NoSuchProcess(pid)
-        return values
+        return values, uss

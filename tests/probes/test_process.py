@@ -1,6 +1,7 @@
 """process: a child with known memory, threads and storage I/O, read by the probe and checked with /proc."""
 import collections
 import contextlib
+import json
 import os
 import subprocess
 import sys
@@ -259,7 +260,7 @@ def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_
     probe.start()
     reads = collections.Counter()
     read = probe._read
-    probe._read = lambda pid: (reads.update([pid]), read(pid))[1]  # the real read, counted
+    probe._read = lambda pid, *rest: (reads.update([pid]), read(pid, *rest))[1]  # the real read, counted
     child = subprocess.Popen([sys.executable, "-c", GROWER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                              text=True)
     try:
@@ -326,3 +327,97 @@ def test_the_table_lists_proc_only_when_the_sched_probe_says_a_process_came_or_w
         child.wait()
     table.refresh(sched_probe.renamed(), complete=True)
     assert not table.alive(child.pid)
+
+
+# Grows its touched memory by the bytes each line of input says, and answers "grown".
+GROWER = r"""
+import sys
+kept = [bytearray(48 << 20)]
+kept[0][::4096] = b"\1" * (len(kept[0]) // 4096)
+print("ready", flush=True)
+for line in sys.stdin:
+    kept.append(b"\1" * int(line))
+    print("grown", flush=True)
+"""
+
+
+def test_uss_is_read_again_once_rss_moved_by_a_32nd_and_a_kernel_thread_s_never(probe, monkeypatch):
+    full_reads = collections.Counter()
+    real = psutil.Process.memory_full_info
+    monkeypatch.setattr(psutil.Process, "memory_full_info", lambda p: full_reads.update([p.pid]) or real(p))
+    kthread = next(int(pid) for pid in os.listdir("/proc") if pid.isdigit()
+                   and int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[6]) & 0x200000)  # PF_KTHREAD
+    with subprocess.Popen([sys.executable, "-c", GROWER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                          text=True) as grower:
+        assert grower.stdout.readline() == "ready\n"
+        probe.set_pids([grower.pid, kthread])
+
+        def grow_and_read(size: int) -> tuple[int, int]:
+            grower.stdin.write(f"{size}\n")
+            grower.stdin.flush()
+            assert grower.stdout.readline() == "grown\n"
+            probe.proctable.refresh(set())  # told, as by the sched probe: no process renamed or new
+            snap = Snapshot()
+            probe.collect(snap)
+            labels = (str(grower.pid), comm(grower.pid))
+            return snap.values(RESIDENT_MEMORY)[labels], snap.values(UNIQUE_MEMORY)[labels]
+        rss, uss = grow_and_read(0)
+        assert full_reads[grower.pid] == 1 and 48 * MIB <= uss <= rss
+        # 1 MiB more is less than a 32nd of its RSS: the USS of the first read is given again.
+        rss2, uss2 = grow_and_read(MIB)
+        assert (full_reads[grower.pid], uss2) == (1, uss) and rss + MIB - 64 * 1024 <= rss2 <= rss + MIB + 256 * 1024
+        # 8 MiB more is: read anew, with the 9 MiB grown since.
+        rss3, uss3 = grow_and_read(8 * MIB)
+        assert full_reads[grower.pid] == 2 and uss + 9 * MIB - 64 * 1024 <= uss3 <= uss + 9 * MIB + 256 * 1024
+        grower.stdin.close()
+    snap = collect(probe)
+    kernel = (str(kthread), comm(kthread))
+    assert (snap.values(RESIDENT_MEMORY)[kernel], snap.values(UNIQUE_MEMORY)[kernel]) == (0, 0)
+    assert full_reads[kthread] == 0
+
+
+# Run as root to import, then as nobody (no CAP_SYS_PTRACE): reads the PID it is given twice, as two
+# scrapes would, and prints the rows of each and how many times the process was read.
+AS_NOBODY = r"""
+import json, os, sys
+from drums.metrics import Snapshot
+from drums.probes.process import ProcessProbe
+from drums.proctable import ProcessTable
+table = ProcessTable()
+probe = ProcessProbe(table, interval=1e9)  # due again only when the kernel says it changed
+probe.start()
+probe.set_pids([int(sys.argv[1])])
+reads, read = [], probe._read
+probe._read = lambda *args: reads.append(args[0]) or read(*args)
+os.setgid(65534)
+os.setuid(65534)
+out = []
+for _ in range(2):
+    table.refresh(set())  # as the sched probe tells it: no process renamed
+    snap = Snapshot()
+    probe.collect(snap)
+    out.append({m.name: v for m, rows in snap.series.items() for _, v in rows})
+print(json.dumps({"rows": out, "reads": len(reads)}))
+"""
+
+
+def test_a_process_whose_memory_and_io_the_kernel_denies_keeps_its_other_rows_and_its_cadence():
+    """The agent run without CAP_SYS_PTRACE, or a process of another user namespace: smaps_rollup
+    and io are denied, statm, status and the fd directory are not. The process keeps the rows it
+    can give, and is read again when due, not at every scrape."""
+    with subprocess.Popen(["sleep", "60"]) as sleeper:
+        eventually(lambda: exec_done(sleeper.pid))
+        done = subprocess.run([sys.executable, "-c", AS_NOBODY, str(sleeper.pid)], capture_output=True, text=True,
+                              timeout=30)
+        with open(f"/proc/{sleeper.pid}/statm") as f:
+            resident = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        fds = len(os.listdir(f"/proc/{sleeper.pid}/fd"))
+        started = start_time(sleeper.pid)
+        sleeper.kill()
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout)
+    assert got["reads"] == 1
+    first, second = got["rows"]
+    assert first == second
+    assert first == {RESIDENT_MEMORY.name: resident, THREADS.name: 1, OPEN_FDS.name: fds,
+                     START_TIME.name: pytest.approx(started, abs=0.01)}
