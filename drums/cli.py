@@ -255,7 +255,6 @@ def run_agent(args) -> int:
     from drums.agent import Agent, Selection
     from drums.budget import Budget
     from drums.exporters import prometheus
-    from drums.exporters.diagnostics import Diagnostics, load_config
     from drums.exporters.http import HttpServer
     from drums.exporters.jobs import Jobs
     from drums.exporters import health
@@ -275,8 +274,10 @@ def run_agent(args) -> int:
     if args.own_netns:
         os.environ[OWN_NETNS] = "1"  # for the process table, here and in the graph reader child
     selection = Selection.parse(args.pid, args.process_name, args.cgroup)
-    diagnostics = (Diagnostics(load_config(args.diagnostics_config))
-                   if args.diagnostics or args.diagnostics_config else None)
+    diagnostics = None
+    if args.diagnostics or args.diagnostics_config:  # only then: it loads YAML (20 ms of a start)
+        from drums.exporters.diagnostics import Diagnostics, load_config
+        diagnostics = Diagnostics(load_config(args.diagnostics_config))
     adapter_name = args.graph or registry.default()
     adapter = registry.build(adapter_name, args.graph_file, _announcement(args))
     default = [p for p in PROBES if adapter_name == "ros2" or p not in ROS2_PROBES]

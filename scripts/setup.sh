@@ -74,3 +74,7 @@ if [ ! -e "$stamp" ]; then
   rm -f "$VENV"/.installed*
   touch "$stamp"
 fi
+# An editable install leaves Drums' own modules uncompiled, and a host that writes no bytecode
+# (PYTHONDONTWRITEBYTECODE) compiled all fifty at every start: a third of a warm start's 0.7 s.
+# Only what changed is compiled again; Python checks each file's time, so none goes stale.
+"$VENV/bin/python" -m compileall -q drums

@@ -21,6 +21,7 @@ costs a few kilobytes and no thread):
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
 import json
 import logging
@@ -89,7 +90,10 @@ class HttpError(Exception):
         self.code, self.headers = code, headers or {}
 
 
+@functools.cache
 def openapi_document() -> dict:
+    """The API's OpenAPI description, parsed when first asked for: YAML takes 40 ms of a start
+    (and its parser's memory) that an agent nobody asks this of never needs."""
     import yaml
     with open(OPENAPI) as f:
         return yaml.safe_load(f)
@@ -280,7 +284,6 @@ class HttpServer:
         self._pages = {"/": lambda _query: (home, "text/html; charset=utf-8"), **pages}
         self._pictures = pictures
         self._links = sorted([*self._pages, *pictures, *([f"{API}/openapi.json"] if jobs is not None else [])])
-        self._document = openapi_document()
         self._jobs, self._info, self._token, self._stream = jobs, info, token, stream or {}
         self._workers = ThreadPoolExecutor(WORKERS, thread_name_prefix="http")
         self._shared = _Shared(lambda: self._counted(collect()), self._workers)
@@ -423,7 +426,7 @@ class HttpServer:
             if parts == ["info"]:
                 return 200, dict(self._info(), stream=where)
             if parts == ["openapi.json"]:
-                return 200, self._document
+                return 200, openapi_document()
             return 200, {"jobs": [located(j) for j in self._jobs.list()]}
         if len(parts) < 2 or parts[0] != "monitor" or parts[1] not in KINDS:
             raise NotFound(f"no such path {API}/{'/'.join(parts)}")

@@ -11,7 +11,7 @@ import platform
 from functools import cached_property
 
 from drums.errors import KernelError
-from drums.kernel.btf import VMLINUX_BTF, Btf
+from drums.kernel.btf import VMLINUX_BTF, Btf, names
 
 TRACEFS = "/sys/kernel/tracing"
 HEADERS_CACHE = "/var/cache/drums/kernel-headers"  # made by scripts/setup.sh for custom kernels
@@ -75,7 +75,12 @@ class Features:
     @cached_property
     def perf_links(self) -> bool:
         """BPF links on perf events (Linux >= 5.15): tracepoints and uprobes that can be pinned."""
-        return self.btf is not None and self.btf.has_field("bpf_perf_link", "perf_file")
+        # struct bpf_perf_link came with them, and its name alone says so: a warm start, which needs
+        # nothing else of BTF, no longer indexes all of it for this (0.15 s of 0.7).
+        try:
+            return b"\0bpf_perf_link\0" in names(VMLINUX_BTF)
+        except KernelError:
+            return False
 
     @cached_property
     def uprobes(self) -> bool:

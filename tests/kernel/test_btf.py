@@ -1,0 +1,22 @@
+"""The running kernel's BTF: the cheap look at its names agrees with the full parse."""
+import pytest
+
+from drums.errors import KernelError
+from drums.kernel import btf
+from drums.kernel.features import Features
+
+
+def test_the_names_of_the_kernel_s_btf_say_what_its_parse_says_of_perf_links_and_structs():
+    parsed = btf.Btf.load()
+    strings = btf.names()
+    for struct in ("task_struct", "bpf_perf_link", "sock", "no_such_struct_in_any_kernel"):
+        assert (b"\0" + struct.encode() + b"\0" in strings) == bool(parsed._by_name.get(struct)), struct
+    assert Features().perf_links == parsed.has_field("bpf_perf_link", "perf_file") is True  # Linux 6.18 here
+
+
+def test_a_file_that_is_not_btf_is_one_kernel_error(tmp_path):
+    (tmp_path / "vmlinux").write_bytes(b"\x7fELF" + bytes(40))
+    with pytest.raises(KernelError, match="bad magic"):
+        btf.names(str(tmp_path / "vmlinux"))
+    with pytest.raises(KernelError, match="cannot read kernel BTF"):
+        btf.names(str(tmp_path / "missing"))
