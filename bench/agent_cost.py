@@ -125,7 +125,7 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
         for _ in range(2):  # the first collects read the names of every new process
             scraper.get()
             time.sleep(interval)
-        latencies, collect, outside, sizes, per_probe = [], [], [], [], {}
+        latencies, collect, whole, sizes, per_probe = [], [], [], [], {}
         processes = tree(agent.proc.pid)  # the whole tree: the agent and any helper it started
         cpu0, t0 = sum(map(cpu_seconds, processes)), time.monotonic()
         next_at = t0
@@ -137,7 +137,7 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
                 raise BenchError(f"/metrics answered {status}")
             durations = samples(body, "drums_probe_collect_duration_seconds")
             collect.append(sum(durations.values()) * 1000)
-            outside.append(latencies[-1] - collect[-1])
+            whole.append(samples(body, "drums_agent_collect_duration_seconds")[""] * 1000)
             for labels, v in durations.items():
                 per_probe.setdefault(labels.split('"')[1], []).append(v * 1000)
             sizes.append((len(body), series_count(body)))
@@ -147,8 +147,8 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], on_rea
         scraper.close()
         return {"cpu": (cpu1 - cpu0) / (t1 - t0) * 100, "uss": sum(map(uss_bytes, processes)),
                 "rss": sum(memory(p).get("Rss", 0) for p in processes), "processes": len(processes),
-                "latencies": latencies, "collect": collect, "outside": outside, "sizes": sizes[-1],
-                "per_probe": {k: median(v) for k, v in per_probe.items()},
+                "latencies": latencies, "collect": collect, "sizes": sizes[-1],
+                "per_probe": {k: median(v) for k, v in per_probe.items()}, "whole": whole,
                 "sockets": len(samples(body, "drums_socket_sent_bytes_total"))}
     finally:
         agent.stop()
@@ -232,6 +232,32 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
     return ours, ros, peer
 
 
+# What each part of a scrape does, for the profile: why it costs what the run measures.
+WHY = {
+    "host": "psutil: /proc/stat, meminfo, vmstat, diskstats, net/dev, the mounts and a statvfs each",
+    "process": "psutil for the chosen processes due (stat, statm, status, io, fd; smaps_rollup when RSS moved)",
+    "sched": "the thread map whole, rows remade for processes whose threads ran, renamed or came",
+    "sockets": "the sockets marked changed since the last collect, rows of the others kept",
+    "tcp": "the connections marked changed; sock_diag RTT of the kept connections every 5 s",
+    "latency": "its map, empty unless the TCP latency probe is asked for",
+    "rest of the collect": "process table, PIDs to read, the graph's join, the budget's ranking and folds, "
+                           "self-metrics",
+    "render, gzip, HTTP": "the text of families that changed, ISA-L gzip, aiohttp, and the client's gunzip",
+}
+
+
+def profile(run: dict) -> list[list[str]]:
+    """Median ms of each part of one scrape: the probes as the agent times them, the rest of its
+    collect, and what the client waited for beyond it."""
+    rows = [[name, fmt(ms, 2), WHY.get(name, "")] for name, ms in sorted(run["per_probe"].items(), key=lambda kv: -kv[1])]
+    rest = [w - c for w, c in zip(run["whole"], run["collect"])]
+    after = [lat - w for lat, w in zip(run["latencies"], run["whole"])]
+    rows.append(["rest of the collect", fmt(median(rest), 2), WHY["rest of the collect"]])
+    rows.append(["render, gzip, HTTP", fmt(median(after), 2), WHY["render, gzip, HTTP"]])
+    rows.append(["a scrape as the client timed it", fmt(median(run["latencies"]), 2), ""])
+    return rows
+
+
 def run(args) -> None:
     require_root()
     agent_args = shlex.split(args.agent_args)
@@ -274,11 +300,6 @@ def run(args) -> None:
         "a Drums cycle is one /metrics request timed by the client (collect + render + HTTP), over one "
         "connection kept alive and gzipped, as Prometheus scrapes; a psutil "
         "cycle is one poll of every process and of net_connections(), with nothing rendered or sent.",
-        f"agent's own collect time (sum of drums_probe_collect_duration_seconds): median "
-        f"{fmt(median(ours['collect']), 1)} ms; per probe: "
-        + ", ".join(f"{k} {fmt(v, 1)} ms" for k, v in sorted(ours["per_probe"].items()))
-        + f"; the rest of a scrape (process table, budget, render, HTTP): median "
-          f"{fmt(median(ours['outside']), 1)} ms",
         f"/metrics body: {series:,} series, {size / 1024:,.0f} KiB; per-socket series "
         f"(drums_socket_sent_bytes_total): {ours['sockets']:,}",
         f"the first rows: the auto graph (no helper process); with the ROS 2 graph the tree is "
@@ -288,6 +309,11 @@ def run(args) -> None:
     ]
     print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",
                 ["measure", "Drums agent", "psutil poller", "Drums / psutil"], rows, notes)
+    print_table(f"Agent cost: where a scrape's time goes at {args.processes:,} processes / {args.sockets:,} sockets",
+                ["part", "median ms", "what it does"], profile(ours),
+                ["medians over the same run's scrapes, each part on its own (the medians need not add up); "
+                 "probes as drums_probe_collect_duration_seconds says, the rest of the collect as "
+                 "drums_agent_collect_duration_seconds less them, and the client's time less the collect"])
 
 
 def main() -> None:
