@@ -9,16 +9,17 @@ import urllib.request
 from urllib.parse import urlsplit
 
 import psutil
-import pytest
 
 from tests.agentproc import running_agent, samples, scrape
 from tests.test_api import PROBES, call
 
-pytestmark = pytest.mark.lane2  # a minute of fuzzing its own agent: make test runs it in a lane beside the rest
 TOKEN = "fuzz-token"
 READ_ONLY = (["info"], ["jobs"], ["openapi.json"])  # paths under /drums/v1 that take only GET
 MIN_REQUESTS = 2000
-MAX_GROWTH = 5 << 20  # bytes of USS
+# Bytes of USS. The agent watches the whole host, and its memory follows the host's processes: in
+# the second lane, beside the main lane's hundreds, it grew 7.5 and 9.7 MB in fresh CI runs. So the
+# fuzzer runs in the main lane, one test at a time.
+MAX_GROWTH = 5 << 20
 
 
 def fuzz(api: str, tmp_path, name: str, max_examples: int, *args: str) -> list[dict]:
