@@ -84,14 +84,16 @@ def forwards(node, pub):
 
 
 def qos():
-    """Reliable, with a history that holds a whole burst (at least 10), and the Deadline QoS
-    $DRUMS_TEST_DEADLINE_MS if set. A reliable writer sends again only what its history still
-    holds: with a depth of 10, a subscriber that matched late or lost fragments of 1 MB samples over
-    UDP to a full socket buffer missed 6 of 30 on a busy host."""
+    """Reliable, with a history of at least 100 messages (a whole burst if longer), and the
+    Deadline QoS $DRUMS_TEST_DEADLINE_MS if set. A reliable writer sends again only what its
+    history still holds, and a subscriber's history drops the oldest messages its callback has not
+    taken yet: with a depth of 10, a sink on a busy host missed 6 of 30 samples of 1 MB over UDP, and
+    top's test once counted one lost on /chatter at 10 Hz, as a listener not scheduled for a second
+    (10 messages) would."""
     from rclpy.duration import Duration
     from rclpy.qos import QoSProfile
     deadline = int(os.environ.get("DRUMS_TEST_DEADLINE_MS", "0"))
-    return QoSProfile(depth=max(10, burst), deadline=Duration(nanoseconds=deadline * 1_000_000))
+    return QoSProfile(depth=max(100, burst), deadline=Duration(nanoseconds=deadline * 1_000_000))
 
 
 def make(role: str, name: str) -> Node:
