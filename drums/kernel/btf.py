@@ -33,50 +33,46 @@ class Field:
     size: int
 
 
-def _header(data: bytes) -> tuple[int, int, int, int, int]:
-    """(header length, type offset, type length, string offset, string length) of a BTF blob."""
+def _read(path: str) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except OSError as e:
+        raise KernelError(f"cannot read kernel BTF at {path}: {e.strerror}") from None
+
+
+def _sections(data: bytes) -> tuple[int, int, bytes]:
+    """Where a BTF blob's type records start and end, and its string section."""
     if len(data) < 24:
         raise KernelError("BTF blob is truncated")
     magic, _version, _flags, hdr_len, type_off, type_len, str_off, str_len = struct.unpack_from("<HBBIIIII", data, 0)
     if magic != _MAGIC:
         raise KernelError("not a BTF blob (bad magic)")
-    return hdr_len, type_off, type_len, str_off, str_len
+    return hdr_len + type_off, hdr_len + type_off + type_len, data[hdr_len + str_off : hdr_len + str_off + str_len]
 
 
 def names(path: str = VMLINUX_BTF) -> bytes:
     """The string section of a BTF file: every type, member and function name, each ended by a
     NUL. A name's presence answers some questions (whether the kernel has a struct at all) without
     indexing 130,000 types as Btf does (0.15 s)."""
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as e:
-        raise KernelError(f"cannot read kernel BTF at {path}: {e.strerror}") from None
-    hdr_len, _, _, str_off, str_len = _header(data)
-    return data[hdr_len + str_off : hdr_len + str_off + str_len]
+    return _sections(_read(path))[2]
 
 
 class Btf:
     """A parsed BTF blob; lookups are by C names as they appear in the kernel source."""
 
     def __init__(self, data: bytes):
-        hdr_len, type_off, type_len, str_off, str_len = _header(data)
         self._data = data
-        self._types_start = hdr_len + type_off
-        self._strings = data[hdr_len + str_off : hdr_len + str_off + str_len]
+        types_start, types_end, self._strings = _sections(data)
         # type id -> offset of its record (id 0 is void): 130,000 of them, in one block rather than
         # as as many Python ints (4 MB, which left the heap fragmented once the BTF was dropped)
         self._records = array.array("I", [0])
         self._by_name: dict[str, list[int]] = {}
-        self._index(self._types_start, self._types_start + type_len)
+        self._index(types_start, types_end)
 
     @classmethod
     def load(cls, path: str = VMLINUX_BTF) -> "Btf":
-        try:
-            with open(path, "rb") as f:
-                return cls(f.read())
-        except OSError as e:
-            raise KernelError(f"cannot read kernel BTF at {path}: {e.strerror}") from None
+        return cls(_read(path))
 
     def _index(self, pos: int, end: int) -> None:
         unpack = struct.unpack_from
