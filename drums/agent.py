@@ -43,7 +43,8 @@ FOLDED = Metric("drums_budget_folded_entities", GAUGE,
                 "Entities over the cardinality budget, summed into the series labelled other", ("kind",))
 AGENT_COLLECT = Metric("drums_agent_collect_duration_seconds", GAUGE,
                        "How long this snapshot took to collect: every probe, selection and budget")
-# role: agent (the agent process), graph (its ROS 2 graph reader), diagnostics (its /diagnostics publisher).
+# role: agent (the agent process), graph (its ROS 2 graph reader, which publishes /diagnostics too when
+# both are on), diag (the /diagnostics publisher of an agent without the ROS 2 graph).
 AGENT_CPU = Metric("drums_agent_cpu_seconds_total", COUNTER,
                    "CPU time used by the agent's processes: the agent and each helper it started, by role", ("role",))
 AGENT_RSS = Metric("drums_agent_resident_memory_bytes", GAUGE,

@@ -280,6 +280,8 @@ def run_agent(args) -> int:
         diagnostics = Diagnostics(load_config(args.diagnostics_config))
     adapter_name = args.graph or registry.default()
     adapter = registry.build(adapter_name, args.graph_file, _announcement(args))
+    if diagnostics and adapter_name == "ros2":
+        diagnostics.publisher.ride(adapter)  # one rclpy child, one DDS participant, for both
     default = [p for p in PROBES if adapter_name == "ros2" or p not in ROS2_PROBES]
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()

@@ -108,11 +108,14 @@ def _measured(record: dict) -> bool:
 
 
 def _publisher(url: str) -> psutil.Process:
-    """The agent's child that publishes /diagnostics."""
+    """The agent's one child: the ROS 2 graph reader, which publishes /diagnostics too."""
     port = str(urlsplit(url).port)
     agent = next(p for p in psutil.process_iter(["cmdline"]) if "agent" in (p.info["cmdline"] or ())
                  and port in p.info["cmdline"])
-    return next(c for c in agent.children() if "drums.exporters.diagnostics" in c.cmdline())
+    children = agent.children()
+    assert [c.name() for c in children] == ["drums-graph"], children
+    assert "--diagnostics" in children[0].cmdline()
+    return children[0]
 
 
 @pytest.mark.lane2  # half a minute of its own: make test runs it beside the rest

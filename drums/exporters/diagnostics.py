@@ -20,10 +20,11 @@ YAML file given with --diagnostics-config (null: not checked):
 Rates (CPU, bytes and messages per second) are the difference between this snapshot and the
 previous one, so the first array goes out one interval after the start.
 
-rclpy runs in a child process (`python -m drums.exporters.diagnostics`) for the reasons the ros2
-graph reader does: the agent stays lean, and a DDS stack that hangs or crashes costs the
-diagnostics, never the agent's kernel data. A child that exits or stops answering is logged once
-and started again.
+rclpy runs in a child process (drums.exporters.rosdiag) for the reasons the ros2 graph reader
+does: the agent stays lean, and a DDS stack that hangs or crashes costs the diagnostics, never the
+agent's kernel data. With the ros2 graph that child is the graph reader (one rclpy process and one
+DDS participant, not two of 50 MB each); else one of its own. A child that exits or stops
+answering is logged once and started again.
 """
 from __future__ import annotations
 
@@ -49,15 +50,12 @@ from drums.errors import UsageError
 from drums.graph import join
 from drums.metrics import Snapshot
 from drums.probes import host as hostprobe
+from drums.exporters.rosdiag import INSTALL_HINT
 from drums.probes import sockets, tcp
-from drums.proctable import name_helper
 
 log = logging.getLogger("drums")
 
 OK, WARN, ERROR = 0, 1, 2  # DiagnosticStatus levels
-OWN_NODE = "_drums_diagnostics"
-OWN_ANOMALIES_NODE = "_drums_anomalies"
-INSTALL_HINT = "pip install ros-rclpy ros-diagnostic-msgs (ROS 2 from PyPI)"
 # (section, key) -> (what a message calls the value, its unit, default warn, default error)
 THRESHOLDS = {
     ("node", "cpu_percent"): ("cpu", "%", 80.0, 95.0),
@@ -292,12 +290,16 @@ class Diagnostics:
 
 class Publisher:
     """The child that publishes DiagnosticArrays on `topic` (drums detect's anomalies go out this way
-    too): one JSON array per line on its stdin, one answer per array on its stdout ({} or {"error":
-    why}). A child that exits, or answers nothing for `timeout` s, is replaced, at most once every
-    `timeout` s; each new reason it is not publishing is logged once."""
+    too): one JSON array per line on its stdin, one answer per array on its stdout
+    (drums.exporters.rosdiag). A child that exits, or answers nothing for `timeout` s, is replaced,
+    at most once every `timeout` s; each new reason it is not publishing is logged once.
+
+    The child is the ROS 2 graph reader once `ride()` put the arrays on it (the agent with the ros2
+    graph: one rclpy process for both), else one of its own."""
 
     def __init__(self, timeout: float = 5.0, topic: str = "/diagnostics"):
         self.timeout, self.topic = timeout, topic
+        self._host = None  # the graph reader's adapter, once ride() was called
         self._proc: subprocess.Popen | None = None
         self._reader: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -309,32 +311,43 @@ class Publisher:
         self._killed = ""  # why we killed the child, if we did
         self._reason = ""  # what was logged last; "" while publishing
 
+    def ride(self, host) -> None:
+        """Publish through the ROS 2 graph reader (a drums.graph.ros2.Ros2Adapter not started yet)."""
+        self._host = host
+        host.carry(self.topic, self._answered_by)
+
     def _spawn(self) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", "drums.exporters.diagnostics", self.topic], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-        os.set_blocking(self._proc.stdin.fileno(), False)  # a child that stops reading must not stop us
         with self._lock:
             self._sent = self._answered = 0
             self._error = self._said = self._killed = ""
             self._heard_at = self._spawned_at = time.monotonic()
-        self._reader = threading.Thread(target=self._read, args=(self._proc,), daemon=True,
-                                        name="diagnostics-reader")
-        self._reader.start()
+        if self._host is not None:  # the reader as it is now, or a new one if ours is still it
+            self._proc = self._host.respawn(self._proc)
+        else:
+            self._proc = subprocess.Popen([sys.executable, "-m", "drums.exporters.rosdiag", self.topic],
+                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+            self._reader = threading.Thread(target=self._read, args=(self._proc,), daemon=True,
+                                            name="diagnostics-reader")
+            self._reader.start()
+        os.set_blocking(self._proc.stdin.fileno(), False)  # a child that stops reading must not stop us
 
     def _read(self, proc: subprocess.Popen) -> None:
         for line in proc.stdout:
             try:
-                error = str(json.loads(line).get("error", ""))[:500]
-            except (ValueError, AttributeError):  # not an answer: rmw and DDS print here too
+                error = str(json.loads(line)["answer"])
+            except (ValueError, TypeError, KeyError):  # not an answer: rmw and DDS print here too
                 with self._lock:
                     if proc is self._proc:
                         self._said = line.decode(errors="replace").strip()[:500]
                 continue
-            with self._lock:
-                if proc is self._proc:
-                    self._answered += 1
-                    self._heard_at = time.monotonic()
-                    self._error = error
+            self._answered_by(proc, error)
+
+    def _answered_by(self, proc: subprocess.Popen, error: str) -> None:
+        with self._lock:
+            if proc is self._proc:
+                self._answered += 1
+                self._heard_at = time.monotonic()
+                self._error = error[:500]
 
     def _write(self, data: bytes) -> bool:
         """All of `data` to the child within the timeout, or False."""
@@ -364,7 +377,8 @@ class Publisher:
             self._kill(f"the publisher answered nothing for {silent:.0f} s")
         code = self._proc.poll()
         if code is not None:
-            self._reader.join(1)  # its last words, if any, say why it exited
+            if self._reader is not None:
+                self._reader.join(1)  # its last words, if any, say why it exited
             with self._lock:
                 error = self._error or self._said
             return self._killed or f"the publisher exited with {code}" + (f" ({error})" if error else "")
@@ -389,57 +403,11 @@ class Publisher:
             self._sent += 1
 
     def stop(self) -> None:
-        if self._proc is None or self._proc.poll() is not None:
-            return
+        if self._host is not None or self._proc is None or self._proc.poll() is not None:
+            return  # the graph reader's adapter stops a child we share
         self._proc.stdin.close()  # at the end of its input the child leaves the DDS domain and exits
         try:
             self._proc.wait(self.timeout)
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait()
-
-
-def _answer(**message) -> None:
-    print(json.dumps(message), flush=True)
-
-
-def child(topic: str) -> int:
-    """The child process: publish each array read on stdin on `topic` until stdin closes."""
-    try:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
-        from drums.graph.ros2 import RCLPY_ARGS
-
-        rclpy.init(args=RCLPY_ARGS)
-        node = rclpy.create_node(OWN_NODE if topic == "/diagnostics" else OWN_ANOMALIES_NODE, enable_rosout=False,
-                                 start_parameter_services=False)
-        publisher = node.create_publisher(DiagnosticArray, topic, 10)
-    except Exception as e:  # no ROS 2, or a DDS that will not start: say why, the agent logs it
-        _answer(error=f"cannot publish {topic}: {e} ({INSTALL_HINT})")
-        return 2
-    try:
-        for line in sys.stdin:
-            try:
-                array = DiagnosticArray(status=[
-                    DiagnosticStatus(level=bytes([s["level"]]), name=s["name"], message=s["message"],
-                                     hardware_id=s["hardware_id"],
-                                     values=[KeyValue(key=k, value=v) for k, v in s["values"]])
-                    for s in json.loads(line)["status"]])
-                array.header.stamp = node.get_clock().now().to_msg()
-                publisher.publish(array)
-            except Exception as e:  # one array that cannot go out: say why, take the next
-                _answer(error=f"publishing {topic}: {e}")
-                continue
-            _answer()
-    except (KeyboardInterrupt, BrokenPipeError):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
-
-
-if __name__ == "__main__":
-    name_helper("diag")
-    sys.exit(child(sys.argv[1] if len(sys.argv) > 1 else "/diagnostics"))

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Callable
 
 from drums.errors import GraphError
 from drums.graph.model import Graph, GraphState
@@ -39,8 +40,9 @@ class Adapter:
 
 class ChildAdapter(Adapter):
     """An adapter whose middleware client runs in a child process (`python -m <module>`) that
-    prints one JSON object per line: {"state": ...} or {"error": "..."}. The child is restarted
-    when it exits; a child silent for `timeout` seconds makes polls fail."""
+    prints one JSON object per line: {"state": ...} or {"error": "..."}, or {"answer": "..."} for a
+    passenger (see Ros2Adapter.carry). The child is restarted when it exits; a child silent for
+    `timeout` seconds makes polls fail."""
 
     module = ""
     env: dict[str, str] = {}  # for the child, where the environment does not set them already
@@ -54,6 +56,19 @@ class ChildAdapter(Adapter):
         self._error = ""
         self._heard_at = 0.0
         self._lock = threading.Lock()
+        self._spawning = threading.Lock()
+        self._answers: Callable[[subprocess.Popen, str], None] | None = None  # a passenger's
+
+    def respawn(self, old: subprocess.Popen | None) -> subprocess.Popen:
+        """The child now: a new one if `old` is still it (killed first if it runs), for the adapter
+        whose child exited and for a passenger whose child stopped answering, whichever comes first."""
+        with self._spawning:
+            if self._proc is old:
+                if old is not None and old.poll() is None:
+                    old.kill()
+                    old.wait()
+                self._spawn()
+            return self._proc
 
     def _spawn(self) -> None:
         self._proc = subprocess.Popen([sys.executable, "-m", self.module, "--interval", str(self.interval),
@@ -67,6 +82,9 @@ class ChildAdapter(Adapter):
         for line in proc.stdout:
             try:
                 message = json.loads(line)
+                if isinstance(message, dict) and "answer" in message and self._answers is not None:
+                    self._answers(proc, str(message["answer"]))
+                    continue
                 if "error" in message:
                     state, error = None, str(message["error"])[:500]
                 else:
@@ -81,7 +99,7 @@ class ChildAdapter(Adapter):
 
     def start(self) -> None:
         """Start the child and wait (up to `timeout`) for its first word: a graph, or why not."""
-        self._spawn()
+        self.respawn(None)
         deadline = time.monotonic() + self.timeout
         while time.monotonic() < deadline and self._proc.poll() is None:
             with self._lock:
@@ -93,11 +111,12 @@ class ChildAdapter(Adapter):
                 raise GraphError(self._error)
 
     def poll(self) -> GraphState:
-        if self._proc.poll() is not None:
-            code = self._proc.returncode
+        proc = self._proc
+        if proc.poll() is not None:
+            code = proc.returncode
             with self._lock:
                 error = self._error
-            self._spawn()
+            self.respawn(proc)
             raise GraphError(error or f"the {self.name} reader exited with {code}; restarted")
         with self._lock:
             silent = time.monotonic() - self._heard_at

@@ -16,9 +16,11 @@ import json
 import os
 import socket
 import sys
+import threading
 import time
 import uuid
 from dataclasses import asdict
+from typing import Callable
 from urllib.parse import urlsplit
 
 from drums.graph.adapter import ChildAdapter
@@ -179,9 +181,17 @@ class Ros2Adapter(ChildAdapter):
         super().__init__(interval, timeout)
         self.child_args = ["--announce", json.dumps(asdict(announce))] if announce else []
 
+    def carry(self, topic: str, answers) -> None:
+        """The reader publishes the agent's DiagnosticArrays on `topic` too (one rclpy process and DDS
+        participant for both: drums.exporters.diagnostics.Publisher.ride), handing each answer to
+        `answers(child, error)`. Before start()."""
+        self.child_args = [*self.child_args, "--diagnostics", topic]
+        self._answers = answers
 
-def child(interval: float, announce: Host | None) -> int:
-    """The child process: print the graph every interval until stdin closes or we are killed."""
+
+def child(interval: float, announce: Host | None, diagnostics: str | None) -> int:
+    """The child process: print the graph every interval until we are killed (or, while it publishes
+    the arrays read on stdin on the `diagnostics` topic, until stdin closes)."""
     try:
         import rclpy
         from rclpy.node import Node as RclNode
@@ -195,22 +205,52 @@ def child(interval: float, announce: Host | None) -> int:
                    start_parameter_services=False)
     agents = Agents(node, String, announce or Host(socket.gethostname()), announce is not None)
     scan = ProcScan()
+    said = threading.Lock()  # the graph and the answers go out on one stdout, a line at a time
+
+    def say(line: str) -> None:
+        with said:
+            print(line, flush=True)
+    done = threading.Event()
+    arrays = None
+    if diagnostics:
+        from drums.exporters.rosdiag import INSTALL_HINT as DIAGNOSTICS_HINT, Arrays, answer
+        try:
+            arrays = Arrays(diagnostics)
+            publish = arrays.publish
+        except Exception as e:  # no diagnostic_msgs: each array is answered with why it goes nowhere
+            reason = f"cannot publish {diagnostics}: {e} ({DIAGNOSTICS_HINT})"
+            publish = lambda _line: reason  # noqa: E731
+        threading.Thread(target=_publish, args=(lambda line: answer(publish(line)), say, done), daemon=True,
+                         name="arrays").start()
     try:
-        while True:
+        while not done.is_set():
             until = time.monotonic() + interval
             while time.monotonic() < until:  # one spin runs one callback: take every announcement
                 rclpy.spin_once(node, timeout_sec=max(0.0, until - time.monotonic()))
             try:
                 state = discover(node, scan, agents)
             except Exception as e:  # the middleware answered something we cannot read: say so, go on
-                print(json.dumps({"error": f"reading the ROS 2 graph: {e}"}), flush=True)
+                say(json.dumps({"error": f"reading the ROS 2 graph: {e}"}))
                 continue
-            print(json.dumps({"state": state.to_dict()}), flush=True)
+            say(json.dumps({"state": state.to_dict()}))
     except (KeyboardInterrupt, BrokenPipeError):
         return 0
     finally:
+        if arrays is not None:
+            arrays.destroy()
         node.destroy_node()
         rclpy.try_shutdown()
+    return 0
+
+
+def _publish(answer: Callable[[str], str], say: Callable[[str], None], done: threading.Event) -> None:
+    """Each array read on stdin published and answered; at the end of stdin, done."""
+    try:
+        for line in sys.stdin:
+            say(answer(line))
+    except (BrokenPipeError, ValueError):
+        pass
+    done.set()
 
 
 def main() -> int:
@@ -218,9 +258,11 @@ def main() -> int:
     parser.add_argument("--interval", type=float, default=0.5)
     parser.add_argument("--announce", type=lambda text: Host(**json.loads(text)), default=None,
                         help="the host to announce to other agents, as JSON: {name, address, agent}")
+    parser.add_argument("--diagnostics", metavar="TOPIC", default=None,
+                        help="publish the DiagnosticArrays read on stdin (JSON lines) on this topic too")
     args = parser.parse_args()
     name_helper("graph")
-    return child(args.interval, args.announce)
+    return child(args.interval, args.announce, args.diagnostics)
 
 
 if __name__ == "__main__":

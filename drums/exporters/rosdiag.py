@@ -1,0 +1,81 @@
+"""The rclpy side of /diagnostics: a diagnostic_msgs/DiagnosticArray for each line of JSON the
+agent writes ({"status": [{level, name, message, hardware_id, values: [[key, value], ...]}, ...]}).
+
+It runs in a child process, never in the agent: in the ROS 2 graph reader when the agent has one
+(one rclpy process and one DDS participant for both), else on its own
+(`python -m drums.exporters.rosdiag TOPIC`, as `drums detect --ros` publishes its anomalies). It
+imports nothing of the agent's but the rclpy arguments, so that child stays an rclpy process.
+"""
+from __future__ import annotations
+
+import json
+import sys
+
+from drums.proctable import name_helper
+
+OWN_NODES = {"/diagnostics": "_drums_diagnostics"}  # any other topic: _drums_anomalies (drums detect)
+INSTALL_HINT = "pip install ros-rclpy ros-diagnostic-msgs (ROS 2 from PyPI)"
+
+
+class Arrays:
+    """A publisher of DiagnosticArrays on `topic`, from a node of its own (rclpy initialised)."""
+
+    def __init__(self, topic: str):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        self.topic = topic
+        self._types = DiagnosticArray, DiagnosticStatus, KeyValue
+        self.node = rclpy.create_node(OWN_NODES.get(topic, "_drums_anomalies"), enable_rosout=False,
+                                      start_parameter_services=False)
+        self._publisher = self.node.create_publisher(DiagnosticArray, topic, 10)
+
+    def publish(self, line: str | bytes) -> str:
+        """Publish the array of one line: "" once it went out, else why not."""
+        array_type, status_type, value_type = self._types
+        try:
+            array = array_type(status=[
+                status_type(level=bytes([s["level"]]), name=s["name"], message=s["message"], hardware_id=s["hardware_id"],
+                            values=[value_type(key=k, value=v) for k, v in s["values"]])
+                for s in json.loads(line)["status"]])
+            array.header.stamp = self.node.get_clock().now().to_msg()
+            self._publisher.publish(array)
+        except Exception as e:  # one array that cannot go out: say why, take the next
+            return f"publishing {self.topic}: {e}"
+        return ""
+
+    def destroy(self) -> None:
+        self.node.destroy_node()
+
+
+def answer(publish_error: str) -> str:
+    """The line that answers one array: what the agent's Publisher reads."""
+    return json.dumps({"answer": publish_error})
+
+
+def child(topic: str) -> int:
+    """The child on its own: publish each array read on stdin until stdin closes."""
+    try:
+        import rclpy
+
+        from drums.graph.ros2 import RCLPY_ARGS
+
+        rclpy.init(args=RCLPY_ARGS)
+        arrays = Arrays(topic)
+    except Exception as e:  # no ROS 2, or a DDS that will not start: say why, the agent logs it
+        print(answer(f"cannot publish {topic}: {e} ({INSTALL_HINT})"), flush=True)
+        return 2
+    try:
+        for line in sys.stdin:
+            print(answer(arrays.publish(line)), flush=True)
+    except (KeyboardInterrupt, BrokenPipeError):
+        pass
+    finally:
+        arrays.destroy()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    name_helper("diag")
+    sys.exit(child(sys.argv[1] if len(sys.argv) > 1 else "/diagnostics"))
