@@ -1,5 +1,5 @@
 """`make demo` and `make demo-stop` as a user runs them (without a terminal, so `drums top` is not
-started): Prometheus scrapes the demo's agent and has the demo robot's node series within 60 s;
+started): Prometheus scrapes the demo's agent and has the demo robot's node series within 90 s;
 after the stop no process, BPF pin, namespace or listening port of the demo is left."""
 from __future__ import annotations
 
@@ -74,7 +74,9 @@ def test_make_demo_then_demo_stop_leaves_nothing_behind():
             assert {r["metric"]["node"] for r in cpu} == {"/processor", "/controller", "/logger"}
             images = query(ports["PROMETHEUS"], 'drums_topic_messages_published_total{topic="/camera/image"} > 0')
             assert [r["metric"]["node"] for r in images] == ["/camera"]
-        eventually(watched, timeout=60)
+        # A CI run beside the whole suite once did not see /camera within 60 s: its DDS discovery
+        # crosses the veth link to the camera computer's namespace, on a host with both cores busy.
+        eventually(watched, timeout=90)
     finally:
         stopped = make("demo-stop", env)
     assert (stopped.returncode, stopped.stderr) == (0, ""), stopped.stderr
