@@ -90,25 +90,3 @@ def uprobe(prog_fd: int, path: str, offset: int, ret: bool = False) -> int:
     attr = _PerfEventAttr(type=pmu, size=ctypes.sizeof(_PerfEventAttr), config=(1 << ret_bit) if ret else 0,
                           sample_period=1, wakeup_events=1, config1=ctypes.addressof(name), config2=offset)
     return _link(prog_fd, _perf_event_open(attr, what), what)
-
-
-def symbol_offsets(path: str, names) -> dict[str, int]:
-    """File offsets of the named dynamic symbols of an ELF shared library, for uprobes."""
-    from elftools.common.exceptions import ELFError
-    from elftools.elf.elffile import ELFFile
-
-    try:
-        with open(path, "rb") as f:
-            elf = ELFFile(f)
-            dynsym = elf.get_section_by_name(".dynsym")
-            loads = [s for s in elf.iter_segments() if s["p_type"] == "PT_LOAD"]
-            out = {}
-            for name in names:
-                for sym in dynsym.get_symbol_by_name(name) or () if dynsym else ():
-                    value = sym["st_value"]
-                    for seg in loads:
-                        if seg["p_vaddr"] <= value < seg["p_vaddr"] + seg["p_memsz"]:
-                            out[name] = value - seg["p_vaddr"] + seg["p_offset"]
-            return out
-    except (OSError, ELFError) as e:
-        raise ProbeError(f"{path}: cannot read its symbols ({e})") from None

@@ -16,7 +16,7 @@ import threading
 import time
 
 from drums.errors import ProbeError
-from drums.kernel import bpffs, perflink
+from drums.kernel import bpffs, elf, perflink
 from drums.kernel.btf import Btf
 from drums.kernel.ringbuf import RingBuffer
 from drums.metrics import Snapshot
@@ -94,7 +94,7 @@ class LoadsProbe(BpfProbe):
         pin = os.path.join(self.pin_dir, "linker-{}-{}".format(*key))
         try:
             if not os.path.exists(pin):  # else uprobed by an agent before this one
-                offset = perflink.symbol_offsets(host_path, (HOOK,)).get(HOOK)
+                offset = elf.symbol_offsets(host_path, (HOOK,)).get(HOOK)
                 if offset is None:
                     raise ProbeError(f"{path}: no {HOOK} symbol")
                 link = perflink.uprobe(self._program, host_path, offset)

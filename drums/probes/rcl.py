@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from drums.errors import ProbeError
-from drums.kernel import bpffs, perflink
+from drums.kernel import bpffs, elf, perflink
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
 from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
@@ -261,7 +261,7 @@ class RclProbe(BpfProbe):
             self._files[key] = ""
             return
         try:
-            offsets = perflink.symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
+            offsets = elf.symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
             for i, (fn, program, ret) in enumerate(UPROBES):
                 if fn in offsets and (self.timing or program != "on_idle"):  # idle ends a reaction
                     link = perflink.uprobe(self._programs[program], host_path, offsets[fn], ret)
