@@ -353,9 +353,12 @@ class Budget:
         kept.update(active[:free])
         if free > len(active):  # slots left: idle entities take them
             kept.update(islice(entities - kept, free - len(active)))
+        rivals = active[free:] if free > 0 else active  # those left without a slot
+        if not rivals:
+            return  # every kept entity stays: no need to rank them (a thousand, at each collect)
         weakest = [(activity.get(k, 0.0), i, k) for i, k in enumerate(kept)]  # i: entities may not compare
         heapq.heapify(weakest)
-        for i, e in enumerate(active[free:] if free > 0 else active):
+        for i, e in enumerate(rivals):
             if not weakest or activity[e] <= 2 * weakest[0][0]:
                 break  # candidates are sorted: no later one can do better
             kept.discard(heapq.heapreplace(weakest, (activity[e], len(kept) + i, e))[2])

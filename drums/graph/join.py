@@ -14,6 +14,8 @@ PID and the mapping live only in drums_node_info.
 from __future__ import annotations
 
 from collections import defaultdict
+from itertools import compress
+from operator import itemgetter
 
 from drums.graph.model import Connection, Endpoint, Node
 from drums.metrics import COUNTER, GAUGE, HISTOGRAM, INFO, Histogram, Metric, Snapshot
@@ -92,6 +94,7 @@ METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, NODE_REAC
            TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_RECEIVED_WIRE_BYTES, EDGE_TRANSPORT, EDGE_AGE, EDGE_SENT_BYTES,
            EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
 
+_FIRST = itemgetter(0)
 INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
 GID_HEX = 32  # a DDS GUID: 12 bytes of prefix, 4 of entity id; rmw pads GIDs beyond that
 
@@ -106,9 +109,12 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     pid_of = {n.name: str(n.pid) for n in nodes if n.pid is not None}
 
     def per_node(metric: Metric, source: Metric, extra_labels: int = 0):
-        # A host's thousand processes pass here, a few of which hold nodes: a lookup each.
+        # A host's thousand processes pass here, a few of which hold nodes: those are picked out
+        # without a line of Python per process (rows are (labels, value), labels[0] the pid).
+        every = raw.of(source)
         rows = [((name,) + tuple(labels[len(labels) - extra_labels:]), value)
-                for labels, value in raw.of(source) for name in by_pid.get(labels[0], ())]
+                for labels, value in compress(every, map(by_pid.__contains__, map(_FIRST, map(_FIRST, every))))
+                for name in by_pid[labels[0]]]
         if rows:
             out.rows(metric).extend(rows)
 
