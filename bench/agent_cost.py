@@ -4,9 +4,10 @@ paper's approach: a process that polls the same processes with psutil each secon
 memory_info, io_counters, num_threads, and net_connections for the sockets). Both are measured
 alike, one after the other: CPU from /proc/<pid>/stat over the window, USS from smaps_rollup at its
 end. Goals: at most 0.5% of one core, 30 MB USS, /metrics in 10 ms.
-The agent runs twice: with the auto graph (no helper process), and with the ROS 2 graph, whose
-rclpy reader is a child: its whole tree is measured, goal 60 MB. Then both again on a host of a
-tenth of the processes and sockets, goal 0.1% of one core.
+The agent runs three times: with the auto graph (no helper process); with the ROS 2 graph, whose
+rclpy reader is a child: its whole tree is measured, goal 60 MB; and with the ROS 2 graph and
+/diagnostics, which that one child publishes too. Then the first again, and the poller, on a host
+of a tenth of the processes and sockets, goal 0.1% of one core.
 
     .venv/bin/python bench/agent_cost.py [--seconds 30] [--processes 1000] [--sockets 10000]
 """
@@ -205,9 +206,9 @@ def poller(pid_file: str, interval: float) -> None:
 
 
 def measure_host(processes: int, sockets: int, seconds: float, interval: float, agent_args: list[str],
-                 with_ros: bool) -> tuple[dict, dict | None, dict]:
-    """The agent (and, with_ros, the agent with the ROS 2 graph) and the psutil poller on a host of
-    `processes` processes holding `sockets` sockets."""
+                 with_ros: bool) -> tuple[dict, list[dict], dict]:
+    """The agent (and, with_ros, the agent with the ROS 2 graph, without and with /diagnostics) and
+    the psutil poller on a host of `processes` processes holding `sockets` sockets."""
     crowd = Crowd(processes, sockets)
     pid_file = f"/tmp/drums-bench-pids-{os.getpid()}"
     try:
@@ -215,10 +216,10 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
         progress(f"agent: {seconds} s at one scrape per {interval:g} s, once {processes} processes holding "
                  f"{sockets} sockets have started after it")
         ours = measure_agent(seconds, interval, agent_args, on_ready=crowd.restart)
-        ros = None
-        if with_ros:
-            progress(f"agent with the ROS 2 graph: {seconds} s")
-            ros = measure_agent(seconds, interval, agent_args + ["--graph", "ros2"], on_ready=crowd.restart)
+        ros = []
+        for extra in (["--graph", "ros2"], ["--graph", "ros2", "--diagnostics"]) if with_ros else ():
+            progress(f"agent with {' '.join(extra)}: {seconds} s")
+            ros.append(measure_agent(seconds, interval, agent_args + extra, on_ready=crowd.restart))
         progress(f"psutil poller: {seconds} s")
         crowd.restart()
         peer = measure_poller(seconds, interval, crowd.pids(), pid_file)
@@ -261,7 +262,8 @@ def profile(run: dict) -> list[list[str]]:
 def run(args) -> None:
     require_root()
     agent_args = shlex.split(args.agent_args)
-    ours, ros, peer = measure_host(args.processes, args.sockets, args.seconds, args.interval, agent_args, True)
+    ours, (ros, diag), peer = measure_host(args.processes, args.sockets, args.seconds, args.interval, agent_args,
+                                           True)
     small, _, small_peer = measure_host(args.processes // SMALL, args.sockets // SMALL, args.seconds, args.interval,
                                         agent_args, False)
 
@@ -281,6 +283,10 @@ def run(args) -> None:
          ratio(ros["cpu"], peer["cpu"])],
         [f"with the ROS 2 graph, whole tree: USS MB (goal <= {GOALS['tree_uss_mb']})", fmt(ros["uss"] / mb, 1),
          fmt(peer["uss"] / mb, 1), ratio(ros["uss"], peer["uss"])],
+        ["with the ROS 2 graph and /diagnostics (--graph ros2 --diagnostics), whole tree: CPU, % of one core",
+         fmt(diag["cpu"]), fmt(peer["cpu"]), ratio(diag["cpu"], peer["cpu"])],
+        ["with the ROS 2 graph and /diagnostics, whole tree: USS MB", fmt(diag["uss"] / mb, 1),
+         fmt(peer["uss"] / mb, 1), ratio(diag["uss"], peer["uss"])],
         [f"at {args.processes // SMALL:,} processes / {args.sockets // SMALL:,} sockets: CPU, % of one core "
          f"(goal <= {GOALS['small_cpu']})", fmt(small["cpu"]), fmt(small_peer["cpu"]),
          ratio(small["cpu"], small_peer["cpu"])],
@@ -304,7 +310,9 @@ def run(args) -> None:
         f"(drums_socket_sent_bytes_total): {ours['sockets']:,}",
         f"the first rows: the auto graph (no helper process); with the ROS 2 graph the tree is "
         f"{ros['processes']} processes (the agent and its rclpy graph reader), started and measured alike "
-        f"after the first run, with a crowd started anew once it is ready",
+        f"after the first run, with a crowd started anew once it is ready; with /diagnostics too, the tree "
+        f"is {diag['processes']} processes (that one child publishes the arrays), and the agent collects "
+        f"once a second for them besides the scrapes",
         "the last rows: the agent (auto graph) and the poller again on a host of a tenth of the processes and sockets",
     ]
     print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",

@@ -126,6 +126,7 @@ class Agent:
         self.selection = selection or Selection()
         self.budget = budget or Budget({})
         self._lock = threading.Lock()
+        self._last: Snapshot | None = None  # what collect() or recent() gave last
         self._replaced: list[Probe] = []
         self._reasons: dict[str, str] = {}
         self._durations: dict[str, float] = {}
@@ -170,7 +171,16 @@ class Agent:
     def collect(self) -> Snapshot:
         """One consistent snapshot; concurrent scrapes wait for each other rather than interleave."""
         with self._lock:
-            return self._collect()
+            self._last = self._collect()
+            return self._last
+
+    def recent(self, max_age: float) -> Snapshot:
+        """The last snapshot if its probes were read at most `max_age` seconds ago (a scrape's:
+        /diagnostics takes it rather than collect once more), else a new one."""
+        with self._lock:
+            if self._last is None or time.time() - self._last.read_at > max_age:
+                self._last = self._collect()
+            return self._last
 
     def collect_raw(self, probes: set[str], joined: bool = False) -> Snapshot:
         """A fresh read of the named probes, before selection and budget: every entity with its

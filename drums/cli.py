@@ -345,7 +345,7 @@ def run_agent(args) -> int:
         server.start()
         jobs.start()
         if diagnostics:
-            diagnostics.start(agent.collect)
+            diagnostics.start(agent.recent)
         attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)
         log.info("serving http://%s:%d/metrics after %.2f s; probes: %s; graph: %s", args.address, server.port,
                  time.perf_counter() - start, attached or "none", adapter_name)

@@ -5,6 +5,7 @@ later the HTTP API, the ZeroMQ stream and `drums top` all read the same Snapshot
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 COUNTER, GAUGE, HISTOGRAM, INFO = "counter", "gauge", "histogram", "info"
@@ -85,13 +86,15 @@ class Snapshot:
         self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]]] = {}
         self.read_at: float | None = None  # time.time() when the probes were read, if known
         self.changes: dict[tuple[Metric, ...], Changes] = {}  # by group (a metric alone: a group of one)
+        self._spreading = threading.Lock()
 
     @property
     def series(self) -> dict[Metric, list[tuple[tuple[str, ...], object]]]:
-        for metrics, rows in self.groups.items():
-            for i, metric in enumerate(metrics):
-                self._series.setdefault(metric, []).extend((labels, values[i]) for labels, values in rows)
-        self.groups = {}
+        with self._spreading:  # one snapshot goes to a scrape's render and to /diagnostics at once
+            for metrics, rows in self.groups.items():
+                for i, metric in enumerate(metrics):
+                    self._series.setdefault(metric, []).extend((labels, values[i]) for labels, values in rows)
+            self.groups = {}
         return self._series
 
     @property

@@ -163,6 +163,34 @@ def test_levels_values_and_publisher_restarts(roles, tmp_path):
             assert "drums_agent_cpu_seconds_total" in scrape(url)
 
 
+def test_arrays_take_a_young_scrape_snapshot_and_rate_its_counters_over_its_read_times():
+    """/diagnostics takes the snapshot of the last scrape when its probes were read less than most
+    of an interval ago, rather than collect again: the rates of its counters are then over the
+    time between the reads of two snapshots, not between two arrays."""
+    from drums.agent import Agent
+    from drums.exporters.diagnostics import Config, Diagnostics
+    from drums.metrics import Snapshot
+    from drums.probes import host
+    from drums.proctable import ProcessTable
+
+    agent = Agent([], ProcessTable())
+    scraped = agent.collect()
+    assert agent.recent(60) is scraped
+    time.sleep(0.02)
+    fresh = agent.recent(0.01)
+    assert fresh is not scraped and fresh.read_at > scraped.read_at and agent.recent(60) is fresh
+
+    def snapshot(read_at: float, sent: int) -> Snapshot:
+        snap = Snapshot()
+        snap.add(host.NET_SENT_BYTES, ("eth0",), sent)
+        snap.read_at = read_at
+        return snap
+    diagnostics = Diagnostics(Config())
+    diagnostics.statuses(snapshot(1000.0, 1_000), at=50.0)
+    statuses = diagnostics.statuses(snapshot(1002.5, 6_000), at=51.0)  # read 2.5 s apart, drawn 1 s apart
+    assert dict(statuses[-1]["values"])["network sent bytes/s"] == "2000.000"
+
+
 @pytest.mark.parametrize("text, says", [
     ("node: {cpu: {warn: 1}}", "node: unknown key 'cpu' (known: cpu_percent, memory_megabytes)"),
     ("node: {cpu_percent: {warn: high}}", "node.cpu_percent.warn: a number from 0 up, not 'high'"),

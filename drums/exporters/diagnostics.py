@@ -159,13 +159,15 @@ class Diagnostics:
         self.host = socket.gethostname()
         self.publisher = Publisher()
         self._previous: dict = {}  # counter key -> value at the last snapshot, for rates
-        self._previous_at = 0.0
+        self._previous_at = 0.0  # time.monotonic() of the last statuses, for the CPU seconds read then
+        self._previous_read_at = 0.0  # when the last snapshot's probes were read, for its counters
         self._failure = ""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def start(self, collect: Callable[[], Snapshot]) -> None:
-        self._thread = threading.Thread(target=self._run, args=(collect,), name="diagnostics", daemon=True)
+    def start(self, recent: Callable[[float], Snapshot]) -> None:
+        """`recent(max_age)`: a snapshot whose probes were read at most max_age seconds ago."""
+        self._thread = threading.Thread(target=self._run, args=(recent,), name="diagnostics", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
@@ -174,12 +176,16 @@ class Diagnostics:
             self._thread.join(timeout=2 * self.publisher.timeout)
         self.publisher.stop()
 
-    def _run(self, collect: Callable[[], Snapshot]) -> None:
+    def _run(self, recent: Callable[[float], Snapshot]) -> None:
+        # A scrape's snapshot serves if it is younger than most of an interval: no collect of our
+        # own then, which costs as much as a scrape's. Arrays go out an interval apart, so none is
+        # drawn twice from one snapshot.
+        max_age = 0.9 * self.config.interval
         while True:
             began = time.monotonic()
             try:
                 first = not self._previous_at
-                statuses = self.statuses(collect(), time.monotonic())
+                statuses = self.statuses(recent(max_age), time.monotonic())
                 if not first:
                     self.publisher.send(statuses)
                 self._failure = ""
@@ -191,11 +197,13 @@ class Diagnostics:
                 return
 
     def statuses(self, snap: Snapshot, at: float) -> list[dict]:
-        """A status per node with a process here, then the host's; rates since the last call."""
+        """A status per node with a process here, then the host's; rates since the last call: of
+        the CPU seconds read now, over the time since (`at`, monotonic), and of the snapshot's
+        counters over the time between the reads of the two snapshots."""
         counters: dict = {}
-        elapsed = at - self._previous_at
+        since_now, since_read = at - self._previous_at, (snap.read_at or 0.0) - self._previous_read_at
 
-        def rate(key, value) -> float | None:
+        def rate(key, value, elapsed: float = since_read) -> float | None:
             counters[key] = value
             before = self._previous.get(key)
             if before is None or value < before or elapsed <= 0:
@@ -220,7 +228,7 @@ class Diagnostics:
                 values["shares process with"] = shares
             seconds = _cpu_seconds(pid)
             if seconds is not None:
-                per_second = rate((pid, "cpu"), seconds)
+                per_second = rate((pid, "cpu"), seconds, since_now)
                 if per_second is not None:
                     values["cpu %"] = checks["cpu_percent"] = 100 * per_second
                 values["cpu seconds"] = seconds
@@ -237,7 +245,7 @@ class Diagnostics:
                     values[key] = per_second
             out.append(self._status(f"drums: {node}", "node", values, checks))
         out.append(self._status(f"drums: host {self.host}", "host", *self._host(snap, rate)))
-        self._previous, self._previous_at = counters, at
+        self._previous, self._previous_at, self._previous_read_at = counters, at, snap.read_at or 0.0
         return out
 
     def _host(self, snap: Snapshot, rate) -> tuple[dict, dict]:
