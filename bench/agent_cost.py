@@ -311,8 +311,8 @@ def run(args) -> None:
         f"the first rows: the auto graph (no helper process); with the ROS 2 graph the tree is "
         f"{ros['processes']} processes (the agent and its rclpy graph reader), started and measured alike "
         f"after the first run, with a crowd started anew once it is ready; with /diagnostics too, the tree "
-        f"is {diag['processes']} processes (that one child publishes the arrays), and the agent collects "
-        f"once a second for them besides the scrapes",
+        f"is {diag['processes']} processes (that one child publishes the arrays too, drawn from the "
+        f"scrapes' snapshots)",
         "the last rows: the agent (auto graph) and the poller again on a host of a tenth of the processes and sockets",
     ]
     print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",

@@ -3,7 +3,8 @@ functions, the dynamic linker's _dl_debug_state).
 
 The ELF header, the section headers, .dynsym with its string table, and the loadable segments:
 all the agent needs, read from a memory map. A general ELF library (pyelftools) cost the agent
-2.7 MB of memory for as long as it ran, for a look at a file now and then.
+with the ROS 2 graph 1.1 MB of memory (USS, idle) for as long as it ran, for a look at a file now
+and then.
 """
 from __future__ import annotations
 
