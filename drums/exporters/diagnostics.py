@@ -47,10 +47,10 @@ import psutil
 
 from drums import safeyaml
 from drums.errors import UsageError
+from drums.exporters.rosdiag import INSTALL_HINT
 from drums.graph import join
 from drums.metrics import Snapshot
 from drums.probes import host as hostprobe
-from drums.exporters.rosdiag import INSTALL_HINT
 from drums.probes import sockets, tcp
 
 log = logging.getLogger("drums")
