@@ -41,12 +41,14 @@ def name_helper(role: str) -> None:
     ctypes.CDLL(None).prctl(_PR_SET_NAME, (HELPER + role).encode()[:15], 0, 0, 0)
 
 
-def process_start(proc: str, pid: int | str) -> int | None:
+def process_start(proc: str, pid: int | str, running: bool = False) -> int | None:
     """When the process with this PID started (clock ticks after boot): with the PID, what tells it
-    from a later process that got the PID. None if there is none."""
+    from a later process that got the PID. None if there is none (with `running`, nor if it has
+    exited and waits to be reaped)."""
     try:
         with open(f"{proc}/{pid}/stat", "rb") as f:
-            return int(f.read().rsplit(b")", 1)[1].split()[19])
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return None if running and fields[0] in (b"Z", b"X") else int(fields[19])
     except (OSError, IndexError, ValueError):
         return None
 

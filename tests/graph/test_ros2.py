@@ -85,10 +85,16 @@ def test_a_node_with_another_host_id_is_ours_while_its_pid_bits_are_one_of_our_p
     prefixes = {"/renumbered": theirs + (p.pid & 0xFFFF).to_bytes(2, "little") + bytes(6),
                 "/elsewhere": theirs + unused.to_bytes(2, "little") + bytes(6)}
     assert map_nodes(prefixes, scan, ours) == {"/renumbered": (p.pid, "gid"), "/elsewhere": (None, "remote")}
+    # Asked again with every node placed and its process running, the mapping stands without a
+    # listing of /proc.
+    listed = scan.table.refreshes
+    assert map_nodes(prefixes, scan, ours) == {"/renumbered": (p.pid, "gid"), "/elsewhere": (None, "remote")}
+    assert scan.table.refreshes == listed
     # Killed, it is gone at once, though its host id is not ours: it was mapped to a process of ours
     # (DDS would list it for its 20 s lease).
     p.kill()
     assert map_nodes(prefixes, scan, ours) == {"/renumbered": (None, "gone"), "/elsewhere": (None, "remote")}
+    assert scan.table.refreshes == listed + 1
 
 
 def test_a_process_seen_before_it_loaded_ros_is_mapped_once_its_node_appears(ros2_graph, ros_nodes):
