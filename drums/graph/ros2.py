@@ -210,18 +210,19 @@ def child(interval: float, announce: Host | None, diagnostics: str | None) -> in
     def say(line: str) -> None:
         with said:
             print(line, flush=True)
+
     done = threading.Event()
     arrays = None
     if diagnostics:
         from drums.exporters.rosdiag import INSTALL_HINT as DIAGNOSTICS_HINT, Arrays, answer
         try:
             arrays = Arrays(diagnostics)
-            publish = arrays.publish
         except Exception as e:  # no diagnostic_msgs: each array is answered with why it goes nowhere
             reason = f"cannot publish {diagnostics}: {e} ({DIAGNOSTICS_HINT})"
-            publish = lambda _line: reason  # noqa: E731
-        threading.Thread(target=_publish, args=(lambda line: answer(publish(line)), say, done), daemon=True,
-                         name="arrays").start()
+
+        def publish(line: str) -> str:
+            return answer(arrays.publish(line) if arrays is not None else reason)
+        threading.Thread(target=_publish, args=(publish, say, done), daemon=True, name="arrays").start()
     try:
         while not done.is_set():
             until = time.monotonic() + interval
@@ -243,11 +244,11 @@ def child(interval: float, announce: Host | None, diagnostics: str | None) -> in
     return 0
 
 
-def _publish(answer: Callable[[str], str], say: Callable[[str], None], done: threading.Event) -> None:
-    """Each array read on stdin published and answered; at the end of stdin, done."""
+def _publish(publish: Callable[[str], str], say: Callable[[str], None], done: threading.Event) -> None:
+    """Each array read on stdin published, and its answer said; at the end of stdin, done."""
     try:
         for line in sys.stdin:
-            say(answer(line))
+            say(publish(line))
     except (BrokenPipeError, ValueError):
         pass
     done.set()
