@@ -20,7 +20,7 @@ YAML file given with --diagnostics-config (null: not checked):
 Rates (CPU, bytes and messages per second) are the difference between this snapshot and the
 previous one, so the first array goes out one interval after the start.
 
-rclpy runs in a child process (drums.exporters.rosdiag) for the reasons the ros2 graph reader
+rclpy runs in a child process (drums.rclchild) for the reasons the ros2 graph reader
 does: the agent stays lean, and a DDS stack that hangs or crashes costs the diagnostics, never the
 agent's kernel data. With the ros2 graph that child is the graph reader (one rclpy process and one
 DDS participant, not two of 50 MB each); else one of its own. A child that exits or stops
@@ -47,11 +47,11 @@ import psutil
 
 from drums import safeyaml
 from drums.errors import UsageError
-from drums.exporters.rosdiag import INSTALL_HINT
 from drums.graph import join
 from drums.metrics import Snapshot
 from drums.probes import host as hostprobe
 from drums.probes import sockets, tcp
+from drums.rclchild import INSTALL_HINT
 
 log = logging.getLogger("drums")
 
@@ -299,7 +299,7 @@ class Diagnostics:
 class Publisher:
     """The child that publishes DiagnosticArrays on `topic` (drums detect's anomalies go out this way
     too): one JSON array per line on its stdin, one answer per array on its stdout
-    (drums.exporters.rosdiag). A child that exits, or answers nothing for `timeout` s, is replaced,
+    (drums.rclchild). A child that exits, or answers nothing for `timeout` s, is replaced,
     at most once every `timeout` s; each new reason it is not publishing is logged once.
 
     The child is the ROS 2 graph reader once `ride()` put the arrays on it (the agent with the ros2
@@ -332,7 +332,7 @@ class Publisher:
         if self._host is not None:  # the reader as it is now, or a new one if ours is still it
             self._proc = self._host.respawn(self._proc)
         else:
-            self._proc = subprocess.Popen([sys.executable, "-m", "drums.exporters.rosdiag", self.topic],
+            self._proc = subprocess.Popen([sys.executable, "-m", "drums.rclchild", self.topic],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
             self._reader = threading.Thread(target=self._read, args=(self._proc,), daemon=True,
                                             name="diagnostics-reader")

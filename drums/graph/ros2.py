@@ -28,6 +28,7 @@ from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Proc
 from drums.graph.nodepids import ProcScan, map_nodes
 from drums.netfmt import is_address
 from drums.proctable import name_helper
+from drums.rclchild import RCLPY_ARGS
 
 # Measured: a reader that is not root sees the topics of a root node but not the node, nor its
 # endpoints (Fast DDS carries them over shared memory, whose segments are closed to other users).
@@ -38,9 +39,6 @@ ANNOUNCE_TOPIC = "/drums/agents"
 # The name rmw gives an endpoint whose node is not discovered yet: skipped until it is.
 UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 INSTALL_HINT = "pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp (ROS 2 from PyPI)"
-# Drums's rclpy children log through the agent, not to files: rcl's file log needs a writable
-# ~/.ros/log, and without one (a user whose HOME is not theirs) rclpy.init fails.
-RCLPY_ARGS = ["--ros-args", "--disable-external-lib-logs"]
 
 
 def full_name(namespace: str, name: str) -> str:
@@ -214,7 +212,7 @@ def child(interval: float, announce: Host | None, diagnostics: str | None) -> in
     done = threading.Event()
     arrays = None
     if diagnostics:
-        from drums.exporters.rosdiag import INSTALL_HINT as DIAGNOSTICS_HINT, Arrays, answer
+        from drums.rclchild import INSTALL_HINT as DIAGNOSTICS_HINT, Arrays, answer
         try:
             arrays = Arrays(diagnostics)
         except Exception as e:  # no diagnostic_msgs: each array is answered with why it goes nowhere

@@ -1,10 +1,12 @@
-"""The rclpy side of /diagnostics: a diagnostic_msgs/DiagnosticArray for each line of JSON the
-agent writes ({"status": [{level, name, message, hardware_id, values: [[key, value], ...]}, ...]}).
+"""What Drums' rclpy child processes share: how they start rclpy, and the rclpy side of
+/diagnostics, a diagnostic_msgs/DiagnosticArray for each line of JSON the agent writes
+({"status": [{level, name, message, hardware_id, values: [[key, value], ...]}, ...]}), answered
+with a line the agent reads.
 
-It runs in a child process, never in the agent: in the ROS 2 graph reader when the agent has one
-(one rclpy process and one DDS participant for both), else on its own
-(`python -m drums.exporters.rosdiag TOPIC`, as `drums detect --ros` publishes its anomalies). It
-imports nothing of the agent's but the rclpy arguments, so that child stays an rclpy process.
+rclpy never runs in the agent. The arrays go out from the ROS 2 graph reader when the agent has one
+(one rclpy process and one DDS participant for both), else from a child of their own
+(`python -m drums.rclchild TOPIC`, as `drums detect --ros` publishes its anomalies), which imports
+nothing of the agent's.
 """
 from __future__ import annotations
 
@@ -13,6 +15,9 @@ import sys
 
 from drums.proctable import name_helper
 
+# Drums' rclpy children log through the agent, not to files: rcl's file log needs a writable
+# ~/.ros/log, and without one (a user whose HOME is not theirs) rclpy.init fails.
+RCLPY_ARGS = ["--ros-args", "--disable-external-lib-logs"]
 OWN_NODES = {"/diagnostics": "_drums_diagnostics"}  # any other topic: _drums_anomalies (drums detect)
 INSTALL_HINT = "pip install ros-rclpy ros-diagnostic-msgs (ROS 2 from PyPI)"
 
@@ -57,8 +62,6 @@ def child(topic: str) -> int:
     """The child on its own: publish each array read on stdin until stdin closes."""
     try:
         import rclpy
-
-        from drums.graph.ros2 import RCLPY_ARGS
 
         rclpy.init(args=RCLPY_ARGS)
         arrays = Arrays(topic)
