@@ -163,6 +163,20 @@ def test_levels_values_and_publisher_restarts(roles, tmp_path):
             assert "drums_agent_cpu_seconds_total" in scrape(url)
 
 
+def test_the_reader_that_publishes_leaves_its_domain_when_the_agent_stops(ros_domain):
+    """The graph reader that publishes the arrays ends at the end of its input, as the publisher of
+    its own did: its nodes leave the DDS domain at once, not when their lease runs out."""
+    from drums.graph.ros2 import Ros2Adapter
+
+    adapter = Ros2Adapter(interval=0.25)
+    adapter.carry("/diagnostics", lambda child, error: None)
+    adapter.start()
+    child = adapter._proc
+    began = time.monotonic()
+    adapter.stop()
+    assert child.returncode == 0 and time.monotonic() - began < 1.5  # not terminated (-15) after waiting
+
+
 def test_arrays_take_a_young_scrape_snapshot_and_rate_its_counters_over_its_read_times():
     """/diagnostics takes the snapshot of the last scrape when its probes were read less than most
     of an interval ago, rather than collect again: the rates of its counters are then over the

@@ -129,13 +129,22 @@ class ChildAdapter(Adapter):
             return self._latest
 
     def stop(self) -> None:
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.terminate()
+        proc = self._proc
+        if proc is None or proc.poll() is not None:
+            return
+        if self._answers is not None:  # a child that publishes leaves its DDS domain at the end of its input
             try:
-                self._proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
+                proc.stdin.close()
+                proc.wait(2 * self.interval + 1)
+                return
+            except (OSError, subprocess.TimeoutExpired):
+                pass
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 class Follower:
