@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PYTHON = sys.executable
 PIN_ROOT = "/sys/fs/bpf/drums"  # where `drums agent` pins (drums.kernel.bpffs.PIN_ROOT)
-READY_LINE = 'drums_probe_attached{probe="sockets",attach_type="raw_tracepoint"} 1'
+READY_LINE = 'drums_probe_attached{probe="sockets",attach_type="tp_btf"} 1'
 _CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 if ROOT not in sys.path:  # the scripts run as `python bench/<name>.py`, not as a package

@@ -1,5 +1,6 @@
 """What each socket and scheduler probe costs per kernel event, beside the floor: an empty BPF
-program on the same raw tracepoint, which pays the same dispatch and does nothing.
+program on the same tracepoint, attached as the probe's are (tp_btf where the kernel offers it),
+which pays the same dispatch and does nothing.
 
 Two measures, both printed:
 - the program's own run time per event, from the kernel's BPF statistics
@@ -26,6 +27,8 @@ import textwrap
 
 from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, percentile,
                     print_table, progress, ratio, require_root, require_tool)
+
+from drums.kernel import tracing  # after common, which puts the project on sys.path
 
 PIN_ROOT = "/sys/fs/bpf/drums_bench"
 STATS_SYSCTL = "/proc/sys/kernel/bpf_stats_enabled"
@@ -125,23 +128,24 @@ class Floor:
         except ImportError:
             raise BenchError("bcc is not installed (apt-get install python3-bpfcc)") from None
         self.bpf = BPF(text=FLOOR_SOURCE)
-        self.attached: list[str] = []
+        self.attached: dict[str, tuple[int, int]] = {}  # tracepoint -> (program fd, link fd)
 
     def attach(self, tracepoints) -> None:
+        """As the probes attach theirs where the kernel offers it: as tp_btf programs (the same
+        dispatch as a raw tracepoint's)."""
         for tp in tracepoints:
-            self.bpf.attach_raw_tracepoint(tp=tp.encode(), fn_name=FLOOR_FN[tp])
-            self.attached.append(tp)
+            self.attached[tp] = tracing.attach(self.bpf.module, FLOOR_FN[tp].decode(), tp)
 
     def detach(self) -> None:
-        for tp in self.attached:
-            self.bpf.detach_raw_tracepoint(tp=tp.encode())
-        self.attached = []
+        for prog, link in self.attached.values():
+            os.close(link)
+            os.close(prog)
+        self.attached = {}
 
     def prog_ids(self, tracepoints) -> dict[str, int]:
         out = {}
         for tp in tracepoints:
-            fd = self.bpf.load_func(FLOOR_FN[tp], self.bpf.RAW_TRACEPOINT).fd
-            with open(f"/proc/self/fdinfo/{fd}") as f:
+            with open(f"/proc/self/fdinfo/{self.attached[tp][0]}") as f:
                 info = dict(line.split(":", 1) for line in f if ":" in line)
             out[tp] = int(info["prog_id"])
         return out

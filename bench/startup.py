@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from common import Agent, drums_unload, fmt, main_wrapper, median, print_table, progress, require_root
+from common import READY_LINE, Agent, drums_unload, fmt, main_wrapper, median, print_table, progress, require_root
 
 GOALS = {"cold": 2.5, "warm": 0.2}
 
@@ -49,8 +49,7 @@ def run(args) -> None:
                 ["start", "median s to first metrics", "agent's own probe start s", "goal s", "measured / goal"],
                 rows,
                 [f"median of {args.runs} runs; 'to first metrics' runs from launching the process (Python "
-                 "imports included) until /metrics shows "
-                 'drums_probe_attached{probe="sockets",attach_type="raw_tracepoint"} 1, polled every 10 ms',
+                 f"imports included) until /metrics shows {READY_LINE}, polled every 10 ms",
                  "per run (s): " + "; ".join(f"{kind} " + ", ".join(fmt(seen) for seen, _ in runs)
                                              for kind, runs in results.items()),
                  "pins are removed at the end (drums unload)"])

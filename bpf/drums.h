@@ -9,6 +9,19 @@
 #define ATTACH_KPROBE 3
 #define ATTACH_TRACEPOINT 4  // perf-event tracepoints, pinned as BPF links
 #define ATTACH_UPROBE 5
+#define ATTACH_TP_BTF 6  // raw tracepoints whose programs see typed arguments (drums/kernel/tracing.py)
+
+// Loads a scalar or pointer field of a kernel struct: directly where the program runs as a BTF
+// tracepoint program (the verifier knows the pointer's type and checks the load), else through
+// bpf_probe_read_kernel, a helper call that costs as much as the rest of a small program.
+// CURRENT_TASK() is the running task, typed likewise where it can be.
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+#define KREAD(dst, addr) ((dst) = *(typeof(dst) *)(addr))
+#define CURRENT_TASK() ((u64)bpf_get_current_task_btf())
+#else
+#define KREAD(dst, addr) bpf_probe_read_kernel(&(dst), sizeof(dst), (void *)(addr))
+#define CURRENT_TASK() bpf_get_current_task()
+#endif
 
 #ifndef AF_UNIX
 #define AF_UNIX 1
@@ -77,9 +90,9 @@ static __always_inline u32 leader_tgid(u64 task)
 {
     u32 pid = 0, tgid = 0;
     u64 leader = 0;
-    bpf_probe_read_kernel(&pid, 4, (void *)(task + TASK_PID_OFF));
-    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
-    bpf_probe_read_kernel(&leader, sizeof(leader), (void *)(task + TASK_GROUP_LEADER_OFF));
+    KREAD(pid, task + TASK_PID_OFF);
+    KREAD(tgid, task + TASK_TGID_OFF);
+    KREAD(leader, task + TASK_GROUP_LEADER_OFF);
     return pid == tgid && leader == task ? tgid : 0;
 }
 #endif
@@ -90,9 +103,9 @@ static __always_inline u32 leader_tgid(u64 task)
 static __always_inline u64 process_start(u64 task)
 {
     u64 leader = 0, start = 0;
-    bpf_probe_read_kernel(&leader, sizeof(leader), (void *)(task + TASK_GROUP_LEADER_OFF));
+    KREAD(leader, task + TASK_GROUP_LEADER_OFF);
     if (leader)
-        bpf_probe_read_kernel(&start, sizeof(start), (void *)(leader + TASK_START_TIME_OFF));
+        KREAD(start, leader + TASK_START_TIME_OFF);
     return start;
 }
 #endif

@@ -89,7 +89,7 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, u6
     if (t)
         return t;
     struct thread_sched_t fresh = {};
-    bpf_probe_read_kernel(&fresh.tgid, 4, (void *)(task + TASK_TGID_OFF));
+    KREAD(fresh.tgid, task + TASK_TGID_OFF);
     bpf_probe_read_kernel(fresh.comm, sizeof(fresh.comm), (void *)(task + TASK_COMM_OFF));
     fresh.process_start = process_start(task);
     fresh.runtime_base = runtime_base;
@@ -139,7 +139,7 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
 static __always_inline void enqueued(u32 tid, u64 task, u64 now)
 {
     u64 runtime = 0;  // a thread that waits does not run: this is its runtime until it does
-    bpf_probe_read_kernel(&runtime, 8, (void *)(task + TASK_RUNTIME_OFF));
+    KREAD(runtime, task + TASK_RUNTIME_OFF);
     struct thread_sched_t *t = thread_entry(tid, task, runtime);
     if (t)
         t->enqueued_at = now;
@@ -155,18 +155,18 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         return 0;
     u64 prev = ctx->args[1], next = ctx->args[2];
     u32 prev_tid = 0, next_tid = 0;
-    bpf_probe_read_kernel(&prev_tid, 4, (void *)(prev + TASK_PID_OFF));
-    bpf_probe_read_kernel(&next_tid, 4, (void *)(next + TASK_PID_OFF));
+    KREAD(prev_tid, prev + TASK_PID_OFF);
+    KREAD(next_tid, next + TASK_PID_OFF);
     // The kernel has charged prev's slice to its runtime before this tracepoint (update_curr, as it
     // was dequeued or put back).
     u64 prev_runtime = 0, next_runtime = 0;
-    bpf_probe_read_kernel(&prev_runtime, 8, (void *)(prev + TASK_RUNTIME_OFF));
-    bpf_probe_read_kernel(&next_runtime, 8, (void *)(next + TASK_RUNTIME_OFF));
+    KREAD(prev_runtime, prev + TASK_RUNTIME_OFF);
+    KREAD(next_runtime, next + TASK_RUNTIME_OFF);
 #ifdef SWITCH_HAS_PREV_STATE
     unsigned int state = (unsigned int)ctx->args[3];  // kernel >= 5.18
 #else
     unsigned int state = 0;
-    bpf_probe_read_kernel(&state, 4, (void *)(prev + TASK_STATE_OFF));
+    KREAD(state, prev + TASK_STATE_OFF);
 #endif
     bool preempt = ctx->args[0] & 1;
     // Prev's runtime when it was switched in here, if this CPU saw that (the probe may have been
@@ -192,7 +192,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         } else if (state & TASK_DEAD) {
             // Folded at exit: the slice it ran since then joins its process's totals.
             u32 tgid = 0;
-            bpf_probe_read_kernel(&tgid, 4, (void *)(prev + TASK_TGID_OFF));
+            KREAD(tgid, prev + TASK_TGID_OFF);
             struct exited_sched_t *p = exited_sched.lookup(&tgid);
             if (p) {
                 if (prev_runtime > prev_runtime_in)
@@ -224,7 +224,7 @@ int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 task = ctx->args[0];
     u32 tid = 0;
-    bpf_probe_read_kernel(&tid, 4, (void *)(task + TASK_PID_OFF));
+    KREAD(tid, task + TASK_PID_OFF);
     if (tid)
         enqueued(tid, task, bpf_ktime_get_ns());
     return 0;
@@ -265,8 +265,8 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 task = ctx->args[0];
     u32 tid = 0, tgid = 0;
-    bpf_probe_read_kernel(&tid, 4, (void *)(task + TASK_PID_OFF));
-    bpf_probe_read_kernel(&tgid, 4, (void *)(task + TASK_TGID_OFF));
+    KREAD(tid, task + TASK_PID_OFF);
+    KREAD(tgid, task + TASK_TGID_OFF);
     if (tid == tgid)
         mark_renamed(tgid);  // the process's name is its leader's
     struct thread_sched_t *t = thread_sched.lookup(&tid);

@@ -2,8 +2,8 @@
 //
 // Kernel struct offsets arrive as -D flags read from the running kernel's BTF (drums/kernel/btf.py),
 // never from the installed headers, which may belong to another kernel. DRUMS_ATTACH picks the
-// attach path chosen by drums/probes/sockets.py: 1 = sock_send/recv_length raw tracepoints
-// (kernel >= 6.6, every socket family), 2 = fexit, 3 = kprobes (TCP and UDP only).
+// attach path chosen by drums/probes/sockets.py: 6 (tp_btf) or 1 (raw) = the sock_send/recv_length
+// tracepoints (kernel >= 6.6, every socket family), 2 = fexit, 3 = kprobes (TCP and UDP only).
 #include "drums.h"
 
 #define CLASS_TCP 0
@@ -118,9 +118,21 @@ static __always_inline u16 classify(u16 family, u16 protocol)
 static __always_inline u64 socket_ino(u64 sk)
 {
     u64 sock = 0, ino = 0;
-    bpf_probe_read_kernel(&sock, sizeof(sock), (void *)(sk + SK_SOCKET_OFF));
-    if (sock)
-        bpf_probe_read_kernel(&ino, sizeof(ino), (void *)(sock + SOCKET_INO_OFF));
+    KREAD(sock, sk + SK_SOCKET_OFF);
+    if (!sock)
+        return 0;
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    // The verifier checks each load against its struct, and the inode lies past struct socket (in
+    // struct socket_alloc): it is reached through the socket's file instead.
+    u64 file = 0, inode = 0;
+    KREAD(file, sock + SOCKET_FILE_OFF);
+    if (file)
+        KREAD(inode, file + FILE_INODE_OFF);
+    if (inode)
+        KREAD(ino, inode + INODE_INO_OFF);
+#else
+    bpf_probe_read_kernel(&ino, sizeof(ino), (void *)(sock + SOCKET_INO_OFF));
+#endif
     return ino;
 }
 
@@ -157,7 +169,7 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid, u
         // its entry, and its struct sock would pass the entry to the next socket: count such
         // calls in the thread totals only.
         u8 state = 0;
-        bpf_probe_read_kernel(&state, 1, (void *)(sk + SK_STATE_OFF));
+        KREAD(state, sk + SK_STATE_OFF);
         if (state == TCP_CLOSE)
             return 0;
     }
@@ -198,7 +210,7 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 k
     if (!th) {
         struct thread_traffic_t fresh = {};
         fresh.tgid = tgid;
-        fresh.process_start = process_start(bpf_get_current_task());
+        fresh.process_start = process_start(CURRENT_TASK());
         if (thread_traffic.insert(&tid, &fresh) != 0) {
             count_drop(DROP_THREAD);
             return;
@@ -225,7 +237,7 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 k
     }
 }
 
-#if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT
+#if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT || DRUMS_ATTACH == ATTACH_TP_BTF
 // sock:sock_send_length / sock_recv_length (sk, ret, flags), kernel >= 6.6.
 int on_send(struct bpf_raw_tracepoint_args *ctx)
 {

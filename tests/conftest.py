@@ -57,6 +57,22 @@ def _started(probe):
     probe.unload()
 
 
+# The attach paths this kernel offers the socket and scheduler probes: the probes' own tests run on
+# each, under a pin root of their own (loading a probe removes its pins of any other path).
+TRACEPOINT_PATHS = ("tp_btf", "raw_tracepoint")
+
+
+def started_on_path(probe, path: str):
+    """The probe held to one attach path: the raw tracepoint programs are what runs where the
+    kernel's BTF does not type its tracepoints, or refuses a tp_btf program."""
+    probe.pin_root = f"{TEST_PIN_ROOT}_{path}"
+    probe.paths = tuple(p for p in probe.paths if p.name == path)
+    probe.start()
+    assert probe.status.attach_type == path
+    yield probe
+    probe.unload()
+
+
 @pytest.fixture(scope="session")
 def sockets_probe(features, proctable):
     from drums.probes.sockets import SocketsProbe

@@ -71,7 +71,7 @@ def test_every_probe_attached_with_its_attach_type(agent):
     attached = samples(scrape(agent), "drums_probe_attached")
     got = {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in attached.items()}
     # rclpy is importable here, so the graph is ros2 and the per-topic probes run too.
-    assert got == {"sockets": ("raw_tracepoint", 1), "sched": ("raw_tracepoint", 1), "tcp": ("raw_tracepoint", 1),
+    assert got == {"sockets": ("tp_btf", 1), "sched": ("tp_btf", 1), "tcp": ("raw_tracepoint", 1),
                    "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("tracepoint", 1),
                    "rcl": ("uprobe", 1), "loads": ("uprobe", 1), "latency": ("icmp", 1)}
 

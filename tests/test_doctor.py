@@ -8,13 +8,15 @@ from drums.probes.sockets import SocketsProbe
 
 
 class Kernel(Features):
-    """A kernel described by hand: which tracepoints, kprobes and fentry it has."""
+    """A kernel described by hand: which tracepoints, kprobes and fentry it has, and whether its
+    BTF types its tracepoints (Linux >= 5.5)."""
 
-    def __init__(self, tracepoints=(), kprobes=False, fentry=False):
+    def __init__(self, tracepoints=(), kprobes=False, fentry=False, tp_btf=True):
         super().__init__()
         self._tracepoints = set(tracepoints)
         self.__dict__["kprobes"] = kprobes
         self.__dict__["fentry"] = fentry
+        self.__dict__["tp_btf"] = tp_btf
 
     def tracepoint(self, event):
         return event in self._tracepoints
@@ -30,21 +32,23 @@ def chosen(kernel):
 
 
 def test_new_kernel_uses_socket_tracepoints_even_with_kprobes_and_fentry():
-    assert chosen(Kernel(LINUX_6_6, kprobes=True, fentry=True)) == ("raw_tracepoint", [])
+    assert chosen(Kernel(LINUX_6_6, kprobes=True, fentry=True)) == ("tp_btf", [])
+    assert chosen(Kernel(LINUX_6_6, kprobes=True, fentry=True, tp_btf=False)) == (
+        "raw_tracepoint", ["tp_btf: the kernel's BTF does not type its tracepoints (Linux >= 5.5)"])
 
 
 def test_ubuntu_22_04_uses_fentry_then_kprobes():
     name, reasons = chosen(Kernel(LIFECYCLE, kprobes=True, fentry=True))
     assert name == "fentry"
-    assert reasons == ["raw_tracepoint: no tracepoint sock_send_length, sock_recv_length"]
+    assert reasons == [f"{path}: no tracepoint sock_send_length, sock_recv_length" for path in ("tp_btf", "raw_tracepoint")]
     assert chosen(Kernel(LIFECYCLE, kprobes=True, fentry=False))[0] == "kprobe"
 
 
 def test_no_path_says_why_for_each():
     name, reasons = chosen(Kernel(LIFECYCLE))
     assert name is None
-    assert [r.split(":")[0] for r in reasons] == ["raw_tracepoint", "fentry", "kprobe"]
-    assert "CONFIG_KPROBES" in reasons[2]
+    assert [r.split(":")[0] for r in reasons] == ["tp_btf", "raw_tracepoint", "fentry", "kprobe"]
+    assert "CONFIG_KPROBES" in reasons[3]
 
 
 def test_doctor_reports_this_machine_as_platform_md_says():
@@ -58,8 +62,8 @@ def test_doctor_reports_this_machine_as_platform_md_says():
     assert line["fentry"].startswith("NO ") and "refused" in line["fentry"]
     assert line["tracepoints"].startswith("ok ")
     assert line["BTF"].startswith("ok ")
-    for probe in ("sockets", "sched", "tcp"):
-        assert any(l.strip().startswith(f"probe {probe}") and "will use raw_tracepoint" in l for l in lines)
+    for probe, path in (("sockets", "tp_btf"), ("sched", "tp_btf"), ("tcp", "raw_tracepoint")):
+        assert any(l.strip().startswith(f"probe {probe}") and f"will use {path} " in l for l in lines)
 
 
 def test_doctor_as_an_ordinary_user_tells_no_permission_from_not_mounted():

@@ -77,10 +77,20 @@ class Features:
         """BPF links on perf events (Linux >= 5.15): tracepoints and uprobes that can be pinned."""
         # struct bpf_perf_link came with them, and its name alone says so: a warm start, which needs
         # nothing else of BTF, no longer indexes all of it for this (0.15 s of 0.7).
+        return b"\0bpf_perf_link\0" in self._btf_names
+
+    @cached_property
+    def tp_btf(self) -> bool:
+        """Whether raw tracepoints are typed in BTF (Linux >= 5.5), so that a tracing program can
+        attach to one (drums.kernel.tracing): each has a `btf_trace_<event>` typedef."""
+        return b"\0btf_trace_sched_switch\0" in self._btf_names
+
+    @cached_property
+    def _btf_names(self) -> bytes:
         try:
-            return b"\0bpf_perf_link\0" in names(VMLINUX_BTF)
+            return names(VMLINUX_BTF)
         except KernelError:
-            return False
+            return b""
 
     @cached_property
     def uprobes(self) -> bool:

@@ -18,7 +18,7 @@ from drums.errors import DrumsError, ProbeError
 from drums.kernel import bpffs
 
 BPF_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bpf")
-PINNABLE = {"raw_tracepoint", "fentry", "tracepoint", "uprobe"}
+PINNABLE = {"tp_btf", "raw_tracepoint", "fentry", "tracepoint", "uprobe"}
 
 
 @dataclass
@@ -48,7 +48,7 @@ def _compile(req: LoadRequest):
 def attach(req: LoadRequest):
     """Compile and attach in this process; returns the bcc object and the fds to pin by name:
     links, and programs loaded for later attachment ("program", e.g. uprobes)."""
-    from drums.kernel import perflink
+    from drums.kernel import perflink, tracing
 
     b = _compile(req)
     fds, programs = [], {}
@@ -58,6 +58,8 @@ def attach(req: LoadRequest):
                 fds.append(perflink.tracepoint(b.load_func(fn.encode(), b.TRACEPOINT).fd, target))
             elif kind == "program":
                 programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.KPROBE).fd  # uprobes are kprobe programs
+            elif kind == "tp_btf":
+                fds.append(tracing.attach(b.module, fn, target)[1])
             elif kind == "raw_tracepoint":
                 b.attach_raw_tracepoint(tp=target.encode(), fn_name=fn.encode())
                 fds.append(b.raw_tracepoint_fds[target.encode()])

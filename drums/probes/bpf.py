@@ -1,7 +1,7 @@
 """The common life of a BPF probe: choose an attach path, load it once, read its pinned maps.
 
 A probe lists its attach paths in order of preference; the first one this kernel offers wins
-(`choose_path`). Loaded programs and maps are pinned under /sys/fs/bpf/drums/<probe>-<stamp>, where
+(`choose_path`), and if the kernel refuses to load it, the next. Loaded programs and maps are pinned under /sys/fs/bpf/drums/<probe>-<stamp>, where
 the stamp changes with the C source, the path and the boot: an agent that restarts finds its
 pins and starts without compiling anything.
 """
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import glob
 import hashlib
+import logging
 import os
 import shutil
 import struct
@@ -22,8 +23,10 @@ from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.probes.entries import Entries, Marked, Matched
 
+log = logging.getLogger("drums")
+
 # Values of DRUMS_ATTACH in bpf/drums.h.
-ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3, "tracepoint": 4, "uprobe": 5}
+ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3, "tracepoint": 4, "uprobe": 5, "tp_btf": 6}
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,10 @@ def needs_tracepoints(*events: str) -> Callable[[Features], str | None]:
         missing = [e for e in events if not f.tracepoint(e)]
         return f"no tracepoint {', '.join(missing)}" if missing else None
     return check
+
+
+def needs_tp_btf(f: Features) -> str | None:
+    return None if f.tp_btf else "the kernel's BTF does not type its tracepoints (Linux >= 5.5)"
 
 
 def needs_fentry(f: Features) -> str | None:
@@ -62,6 +69,18 @@ def needs_all(*checks: Callable[[Features], str | None]) -> Callable[[Features],
     def check(f: Features) -> str | None:
         return next((why for why in (c(f) for c in checks) if why), None)
     return check
+
+
+def typed(raw: AttachPath) -> AttachPath:
+    """The raw tracepoint path `raw` with its programs loaded as BTF tracepoint programs, whose
+    loads of kernel fields cost no helper call (drums.kernel.tracing); preferred where it loads."""
+    return AttachPath("tp_btf", tuple(("tp_btf" if k == "raw_tracepoint" else k, t, fn) for k, t, fn in raw.attachments),
+                      needs_all(needs_tp_btf, raw.requires), raw.serves + ", with typed tracepoint arguments")
+
+
+def usable_paths(paths: tuple[AttachPath, ...], features: Features) -> list[AttachPath]:
+    """The paths this kernel offers, best first."""
+    return [path for path in paths if path.requires(features) is None]
 
 
 def choose_path(paths: tuple[AttachPath, ...], features: Features) -> tuple[AttachPath | None, list[str]]:
@@ -131,9 +150,20 @@ class BpfProbe(Probe):
         problems = common_requirements(self.features)
         if problems:
             raise KernelError("; ".join(problems))
-        path, reasons = choose_path(self.paths, self.features)
-        if path is None:
-            raise KernelError("no attach path: " + "; ".join(reasons))
+        paths = usable_paths(self.paths, self.features)
+        if not paths:
+            raise KernelError("no attach path: " + "; ".join(choose_path(self.paths, self.features)[1]))
+        for path in paths:
+            try:
+                self._start(path)
+                return
+            except ProbeError as e:
+                if path is paths[-1]:
+                    raise
+                log.warning("probe %s: the kernel refused the %s path (%s); trying %s", self.name, path.name, e,
+                            paths[paths.index(path) + 1].name)
+
+    def _start(self, path: AttachPath) -> None:
         self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
         if path.name in loader.PINNABLE:
             if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):

@@ -13,7 +13,7 @@ import numpy as np
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
-                              offset_defines)
+                              offset_defines, typed)
 from drums.probes.entries import Entries, within
 from drums.proctable import ProcessTable
 
@@ -68,27 +68,29 @@ class _Made:
     cpu: float  # its CPU seconds, for the process table
 
 
+# The scheduler tracepoints, with the programs that count them.
+_RAW = AttachPath("raw_tracepoint",
+                  (("raw_tracepoint", "sched_switch", "on_switch"),
+                   ("raw_tracepoint", "sched_wakeup", "on_wakeup"),
+                   ("raw_tracepoint", "sched_wakeup_new", "on_wakeup"),
+                   ("raw_tracepoint", "sched_process_free", "on_task_free"),
+                   ("raw_tracepoint", "task_rename", "on_rename"),
+                   ("raw_tracepoint", "sched_process_exec", "on_exec"),
+                   ("raw_tracepoint", "sched_process_exit", "on_exit"),
+                   ("raw_tracepoint", "sched_process_fork", "on_fork")),
+                  needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
+                                    "task_rename", "sched_process_exec", "sched_process_exit",
+                                    "sched_process_fork"),
+                  "Linux >= 5.7 (raw tracepoint links that outlive the loader)")
+
+
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
     maps = ("thread_sched", "exited_sched", "oncpu", "renamed", "dropped")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
-    paths = (
-        AttachPath("raw_tracepoint",
-                   (("raw_tracepoint", "sched_switch", "on_switch"),
-                    ("raw_tracepoint", "sched_wakeup", "on_wakeup"),
-                    ("raw_tracepoint", "sched_wakeup_new", "on_wakeup"),
-                    ("raw_tracepoint", "sched_process_free", "on_task_free"),
-                    ("raw_tracepoint", "task_rename", "on_rename"),
-                    ("raw_tracepoint", "sched_process_exec", "on_exec"),
-                    ("raw_tracepoint", "sched_process_exit", "on_exit"),
-                    ("raw_tracepoint", "sched_process_fork", "on_fork")),
-                   needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
-                                     "task_rename", "sched_process_exec", "sched_process_exit",
-                                     "sched_process_fork"),
-                   "Linux >= 5.7 (raw tracepoint links that outlive the loader)"),
-    )
+    paths = (typed(_RAW), _RAW)
 
     def __init__(self, features, proctable: ProcessTable, **kw):
         super().__init__(features, **kw)

@@ -16,7 +16,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
-                              needs_fentry, needs_kprobes, needs_tracepoints, offset_defines)
+                              needs_fentry, needs_kprobes, needs_tracepoints, offset_defines, typed)
 from drums.probes.entries import Entries, Matched
 from drums.proctable import ProcessTable
 
@@ -64,6 +64,10 @@ LIFECYCLE = (
     ("raw_tracepoint", "sched_process_exec", "on_exec"),
 )
 _LIFECYCLE_EVENTS = tuple(event for _, event, _ in LIFECYCLE)
+_RAW = AttachPath("raw_tracepoint",
+                  tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv"))) + LIFECYCLE,
+                  needs_tracepoints(*SEND_RECV, *_LIFECYCLE_EVENTS),
+                  "Linux >= 6.6: every socket family, one event per send and receive call")
 
 
 # The map value as 8-byte words (bpf/sockets.bpf.c): the identity (inode, process, addresses) in
@@ -108,11 +112,8 @@ class SocketsProbe(BpfProbe):
             "dropped")
     metrics = tuple(SOCKET.values()) + tuple(PROCESS.values()) + tuple(THREAD.values())
     paths = (
-        AttachPath("raw_tracepoint",
-                   tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv")))
-                   + LIFECYCLE,
-                   needs_tracepoints(*SEND_RECV, *_LIFECYCLE_EVENTS),
-                   "Linux >= 6.6: every socket family, one event per send and receive call"),
+        typed(_RAW),
+        _RAW,
         AttachPath("fentry", (("fentry", "", ""),) + LIFECYCLE,
                    lambda f: needs_fentry(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
                    "Linux 5.7 to 6.5 with BPF trampolines (Ubuntu 22.04): TCP and UDP only"),
@@ -145,9 +146,12 @@ class SocketsProbe(BpfProbe):
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
             **TASK_IDENTITY_FIELDS,
         })
-        # The socket's inode sits right after struct socket in struct socket_alloc.
+        # The socket's inode sits right after struct socket in struct socket_alloc; a tp_btf program
+        # may only load fields of the struct it holds, and goes through the socket's file instead.
         d["SOCKET_INO_OFF"] = (btf.field("socket_alloc", "vfs_inode").offset
                                + btf.field("inode", "i_ino").offset)
+        d.update(offset_defines(btf, {"SOCKET_FILE_OFF": ("socket", "file"), "FILE_INODE_OFF": ("file", "f_inode"),
+                                      "INODE_INO_OFF": ("inode", "i_ino")}))
         return d
 
     def collect(self, snap: Snapshot) -> None:

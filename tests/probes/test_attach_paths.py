@@ -1,11 +1,16 @@
 """The sockets probe's kprobe path cannot attach on this kernel (no CONFIG_KPROBES), but its
 programs can still be compiled and put through the kernel's verifier, which is what this checks.
-The fentry path cannot even load here (the kernel refuses BPF trampolines): it is untested."""
+The fentry path cannot even load here (the kernel refuses BPF trampolines): it is untested. The
+tp_btf and raw tracepoint paths both run here (tests/probes/test_sched.py and test_sockets.py run
+on each); a path the kernel refuses gives way to the next."""
+import logging
 import os
 
 from drums.kernel.loader import BPF_DIR
-from drums.probes.bpf import ATTACH_DEFINES
+from drums.probes.bpf import ATTACH_DEFINES, AttachPath
+from drums.probes.sched import SchedProbe
 from drums.probes.sockets import SocketsProbe
+from tests.conftest import TEST_PIN_ROOT
 
 
 def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
@@ -24,3 +29,22 @@ def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
             assert b.load_func(fn.encode(), BPF.KPROBE).fd >= 0, fn
     finally:
         b.cleanup()
+
+
+def test_a_path_the_kernel_refuses_gives_way_to_the_next(features, proctable, caplog):
+    """The kernel's verifier refuses a tp_btf program that reads arguments its tracepoint does not
+    have (on_switch, given sched_wakeup's one task): the probe says so and loads its next path."""
+    probe = SchedProbe(features, proctable, pin_root=f"{TEST_PIN_ROOT}_refused")
+    raw = next(p for p in probe.paths if p.name == "raw_tracepoint")
+    probe.paths = (AttachPath("tp_btf", (("tp_btf", "sched_wakeup", "on_switch"),), lambda f: None, "a bad program"), raw)
+    with caplog.at_level(logging.WARNING, logger="drums"):
+        probe.start()
+    try:
+        assert probe.status.attach_type == "raw_tracepoint"
+        (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        # The verifier's own reason: on_switch reads the tracepoint's second argument (8 bytes at 16).
+        assert warning.startswith("probe sched: the kernel refused the tp_btf path (tp_btf sched_wakeup: on_switch: "
+                                  "Permission denied: invalid bpf_context access off=16 size=8)"), warning
+        assert warning.endswith("; trying raw_tracepoint"), warning
+    finally:
+        probe.unload()

@@ -16,7 +16,13 @@ import pytest
 from drums.metrics import Histogram
 from drums.probes import sched
 from drums.probes.sched import _PROCESS_VALUE, _THREAD_VALUE, RUNQ_BUCKETS
-from tests.conftest import series, wait_until
+from tests.conftest import TRACEPOINT_PATHS, series, started_on_path, wait_until
+
+
+@pytest.fixture(scope="module", params=TRACEPOINT_PATHS)
+def sched_probe(request, features, proctable):
+    yield from started_on_path(sched.SchedProbe(features, proctable), request.param)
+
 
 PROCESS_CPU = "drums_process_cpu_seconds_total"
 PROCESS_RUNQ = "drums_process_runqueue_latency_seconds"

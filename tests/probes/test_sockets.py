@@ -17,7 +17,13 @@ import pytest
 
 from drums.probes import sockets
 from drums.probes.sockets import _SOCKET_VALUE
-from tests.conftest import connected_pairs, eventually, series, wait_until
+from tests.conftest import TRACEPOINT_PATHS, connected_pairs, eventually, series, started_on_path, wait_until
+
+
+@pytest.fixture(scope="module", params=TRACEPOINT_PATHS)
+def sockets_probe(request, features, proctable):
+    yield from started_on_path(sockets.SocketsProbe(features, proctable), request.param)
+
 
 COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
 ZERO = dict.fromkeys(COUNTS, 0)
