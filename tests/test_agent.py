@@ -264,12 +264,25 @@ def test_a_graph_that_cannot_be_read_is_said_once(command, tmp_path):
     assert out.stderr == f"drums: the ROS master at {uri} refused the connection\n"
 
 
+def _agent_process(url: str) -> psutil.Process:
+    port = str(urllib.parse.urlsplit(url).port)
+    (proc,) = [p for p in psutil.process_iter(["cmdline"])
+               if p.info["cmdline"] and "agent" in p.info["cmdline"] and port in p.info["cmdline"]]
+    return proc
+
+
+def test_the_agent_never_maps_the_bpf_compiler(agent):
+    """bcc's compiler (LLVM, some 50 MB of the agent's own memory) stays in the loader children,
+    though this agent started cold and compiled every probe; choosing a probe's attach path does
+    not ask bcc about the paths after the one that loaded."""
+    libraries = {line.split()[-1] for line in open(f"/proc/{_agent_process(agent).pid}/maps") if "/" in line}
+    assert [lib for lib in libraries if "LLVM" in lib or "libbcc" in lib or "clang" in lib] == []
+
+
 def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
     """The agent and each helper it started (here the ROS 2 graph reader), by role; CPU as the
     kernel counts it for each process, read before and after the scrape."""
-    port = str(urllib.parse.urlsplit(agent).port)
-    (proc,) = [p for p in psutil.process_iter(["cmdline"])
-               if p.info["cmdline"] and "agent" in p.info["cmdline"] and port in p.info["cmdline"]]
+    proc = _agent_process(agent)
 
     def named() -> dict:  # the reader names itself once Python has started in it
         processes = {"agent": proc} | {c.name().removeprefix("drums-"): c for c in proc.children()}

@@ -14,7 +14,7 @@ import os
 import shutil
 import struct
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 from drums.errors import KernelError, ProbeError
 from drums.kernel import bpffs, loader
@@ -78,9 +78,11 @@ def typed(raw: AttachPath) -> AttachPath:
                       needs_all(needs_tp_btf, raw.requires), raw.serves + ", with typed tracepoint arguments")
 
 
-def usable_paths(paths: tuple[AttachPath, ...], features: Features) -> list[AttachPath]:
-    """The paths this kernel offers, best first."""
-    return [path for path in paths if path.requires(features) is None]
+def usable_paths(paths: tuple[AttachPath, ...], features: Features) -> Iterator[AttachPath]:
+    """The paths this kernel offers, best first. Lazily: a check may cost much (whether the kernel
+    takes fentry is asked of bcc, which would leave its compiler in the agent), and is made only
+    when the paths before it did not load."""
+    return (path for path in paths if path.requires(features) is None)
 
 
 def choose_path(paths: tuple[AttachPath, ...], features: Features) -> tuple[AttachPath | None, list[str]]:
@@ -150,18 +152,18 @@ class BpfProbe(Probe):
         problems = common_requirements(self.features)
         if problems:
             raise KernelError("; ".join(problems))
-        paths = usable_paths(self.paths, self.features)
-        if not paths:
-            raise KernelError("no attach path: " + "; ".join(choose_path(self.paths, self.features)[1]))
-        for path in paths:
+        refused = None  # the last path the kernel refused, and why
+        for path in usable_paths(self.paths, self.features):
+            if refused:
+                log.warning("probe %s: the kernel refused the %s path (%s); trying %s", self.name, *refused, path.name)
             try:
                 self._start(path)
                 return
             except ProbeError as e:
-                if path is paths[-1]:
-                    raise
-                log.warning("probe %s: the kernel refused the %s path (%s); trying %s", self.name, path.name, e,
-                            paths[paths.index(path) + 1].name)
+                refused = (path.name, e)
+        if refused:
+            raise refused[1]
+        raise KernelError("no attach path: " + "; ".join(choose_path(self.paths, self.features)[1]))
 
     def _start(self, path: AttachPath) -> None:
         self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
