@@ -2,9 +2,11 @@
 // tracepoints. On-CPU time is the kernel's own account (se.sum_exec_runtime, what /proc and top
 // show), which leaves out time a hypervisor stole: a clock read at each switch would count it too
 // (seen: 30% more than /proc on a busy VM). A thread's time is its runtime at its last switch-out
-// less its runtime when its entry was made, so no switch is needed to pair with another. One hash entry per thread holds everything, so a context switch costs two lookups
-// and no atomics: a thread's counters are only written by the CPU that switches it in or out (the
-// waker's CPU writes enqueued_at alone).
+// less its runtime when its entry was made, so no switch is needed to pair with another. One hash
+// entry per thread holds its counts, with no atomics: a thread's counters are only written by the
+// CPU that switches it in or out (the waker's CPU writes enqueued_at alone). A context switch looks
+// up one entry (the thread switched out) where the programs see typed tasks (tp_btf), two on raw
+// tracepoints.
 //
 // Task offsets (TASK_*_OFF) come from BTF.
 #include "drums.h"
@@ -30,7 +32,7 @@ struct sched_t {
 struct thread_sched_t {
     u32 tgid;
     u32 pad;
-    u64 enqueued_at;  // when the thread became runnable; 0 while running or sleeping
+    u64 enqueued_at;  // raw tracepoints: when the thread became runnable; 0 while running or sleeping
     u64 process_start;
     u64 runtime_base;  // the thread's runtime when this entry was made: s.oncpu_ns counts from it
     char comm[16];
@@ -55,6 +57,7 @@ struct oncpu_t {
     u64 runtime;
     u32 tid;
     u32 pad;
+    u64 waited;  // tp_btf: how long that task waited to be switched in here; counted at its switch-out
 };
 BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 
@@ -136,13 +139,51 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
     thread_sched.delete(&tid);
 }
 
+static __always_inline void count_wait(struct thread_sched_t *t, u64 waited)
+{
+    t->s.runq_ns += waited;
+    t->s.runq_waits++;
+    u32 slot = bpf_log2l(waited / 1000) - 1;  // [2^slot, 2^(slot+1)) us; slot 0 is [0, 2)
+    if (slot >= RUNQ_SLOTS)
+        slot = RUNQ_SLOTS - 1;
+    t->s.runq_hist[slot]++;
+}
+
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+// Where programs see typed tasks, when a thread became runnable is kept in the task itself
+// (task-local storage: a few loads, against a hash lookup that costs as much as the rest of the
+// program), so that wakeup and switch-in never look up the thread's entry. The wait ends at
+// switch-in, is held by the CPU (oncpu.waited) and added to the entry at the thread's switch-out
+// (or exit), when the entry is looked up anyway: a thread's waits show once it has left the CPU,
+// as its CPU time does.
+struct waiting_t {
+    u64 enqueued_at;  // 0 while running or sleeping
+};
+BPF_TASK_STORAGE(waiting, struct waiting_t);
+
+// The wait of the task this CPU switched in, if that is the thread `tid`, into its entry.
+static __always_inline void take_wait(struct oncpu_t *current, u32 tid, struct thread_sched_t *t)
+{
+    if (current->tid == tid && current->waited) {
+        count_wait(t, current->waited);
+        current->waited = 0;
+    }
+}
+#endif
+
 static __always_inline void enqueued(u32 tid, u64 task, u64 now)
 {
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    struct waiting_t *w = waiting.task_storage_get((void *)task, 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
+    if (w)
+        w->enqueued_at = now;
+#else
     u64 runtime = 0;  // a thread that waits does not run: this is its runtime until it does
     KREAD(runtime, task + TASK_RUNTIME_OFF);
     struct thread_sched_t *t = thread_entry(tid, task, runtime);
     if (t)
         t->enqueued_at = now;
+#endif
 }
 
 // sched:sched_switch (preempt, prev, next[, prev_state])
@@ -177,6 +218,15 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         // A dead thread's last switch: its entry is only looked up, never made (see thread_died).
         struct thread_sched_t *t = (state & TASK_DEAD) ? thread_sched.lookup(&prev_tid)
                                                        : thread_entry(prev_tid, prev, prev_runtime_in);
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+        if (t)
+            take_wait(current, prev_tid, t);
+        if (state == 0) {  // still runnable: it waits on the run queue from now
+            struct waiting_t *w = waiting.task_storage_get((void *)prev, 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
+            if (w)
+                w->enqueued_at = now;
+        }
+#endif
         if (t) {
             if (prev_runtime > t->runtime_base)
                 t->s.oncpu_ns = prev_runtime - t->runtime_base;
@@ -185,8 +235,10 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
                 t->s.voluntary++;
             else
                 t->s.involuntary++;
+#if DRUMS_ATTACH != ATTACH_TP_BTF
             if (state == 0)
                 t->enqueued_at = now;  // still runnable: it waits on the run queue from now
+#endif
             if (state & TASK_DEAD)
                 thread_died(prev_tid, t, false);
         } else if (state & TASK_DEAD) {
@@ -202,17 +254,18 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         }
     }
     if (next_tid) {
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+        struct waiting_t *w = waiting.task_storage_get((void *)next, 0, 0);
+        current->waited = w && w->enqueued_at ? now - w->enqueued_at : 0;
+        if (w)
+            w->enqueued_at = 0;
+#else
         struct thread_sched_t *t = thread_sched.lookup(&next_tid);
         if (t && t->enqueued_at) {
-            u64 waited = now - t->enqueued_at;
+            count_wait(t, now - t->enqueued_at);
             t->enqueued_at = 0;
-            t->s.runq_ns += waited;
-            t->s.runq_waits++;
-            u32 slot = bpf_log2l(waited / 1000) - 1;  // [2^slot, 2^(slot+1)) us; slot 0 is [0, 2)
-            if (slot >= RUNQ_SLOTS)
-                slot = RUNQ_SLOTS - 1;
-            t->s.runq_hist[slot]++;
         }
+#endif
     }
     current->runtime = next_runtime;
     current->tid = next_tid;
@@ -240,8 +293,15 @@ int on_exit(struct bpf_raw_tracepoint_args *ctx)
     if (tid == (u32)(id >> 32))
         mark_renamed(tid);  // its PID may come back as another process
     struct thread_sched_t *t = thread_sched.lookup(&tid);
-    if (t)
-        thread_died(tid, t, true);
+    if (!t)
+        return 0;
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    int zero = 0;
+    struct oncpu_t *current = oncpu.lookup(&zero);
+    if (current)
+        take_wait(current, tid, t);
+#endif
+    thread_died(tid, t, true);
     return 0;
 }
 

@@ -46,7 +46,7 @@ _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 DROP_RENAMED = 2  # the index of bpf/sched.bpf.c's count of marks lost to a full `renamed` map
-_ONCPU = struct.Struct("<QII")
+_ONCPU = struct.Struct("<QIIQ")  # struct oncpu_t
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -144,7 +144,7 @@ class SchedProbe(BpfProbe):
         stride = self.opened["oncpu"].value_size
         out = {}
         for cpu in range(len(values) // stride):
-            _, tid, _pad = _ONCPU.unpack_from(values, cpu * stride)
+            _, tid, _pad, _waited = _ONCPU.unpack_from(values, cpu * stride)
             if not tid:
                 continue
             try:
