@@ -174,11 +174,13 @@ class Agent:
             self._last = self._collect()
             return self._last
 
-    def recent(self, max_age: float) -> Snapshot:
-        """The last snapshot if its probes were read at most `max_age` seconds ago (a scrape's:
-        /diagnostics takes it rather than collect once more), else a new one."""
+    def recent(self, max_age: float, after: float = 0.0) -> Snapshot:
+        """The last snapshot if its probes were read at most `max_age` seconds ago and later than
+        `after` (a scrape's: /diagnostics takes it rather than collect once more, but not the one
+        it took last), else a new one."""
         with self._lock:
-            if self._last is None or time.time() - self._last.read_at > max_age:
+            last = self._last
+            if last is None or last.read_at <= after or time.time() - last.read_at > max_age:
                 self._last = self._collect()
             return self._last
 

@@ -131,7 +131,7 @@ def test_levels_values_and_publisher_restarts(roles, tmp_path):
             statuses = r["statuses"]
             assert {s["hardware_id"] for s in statuses.values()} == {HOST}
             b, i, h = statuses["drums: /busy"], statuses["drums: /idle"], statuses[f"drums: host {HOST}"]
-            assert (b["level"], i["level"], i["message"], h["level"]) == (ERROR, OK, "ok", WARN), r
+            assert (b["level"], i["level"], i["message"], h["level"]) == (ERROR, OK, "ok", WARN), (b, i, h)
             assert b["message"].startswith("cpu ") and b["message"].endswith("% > 25%"), b
             assert h["message"].startswith("cpu ") and h["message"].endswith("% > 20%"), h
             assert b["values"]["pid"] == str(busy.pid) and i["values"]["pid"] == str(idle.pid)
@@ -193,6 +193,10 @@ def test_arrays_take_a_young_scrape_snapshot_and_rate_its_counters_over_its_read
     time.sleep(0.02)
     fresh = agent.recent(0.01)
     assert fresh is not scraped and fresh.read_at > scraped.read_at and agent.recent(60) is fresh
+    # Young, but the one the last array was drawn from: a CI run on a busy host drew two arrays
+    # from one snapshot (its collect had taken a tenth of the interval), the second without rates.
+    again = agent.recent(60, after=fresh.read_at)
+    assert again is not fresh and again.read_at > fresh.read_at
 
     def snapshot(read_at: float, sent: int) -> Snapshot:
         snap = Snapshot()

@@ -165,8 +165,9 @@ class Diagnostics:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def start(self, recent: Callable[[float], Snapshot]) -> None:
-        """`recent(max_age)`: a snapshot whose probes were read at most max_age seconds ago."""
+    def start(self, recent: Callable[[float, float], Snapshot]) -> None:
+        """`recent(max_age, after)`: a snapshot whose probes were read at most max_age seconds ago
+        and later than `after`."""
         self._thread = threading.Thread(target=self._run, args=(recent,), name="diagnostics", daemon=True)
         self._thread.start()
 
@@ -176,16 +177,17 @@ class Diagnostics:
             self._thread.join(timeout=2 * self.publisher.timeout)
         self.publisher.stop()
 
-    def _run(self, recent: Callable[[float], Snapshot]) -> None:
+    def _run(self, recent: Callable[[float, float], Snapshot]) -> None:
         # A scrape's snapshot serves if it is younger than most of an interval: no collect of our
-        # own then, which costs as much as a scrape's. Arrays go out an interval apart, so none is
-        # drawn twice from one snapshot.
+        # own then, which costs as much as a scrape's. Never the one the last array was drawn from
+        # (that one is young too when its collect took a tenth of the interval): its rates would
+        # be over no time at all, and the array would go out without them.
         max_age = 0.9 * self.config.interval
         while True:
             began = time.monotonic()
             try:
                 first = not self._previous_at
-                statuses = self.statuses(recent(max_age), time.monotonic())
+                statuses = self.statuses(recent(max_age, self._previous_read_at), time.monotonic())
                 if not first:
                     self.publisher.send(statuses)
                 self._failure = ""
