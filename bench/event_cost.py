@@ -257,18 +257,21 @@ def run(args) -> None:
                     ids = drums_prog_ids(probe_name)
                     listed = {(p.get("name"), p["id"]) for p in bpftool_json("prog", "show") or []}
                     for tp, fn in pairs:
-                        found_by_name[fn] = (fn, ids.get(tp)) in listed
+                        found_by_name[fn] = "not attached" if tp not in ids else "yes" if (fn, ids[tp]) in listed else "no"
                 try:
-                    before = {tp: prog_stats(ids[tp]) for tp in tps}
+                    before = {tp: prog_stats(ids[tp]) for tp in tps if tp in ids}
                     for w in workloads:
                         run_workload(w, ops_of(w), args.batches, args.cpu)
-                    after = {tp: prog_stats(ids[tp]) for tp in tps}
+                    after = {tp: prog_stats(ids[tp]) for tp in tps if tp in ids}
                 finally:
                     floor.detach()
                     if probe is not None:
                         probe.unload()
                         probe = None
                 for tp in tps:
+                    if tp not in ids:
+                        self_ns[tp, condition] = 0.0  # the probe's path needs no program there
+                        continue
                     d_ns, d_cnt = (after[tp][0] - before[tp][0]), (after[tp][1] - before[tp][1])
                     self_ns[tp, condition] = d_ns / d_cnt if d_cnt else float("nan")
     finally:
@@ -282,13 +285,14 @@ def run(args) -> None:
     for probe_name, (_, pairs) in PROBES.items():
         for tp, fn in pairs:
             f, d = self_ns.get((tp, "floor"), float("nan")), self_ns.get((tp, "drums"), float("nan"))
-            rows.append([f"{tp} ({probe_name}: {fn})", fmt(f, 1), fmt(d, 1), ratio(d, f)])
+            program = fn if found_by_name.get(fn) != "not attached" else "no program on this path"
+            rows.append([f"{tp} ({probe_name}: {program})", fmt(f, 1), fmt(d, 1), ratio(d, f)])
     print_table("Per-event cost: the program's own run time (kernel bpf_stats)",
                 ["event (probe: program)", "empty program ns/run", "Drums ns/run", "Drums / empty"], rows,
                 ["run_time_ns / run_cnt over the workloads below; the statistics themselves add a clock "
                  "read per run to both columns.",
                  "Drums programs found by name with `bpftool prog show -j`: "
-                 + ", ".join(f"{fn} {'yes' if ok else 'no'}" for fn, ok in found_by_name.items())])
+                 + ", ".join(f"{fn} {found}" for fn, found in found_by_name.items())])
 
     rows = []
     for probe_name, (workloads, pairs) in PROBES.items():

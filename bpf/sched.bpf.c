@@ -2,11 +2,12 @@
 // tracepoints. On-CPU time is the kernel's own account (se.sum_exec_runtime, what /proc and top
 // show), which leaves out time a hypervisor stole: a clock read at each switch would count it too
 // (seen: 30% more than /proc on a busy VM). A thread's time is its runtime at its last switch-out
-// less its runtime when its entry was made, so no switch is needed to pair with another. One hash
-// entry per thread holds its counts, with no atomics: a thread's counters are only written by the
-// CPU that switches it in or out (the waker's CPU writes enqueued_at alone). A context switch looks
-// up one entry (the thread switched out) where the programs see typed tasks (tp_btf), two on raw
-// tracepoints.
+// less its runtime when its entry was made, so no switch is needed to pair with another; where the
+// programs see typed tasks (tp_btf), run-queue waits are the kernel's own account likewise (see
+// count_waits). One hash entry per thread holds its counts, with no atomics: a thread's counters
+// are only written by the CPU that switches it in or out (the waker's CPU writes enqueued_at
+// alone). With tp_btf a context switch looks up one entry (the thread switched out) and reads no
+// clock, and wakeups have no program; raw tracepoint programs time the waits themselves.
 //
 // Task offsets (TASK_*_OFF) come from BTF.
 #include "drums.h"
@@ -34,7 +35,11 @@ struct thread_sched_t {
     u32 pad;
     u64 enqueued_at;  // raw tracepoints: when the thread became runnable; 0 while running or sleeping
     u64 process_start;
-    u64 runtime_base;  // the thread's runtime when this entry was made: s.oncpu_ns counts from it
+    // The thread's runtime when this entry was made: s.oncpu_ns counts from it; with tp_btf, its
+    // run-queue time and runs likewise (see count_waits).
+    u64 runtime_base;
+    u64 delay_base;
+    u64 runs_base;
     char comm[16];
     struct sched_t s;
 };
@@ -52,12 +57,14 @@ BPF_HASH(thread_sched, u32, struct thread_sched_t, 65536);
 BPF_HASH(exited_sched, u32, struct exited_sched_t, 16384);
 // The current task of each CPU and its runtime when it was switched in: the agent reads the runtime
 // of a thread that keeps its CPU (it may not switch out for seconds) from /proc, and a thread's last
-// slice after it exited is charged to its process from this.
+// slice after it exited is charged to its process from this. Also what a thread's entry counts
+// from, if it is made at the thread's switch-out here.
 struct oncpu_t {
     u64 runtime;
     u32 tid;
     u32 pad;
-    u64 waited;  // tp_btf: how long that task waited to be switched in here; counted at its switch-out
+    u64 run_delay;  // tp_btf: the task's sched_info when it was switched in, before its wait was added
+    u64 runs;
 };
 BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 
@@ -85,8 +92,8 @@ static __always_inline void mark_renamed(u32 tgid)
         count_drop(DROP_RENAMED);  // the agent then reads every name again
 }
 
-// `runtime_base`: the thread's runtime when it started to be counted.
-static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, u64 runtime_base)
+// `base`: the thread's runtime (and sched_info) when it started to be counted.
+static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, struct oncpu_t *base)
 {
     struct thread_sched_t *t = thread_sched.lookup(&tid);
     if (t)
@@ -95,7 +102,9 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, u6
     KREAD(fresh.tgid, task + TASK_TGID_OFF);
     bpf_probe_read_kernel(fresh.comm, sizeof(fresh.comm), (void *)(task + TASK_COMM_OFF));
     fresh.process_start = process_start(task);
-    fresh.runtime_base = runtime_base;
+    fresh.runtime_base = base->runtime;
+    fresh.delay_base = base->run_delay;
+    fresh.runs_base = base->runs;
     if (thread_sched.insert(&tid, &fresh) != 0) {
         count_drop(DROP_THREAD);
         return 0;
@@ -139,6 +148,29 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
     thread_sched.delete(&tid);
 }
 
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+// Where programs see typed tasks, run-queue waits are the kernel's own account of them (the task's
+// sched_info, which /proc/<pid>/schedstat shows): its total wait and its runs, each run after a
+// wait. A thread's totals are set at its switch-out, as its CPU time is, so wakeups need no program
+// and a switch no clock read. The runs since the last switch-out (one, unless the entry is new)
+// go to the histogram at their mean wait.
+#ifndef TASK_RUN_DELAY_OFF
+#error "the kernel has no sched_info (CONFIG_SCHED_INFO): run-queue waits need the raw tracepoint path"
+#endif
+static __always_inline void count_waits(struct thread_sched_t *t, u64 run_delay, u64 runs)
+{
+    if (run_delay < t->delay_base || runs < t->runs_base + t->s.runq_waits + 1)
+        return;
+    u64 waited = run_delay - t->delay_base, n = runs - t->runs_base;
+    u64 mean = (waited > t->s.runq_ns ? waited - t->s.runq_ns : 0) / (n - t->s.runq_waits);
+    u32 slot = bpf_log2l(mean / 1000) - 1;  // [2^slot, 2^(slot+1)) us; slot 0 is [0, 2)
+    if (slot >= RUNQ_SLOTS)
+        slot = RUNQ_SLOTS - 1;
+    t->s.runq_hist[slot] += n - t->s.runq_waits;
+    t->s.runq_ns = waited;
+    t->s.runq_waits = n;
+}
+#else
 static __always_inline void count_wait(struct thread_sched_t *t, u64 waited)
 {
     t->s.runq_ns += waited;
@@ -148,61 +180,37 @@ static __always_inline void count_wait(struct thread_sched_t *t, u64 waited)
         slot = RUNQ_SLOTS - 1;
     t->s.runq_hist[slot]++;
 }
-
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-// Where programs see typed tasks, when a thread became runnable is kept in the task itself
-// (task-local storage: a few loads, against a hash lookup that costs as much as the rest of the
-// program), so that wakeup and switch-in never look up the thread's entry. The wait ends at
-// switch-in, is held by the CPU (oncpu.waited) and added to the entry at the thread's switch-out
-// (or exit), when the entry is looked up anyway: a thread's waits show once it has left the CPU,
-// as its CPU time does.
-struct waiting_t {
-    u64 enqueued_at;  // 0 while running or sleeping
-};
-BPF_TASK_STORAGE(waiting, struct waiting_t);
-
-// The wait of the task this CPU switched in, if that is the thread `tid`, into its entry.
-static __always_inline void take_wait(struct oncpu_t *current, u32 tid, struct thread_sched_t *t)
-{
-    if (current->tid == tid && current->waited) {
-        count_wait(t, current->waited);
-        current->waited = 0;
-    }
-}
 #endif
-
-static __always_inline void enqueued(u32 tid, u64 task, u64 now)
-{
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-    struct waiting_t *w = waiting.task_storage_get((void *)task, 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
-    if (w)
-        w->enqueued_at = now;
-#else
-    u64 runtime = 0;  // a thread that waits does not run: this is its runtime until it does
-    KREAD(runtime, task + TASK_RUNTIME_OFF);
-    struct thread_sched_t *t = thread_entry(tid, task, runtime);
-    if (t)
-        t->enqueued_at = now;
-#endif
-}
 
 // sched:sched_switch (preempt, prev, next[, prev_state])
 int on_switch(struct bpf_raw_tracepoint_args *ctx)
 {
-    u64 now = bpf_ktime_get_ns();
     int zero = 0;
     struct oncpu_t *current = oncpu.lookup(&zero);
     if (!current)
         return 0;
     u64 prev = ctx->args[1], next = ctx->args[2];
-    u32 prev_tid = 0, next_tid = 0;
-    KREAD(prev_tid, prev + TASK_PID_OFF);
-    KREAD(next_tid, next + TASK_PID_OFF);
+    // What prev's counts start from if its entry is made now: its runtime (and sched_info) when it
+    // was switched in here, if this CPU saw that (the probe may have been loaded since), else now.
+    struct oncpu_t in = {}, out = {};
+    KREAD(in.tid, prev + TASK_PID_OFF);
+    KREAD(out.tid, next + TASK_PID_OFF);
+    u32 prev_tid = in.tid, next_tid = out.tid;
     // The kernel has charged prev's slice to its runtime before this tracepoint (update_curr, as it
-    // was dequeued or put back).
-    u64 prev_runtime = 0, next_runtime = 0;
+    // was dequeued or put back). Prev's sched_info holds the wait before the run now ending; next's
+    // wait is added to its own as it arrives, after this tracepoint.
+    u64 prev_runtime = 0;
     KREAD(prev_runtime, prev + TASK_RUNTIME_OFF);
-    KREAD(next_runtime, next + TASK_RUNTIME_OFF);
+    KREAD(out.runtime, next + TASK_RUNTIME_OFF);
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    u64 prev_delay = 0, prev_runs = 0;
+    KREAD(prev_delay, prev + TASK_RUN_DELAY_OFF);
+    KREAD(prev_runs, prev + TASK_PCOUNT_OFF);
+    KREAD(out.run_delay, next + TASK_RUN_DELAY_OFF);
+    KREAD(out.runs, next + TASK_PCOUNT_OFF);
+#else
+    u64 now = bpf_ktime_get_ns();
+#endif
 #ifdef SWITCH_HAS_PREV_STATE
     unsigned int state = (unsigned int)ctx->args[3];  // kernel >= 5.18
 #else
@@ -210,23 +218,20 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
     KREAD(state, prev + TASK_STATE_OFF);
 #endif
     bool preempt = ctx->args[0] & 1;
-    // Prev's runtime when it was switched in here, if this CPU saw that (the probe may have been
-    // loaded since).
-    u64 prev_runtime_in = current->tid == prev_tid ? current->runtime : prev_runtime;
+    if (current->tid == prev_tid) {
+        in = *current;
+    } else {
+        in.runtime = prev_runtime;
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+        in.run_delay = prev_delay;
+        in.runs = prev_runs;
+#endif
+    }
 
     if (prev_tid) {  // tid 0 is the idle task
         // A dead thread's last switch: its entry is only looked up, never made (see thread_died).
         struct thread_sched_t *t = (state & TASK_DEAD) ? thread_sched.lookup(&prev_tid)
-                                                       : thread_entry(prev_tid, prev, prev_runtime_in);
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-        if (t)
-            take_wait(current, prev_tid, t);
-        if (state == 0) {  // still runnable: it waits on the run queue from now
-            struct waiting_t *w = waiting.task_storage_get((void *)prev, 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
-            if (w)
-                w->enqueued_at = now;
-        }
-#endif
+                                                       : thread_entry(prev_tid, prev, &in);
         if (t) {
             if (prev_runtime > t->runtime_base)
                 t->s.oncpu_ns = prev_runtime - t->runtime_base;
@@ -235,7 +240,9 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
                 t->s.voluntary++;
             else
                 t->s.involuntary++;
-#if DRUMS_ATTACH != ATTACH_TP_BTF
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+            count_waits(t, prev_delay, prev_runs);
+#else
             if (state == 0)
                 t->enqueued_at = now;  // still runnable: it waits on the run queue from now
 #endif
@@ -247,41 +254,39 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
             KREAD(tgid, prev + TASK_TGID_OFF);
             struct exited_sched_t *p = exited_sched.lookup(&tgid);
             if (p) {
-                if (prev_runtime > prev_runtime_in)
-                    __sync_fetch_and_add(&p->s.oncpu_ns, prev_runtime - prev_runtime_in);
+                if (prev_runtime > in.runtime)
+                    __sync_fetch_and_add(&p->s.oncpu_ns, prev_runtime - in.runtime);
                 __sync_fetch_and_add(preempt ? &p->s.involuntary : &p->s.voluntary, 1);
             }
         }
     }
+#if DRUMS_ATTACH != ATTACH_TP_BTF
     if (next_tid) {
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-        struct waiting_t *w = waiting.task_storage_get((void *)next, 0, 0);
-        current->waited = w && w->enqueued_at ? now - w->enqueued_at : 0;
-        if (w)
-            w->enqueued_at = 0;
-#else
         struct thread_sched_t *t = thread_sched.lookup(&next_tid);
         if (t && t->enqueued_at) {
             count_wait(t, now - t->enqueued_at);
             t->enqueued_at = 0;
         }
-#endif
     }
-    current->runtime = next_runtime;
-    current->tid = next_tid;
+#endif
+    *current = out;
     return 0;
 }
 
+#if DRUMS_ATTACH != ATTACH_TP_BTF
 // sched:sched_wakeup and sched:sched_wakeup_new (task): the task is now on a run queue.
 int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 task = ctx->args[0];
-    u32 tid = 0;
-    KREAD(tid, task + TASK_PID_OFF);
-    if (tid)
-        enqueued(tid, task, bpf_ktime_get_ns());
+    struct oncpu_t base = {};  // a thread that waits does not run: this is its runtime until it does
+    KREAD(base.tid, task + TASK_PID_OFF);
+    KREAD(base.runtime, task + TASK_RUNTIME_OFF);
+    struct thread_sched_t *t = base.tid ? thread_entry(base.tid, task, &base) : 0;
+    if (t)
+        t->enqueued_at = bpf_ktime_get_ns();
     return 0;
 }
+#endif
 
 // sched:sched_process_exit (task, group_dead) runs in the exiting thread while it still belongs to
 // its process: fold it now. What it does until its last switch-out joins the fold while the
@@ -296,10 +301,10 @@ int on_exit(struct bpf_raw_tracepoint_args *ctx)
     if (!t)
         return 0;
 #if DRUMS_ATTACH == ATTACH_TP_BTF
-    int zero = 0;
-    struct oncpu_t *current = oncpu.lookup(&zero);
-    if (current)
-        take_wait(current, tid, t);
+    u64 task = CURRENT_TASK(), run_delay = 0, runs = 0;  // the wait before its run now
+    KREAD(run_delay, task + TASK_RUN_DELAY_OFF);
+    KREAD(runs, task + TASK_PCOUNT_OFF);
+    count_waits(t, run_delay, runs);
 #endif
     thread_died(tid, t, true);
     return 0;

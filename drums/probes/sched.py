@@ -41,12 +41,12 @@ THREAD_SWITCHES = Metric("drums_thread_context_switches_total", COUNTER, "Contex
                          ("pid", "tid", "thread", "kind"))
 
 _SCHED = "5Q24I"  # struct sched_t
-_THREAD_VALUE = struct.Struct("<IIQQQ16s" + _SCHED)
+_THREAD_VALUE = struct.Struct("<IIQQQQQ16s" + _SCHED)
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 DROP_RENAMED = 2  # the index of bpf/sched.bpf.c's count of marks lost to a full `renamed` map
-_ONCPU = struct.Struct("<QIIQ")  # struct oncpu_t
+_ONCPU = struct.Struct("<QIIQQ")  # struct oncpu_t
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -90,7 +90,7 @@ class SchedProbe(BpfProbe):
     maps = ("thread_sched", "exited_sched", "oncpu", "renamed", "dropped")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
-    paths = (typed(_RAW), _RAW)
+    paths = (typed(_RAW, without=("sched_wakeup", "sched_wakeup_new")), _RAW)
 
     def __init__(self, features, proctable: ProcessTable, **kw):
         super().__init__(features, **kw)
@@ -113,6 +113,9 @@ class SchedProbe(BpfProbe):
             "TASK_COMM_OFF": ("task_struct", "comm"),
             "TASK_RUNTIME_OFF": ("task_struct", "se.sum_exec_runtime"),
         })
+        if btf.has_field("task_struct", "sched_info.run_delay"):  # CONFIG_SCHED_INFO: the tp_btf path needs it
+            d.update(offset_defines(btf, {"TASK_RUN_DELAY_OFF": ("task_struct", "sched_info.run_delay"),
+                                          "TASK_PCOUNT_OFF": ("task_struct", "sched_info.pcount")}))
         args = btf.tracepoint_args("sched_switch") or []
         if len(args) >= 4:
             d["SWITCH_HAS_PREV_STATE"] = 1  # Linux 5.18 added prev_state to the tracepoint
@@ -144,7 +147,7 @@ class SchedProbe(BpfProbe):
         stride = self.opened["oncpu"].value_size
         out = {}
         for cpu in range(len(values) // stride):
-            _, tid, _pad, _waited = _ONCPU.unpack_from(values, cpu * stride)
+            _, tid, _pad, _delay, _runs = _ONCPU.unpack_from(values, cpu * stride)
             if not tid:
                 continue
             try:
@@ -252,7 +255,7 @@ class SchedProbe(BpfProbe):
             totals.add_exited(tgid, start, s)
         rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
         for tid, raw in live:
-            _, _pad, _enqueued, start, base, comm, *s = _THREAD_VALUE.unpack(raw)
+            _, _pad, _enqueued, start, base, _delay_base, _runs_base, comm, *s = _THREAD_VALUE.unpack(raw)
             if tid in running:
                 s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)
