@@ -154,10 +154,10 @@ class BpfProbe(Probe):
         problems = common_requirements(self.features)
         if problems:
             raise KernelError("; ".join(problems))
-        refused = None  # the last path the kernel refused, and why
+        refused = None  # the last path that did not load, and why
         for path in usable_paths(self.paths, self.features):
             if refused:
-                log.warning("probe %s: the kernel refused the %s path (%s); trying %s", self.name, *refused, path.name)
+                log.warning("probe %s: the %s path did not load (%s); trying %s", self.name, *refused, path.name)
             try:
                 self._start(path)
                 return

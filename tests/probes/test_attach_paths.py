@@ -43,8 +43,28 @@ def test_a_path_the_kernel_refuses_gives_way_to_the_next(features, proctable, ca
         assert probe.status.attach_type == "raw_tracepoint"
         (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
         # The verifier's own reason: on_switch reads the tracepoint's second argument (8 bytes at 16).
-        assert warning.startswith("probe sched: the kernel refused the tp_btf path (tp_btf sched_wakeup: on_switch: "
+        assert warning.startswith("probe sched: the tp_btf path did not load (tp_btf sched_wakeup: on_switch: "
                                   "Permission denied: invalid bpf_context access off=16 size=8)"), warning
         assert warning.endswith("; trying raw_tracepoint"), warning
+    finally:
+        probe.unload()
+
+
+class _NoSchedInfo(SchedProbe):
+    """The sched probe on a kernel built without CONFIG_SCHED_INFO, whose tasks keep no account of
+    their run-queue waits."""
+
+    def offsets(self, btf):
+        return {k: v for k, v in super().offsets(btf).items() if k not in ("TASK_RUN_DELAY_OFF", "TASK_PCOUNT_OFF")}
+
+
+def test_without_sched_info_the_sched_probe_times_waits_on_raw_tracepoints(features, proctable, caplog):
+    probe = _NoSchedInfo(features, proctable, pin_root=f"{TEST_PIN_ROOT}_no_sched_info")
+    with caplog.at_level(logging.WARNING, logger="drums"):
+        probe.start()
+    try:
+        assert probe.status.attach_type == "raw_tracepoint"
+        (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert "the tp_btf path did not load" in warning and "CONFIG_SCHED_INFO" in warning, warning
     finally:
         probe.unload()
