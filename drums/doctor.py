@@ -74,6 +74,9 @@ def report(f: Features) -> tuple[list[str], bool]:
                        "paths that need these fall back to others (below)"))
     lines.append(_line("kprobes", f.kprobes, "available" if f.kprobes else "not available (CONFIG_KPROBES unset)",
                        "none needed while the tracepoint paths work"))
+    lines.append(_line("tp_btf", f.tp_btf, "tracepoints typed in BTF: programs read kernel fields directly"
+                       if f.tp_btf else "tracepoints not typed in BTF (Linux < 5.5)",
+                       "none needed: the raw tracepoint paths serve, at a helper call per field"))
     lines.append(_line("fentry", f.fentry, "BPF trampolines load" if f.fentry
                        else "refused (fentry/fexit programs cannot load)", "none needed while the tracepoint paths work"))
 

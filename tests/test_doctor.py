@@ -60,6 +60,7 @@ def test_doctor_reports_this_machine_as_platform_md_says():
     # The development machines (Debian 12, kernel 6.18): kprobes NOT available, fentry refused with EPERM, tracepoints work.
     assert line["kprobes"].startswith("NO ") and "CONFIG_KPROBES" in line["kprobes"]
     assert line["fentry"].startswith("NO ") and "refused" in line["fentry"]
+    assert line["tp_btf"].startswith("ok ")
     assert line["tracepoints"].startswith("ok ")
     assert line["BTF"].startswith("ok ")
     for probe, path in (("sockets", "tp_btf"), ("sched", "tp_btf"), ("tcp", "raw_tracepoint")):

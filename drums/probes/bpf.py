@@ -71,13 +71,14 @@ def needs_all(*checks: Callable[[Features], str | None]) -> Callable[[Features],
     return check
 
 
-def typed(raw: AttachPath, without: tuple[str, ...] = ()) -> AttachPath:
+def typed(raw: AttachPath, without: tuple[str, ...] = (), serves: str = "") -> AttachPath:
     """The raw tracepoint path `raw` with its programs loaded as BTF tracepoint programs, whose
     loads of kernel fields cost no helper call (drums.kernel.tracing); preferred where it loads.
-    `without`: tracepoints whose programs the typed ones do without."""
+    `without`: tracepoints whose programs the typed ones do without; `serves`: what else to say."""
     return AttachPath("tp_btf", tuple(("tp_btf" if k == "raw_tracepoint" else k, t, fn)
                                       for k, t, fn in raw.attachments if t not in without),
-                      needs_all(needs_tp_btf, raw.requires), raw.serves + ", with typed tracepoint arguments")
+                      needs_all(needs_tp_btf, raw.requires),
+                      f"{raw.serves}, with typed tracepoint arguments{serves}")
 
 
 def usable_paths(paths: tuple[AttachPath, ...], features: Features) -> Iterator[AttachPath]:
