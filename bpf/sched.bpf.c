@@ -7,7 +7,8 @@
 // count_waits). One hash entry per thread holds its counts, with no atomics: a thread's counters
 // are only written by the CPU that switches it in or out (the waker's CPU writes enqueued_at
 // alone). With tp_btf a context switch looks up one entry (the thread switched out) and reads no
-// clock, and wakeups have no program; raw tracepoint programs time the waits themselves.
+// clock, and only new tasks' wakeups have a program; raw tracepoint programs time the waits
+// themselves.
 //
 // Task offsets (TASK_*_OFF) come from BTF.
 #include "drums.h"
@@ -273,20 +274,27 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
-#if DRUMS_ATTACH != ATTACH_TP_BTF
-// sched:sched_wakeup and sched:sched_wakeup_new (task): the task is now on a run queue.
+// sched:sched_wakeup and sched:sched_wakeup_new (task): the task is now on a run queue. Raw
+// tracepoint programs time its wait from here. With tp_btf only new tasks come here (a program on
+// every wakeup would cost more than the switches save): their entries are made before they first
+// run, so that a new process has its rows from its start, not from its first switch-out.
 int on_wakeup(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 task = ctx->args[0];
     struct oncpu_t base = {};  // a thread that waits does not run: this is its runtime until it does
     KREAD(base.tid, task + TASK_PID_OFF);
     KREAD(base.runtime, task + TASK_RUNTIME_OFF);
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    KREAD(base.run_delay, task + TASK_RUN_DELAY_OFF);
+    KREAD(base.runs, task + TASK_PCOUNT_OFF);
+#endif
     struct thread_sched_t *t = base.tid ? thread_entry(base.tid, task, &base) : 0;
+#if DRUMS_ATTACH != ATTACH_TP_BTF
     if (t)
         t->enqueued_at = bpf_ktime_get_ns();
+#endif
     return 0;
 }
-#endif
 
 // sched:sched_process_exit (task, group_dead) runs in the exiting thread while it still belongs to
 // its process: fold it now. What it does until its last switch-out joins the fold while the

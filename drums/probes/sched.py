@@ -90,9 +90,9 @@ class SchedProbe(BpfProbe):
     maps = ("thread_sched", "exited_sched", "oncpu", "renamed", "dropped")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
-    paths = (typed(_RAW, without=("sched_wakeup", "sched_wakeup_new"),
+    paths = (typed(_RAW, without=("sched_wakeup",),
                    serves="; run-queue waits from the kernel's own sched_info (CONFIG_SCHED_INFO), "
-                          "no program on wakeups"), _RAW)
+                          "no program on wakeups but new tasks'"), _RAW)
 
     def __init__(self, features, proctable: ProcessTable, **kw):
         super().__init__(features, **kw)
