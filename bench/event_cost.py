@@ -257,7 +257,8 @@ def run(args) -> None:
                     ids = drums_prog_ids(probe_name)
                     listed = {(p.get("name"), p["id"]) for p in bpftool_json("prog", "show") or []}
                     for tp, fn in pairs:
-                        found_by_name[fn] = "not attached" if tp not in ids else "yes" if (fn, ids[tp]) in listed else "no"
+                        found = (fn, ids.get(tp)) in listed
+                        found_by_name[fn] = "not attached" if tp not in ids else "yes" if found else "no"
                 try:
                     before = {tp: prog_stats(ids[tp]) for tp in tps if tp in ids}
                     for w in workloads:

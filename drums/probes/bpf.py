@@ -1,9 +1,9 @@
 """The common life of a BPF probe: choose an attach path, load it once, read its pinned maps.
 
 A probe lists its attach paths in order of preference; the first one this kernel offers wins
-(`choose_path`), and if the kernel refuses to load it, the next. Loaded programs and maps are
-pinned under /sys/fs/bpf/drums/<probe>-<stamp>, where the stamp changes with the C source, the
-path and the boot: an agent that restarts finds its pins and starts without compiling anything.
+(`choose_path`), and if it does not load, the next. Loaded programs and maps are pinned under
+/sys/fs/bpf/drums/<probe>-<stamp>, where the stamp changes with the C source, the path and the
+boot: an agent that restarts finds its pins and starts without compiling anything.
 """
 from __future__ import annotations
 

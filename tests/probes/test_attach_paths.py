@@ -36,7 +36,8 @@ def test_a_path_the_kernel_refuses_gives_way_to_the_next(features, proctable, ca
     have (on_switch, given sched_wakeup's one task): the probe says so and loads its next path."""
     probe = SchedProbe(features, proctable, pin_root=f"{TEST_PIN_ROOT}_refused")
     raw = next(p for p in probe.paths if p.name == "raw_tracepoint")
-    probe.paths = (AttachPath("tp_btf", (("tp_btf", "sched_wakeup", "on_switch"),), lambda f: None, "a bad program"), raw)
+    bad = AttachPath("tp_btf", (("tp_btf", "sched_wakeup", "on_switch"),), lambda f: None, "a bad program")
+    probe.paths = (bad, raw)
     with caplog.at_level(logging.WARNING, logger="drums"):
         probe.start()
     try:
