@@ -77,20 +77,22 @@ class Features:
         """BPF links on perf events (Linux >= 5.15): tracepoints and uprobes that can be pinned."""
         # struct bpf_perf_link came with them, and its name alone says so: a warm start, which needs
         # nothing else of BTF, no longer indexes all of it for this (0.15 s of 0.7).
-        return b"\0bpf_perf_link\0" in self._btf_names
+        return self._btf_has_names[0]
 
     @cached_property
     def tp_btf(self) -> bool:
         """Whether raw tracepoints are typed in BTF (Linux >= 5.5), so that a tracing program can
         attach to one (drums.kernel.tracing): each has a `btf_trace_<event>` typedef."""
-        return b"\0btf_trace_sched_switch\0" in self._btf_names
+        return self._btf_has_names[1]
 
     @cached_property
-    def _btf_names(self) -> bytes:
+    def _btf_has_names(self) -> tuple[bool, bool]:
+        # Both answers from one read; the names themselves (2.3 MB) are not kept.
         try:
-            return names(VMLINUX_BTF)
+            found = names(VMLINUX_BTF)
         except KernelError:
-            return b""
+            return False, False
+        return b"\0bpf_perf_link\0" in found, b"\0btf_trace_sched_switch\0" in found
 
     @cached_property
     def uprobes(self) -> bool:
