@@ -149,6 +149,13 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
     thread_sched.delete(&tid);
 }
 
+// The histogram slot of a wait: [2^slot, 2^(slot+1)) us; slot 0 is [0, 2).
+static __always_inline u32 runq_slot(u64 ns)
+{
+    u32 slot = bpf_log2l(ns / 1000) - 1;
+    return slot >= RUNQ_SLOTS ? RUNQ_SLOTS - 1 : slot;
+}
+
 #if DRUMS_ATTACH == ATTACH_TP_BTF
 // Where programs see typed tasks, run-queue waits are the kernel's own account of them (the task's
 // sched_info, which /proc/<pid>/schedstat shows): its total wait and its runs, each run after a
@@ -164,10 +171,7 @@ static __always_inline void count_waits(struct thread_sched_t *t, u64 run_delay,
         return;
     u64 waited = run_delay - t->delay_base, n = runs - t->runs_base;
     u64 mean = (waited > t->s.runq_ns ? waited - t->s.runq_ns : 0) / (n - t->s.runq_waits);
-    u32 slot = bpf_log2l(mean / 1000) - 1;  // [2^slot, 2^(slot+1)) us; slot 0 is [0, 2)
-    if (slot >= RUNQ_SLOTS)
-        slot = RUNQ_SLOTS - 1;
-    t->s.runq_hist[slot] += n - t->s.runq_waits;
+    t->s.runq_hist[runq_slot(mean)] += n - t->s.runq_waits;
     t->s.runq_ns = waited;
     t->s.runq_waits = n;
 }
@@ -176,10 +180,7 @@ static __always_inline void count_wait(struct thread_sched_t *t, u64 waited)
 {
     t->s.runq_ns += waited;
     t->s.runq_waits++;
-    u32 slot = bpf_log2l(waited / 1000) - 1;  // [2^slot, 2^(slot+1)) us; slot 0 is [0, 2)
-    if (slot >= RUNQ_SLOTS)
-        slot = RUNQ_SLOTS - 1;
-    t->s.runq_hist[slot]++;
+    t->s.runq_hist[runq_slot(waited)]++;
 }
 #endif
 

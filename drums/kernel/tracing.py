@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+from functools import lru_cache
 
 from drums.errors import ProbeError
 from drums.kernel import bpffs
@@ -47,6 +48,7 @@ class _LoadOpts(ctypes.Structure):
     ]
 
 
+@lru_cache(maxsize=1)
 def _lib() -> ctypes.CDLL:
     lib = bpffs.libbpf()
     lib.libbpf_find_vmlinux_btf_id.argtypes = [ctypes.c_char_p, ctypes.c_uint32]
@@ -65,19 +67,22 @@ def attach(module, fn: str, event: str) -> tuple[int, int]:
     btf_id = lib.libbpf_find_vmlinux_btf_id(event.encode(), _TRACE_RAW_TP)
     if btf_id < 0:
         raise ProbeError(f"tp_btf {event}: the kernel's BTF has no tracepoint {event}")
-    start, size = bcc.bpf_function_start(module, fn.encode()), bcc.bpf_function_size(module, fn.encode())
+    name = fn.encode()
+    start, size = bcc.bpf_function_start(module, name), bcc.bpf_function_size(module, name)
     if not start:
         raise ProbeError(f"tp_btf {event}: no compiled function {fn}")
-    log = ctypes.create_string_buffer(_LOG_SIZE)
     opts = _LoadOpts(sz=ctypes.sizeof(_LoadOpts), expected_attach_type=_TRACE_RAW_TP, attach_btf_id=btf_id)
-    prog = lib.bpf_prog_load(_PROG_TYPE_TRACING, fn.encode()[:15], bcc.bpf_module_license(module),
-                             start, size // 8, ctypes.byref(opts))
+
+    def load() -> int:
+        return lib.bpf_prog_load(_PROG_TYPE_TRACING, name[:15], bcc.bpf_module_license(module), start, size // 8,
+                                 ctypes.byref(opts))
+    prog = load()
     if prog < 0:
         err = -prog
         # Loaded again for the verifier's reason: asking for the log at once would cost every load.
+        log = ctypes.create_string_buffer(_LOG_SIZE)
         opts.log_level, opts.log_size, opts.log_buf = 1, _LOG_SIZE, ctypes.cast(log, ctypes.c_char_p)
-        lib.bpf_prog_load(_PROG_TYPE_TRACING, fn.encode()[:15], bcc.bpf_module_license(module),
-                          start, size // 8, ctypes.byref(opts))
+        load()
         # Its last lines are statistics; the reason comes before them.
         lines = [line for line in log.value.decode(errors="replace").splitlines()
                  if line.strip() and not line.startswith(("processed ", "verification time", "stack depth"))]

@@ -69,18 +69,11 @@ class _Made:
 
 
 # The scheduler tracepoints, with the programs that count them.
-_RAW = AttachPath("raw_tracepoint",
-                  (("raw_tracepoint", "sched_switch", "on_switch"),
-                   ("raw_tracepoint", "sched_wakeup", "on_wakeup"),
-                   ("raw_tracepoint", "sched_wakeup_new", "on_wakeup"),
-                   ("raw_tracepoint", "sched_process_free", "on_task_free"),
-                   ("raw_tracepoint", "task_rename", "on_rename"),
-                   ("raw_tracepoint", "sched_process_exec", "on_exec"),
-                   ("raw_tracepoint", "sched_process_exit", "on_exit"),
-                   ("raw_tracepoint", "sched_process_fork", "on_fork")),
-                  needs_tracepoints("sched_switch", "sched_wakeup", "sched_wakeup_new", "sched_process_free",
-                                    "task_rename", "sched_process_exec", "sched_process_exit",
-                                    "sched_process_fork"),
+_PROGRAMS = (("sched_switch", "on_switch"), ("sched_wakeup", "on_wakeup"), ("sched_wakeup_new", "on_wakeup"),
+             ("sched_process_free", "on_task_free"), ("task_rename", "on_rename"),
+             ("sched_process_exec", "on_exec"), ("sched_process_exit", "on_exit"), ("sched_process_fork", "on_fork"))
+_RAW = AttachPath("raw_tracepoint", tuple(("raw_tracepoint", tp, fn) for tp, fn in _PROGRAMS),
+                  needs_tracepoints(*(tp for tp, _ in _PROGRAMS)),
                   "Linux >= 5.7 (raw tracepoint links that outlive the loader)")
 
 
