@@ -246,12 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run_agent(args) -> int:
-    # The agent speaks no TLS, and aiohttp's client module (aiohttp.web imports it) builds verified
-    # SSL contexts from the CA bundle at import: 60 ms of a warm start and 4 MB of the agent's
-    # memory. Without the ssl module, aiohttp, asyncio and urllib leave TLS out.
-    sys.modules.setdefault("ssl", None)
-    # Nor does it need OpenSSL's hashes (libcrypto, 4 MB): hashlib then takes Python's own.
-    sys.modules.setdefault("_hashlib", None)
+    from drums.selfcost import without_openssl
+    without_openssl()
     from drums.agent import Agent, Selection
     from drums.budget import Budget
     from drums.exporters import prometheus

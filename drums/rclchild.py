@@ -14,6 +14,7 @@ import json
 import sys
 
 from drums.proctable import name_helper
+from drums.selfcost import without_openssl
 
 # Drums' rclpy children log through the agent, not to files: rcl's file log needs a writable
 # ~/.ros/log, and without one (a user whose HOME is not theirs) rclpy.init fails.
@@ -81,4 +82,5 @@ def child(topic: str) -> int:
 
 if __name__ == "__main__":
     name_helper("diag")
+    without_openssl()
     sys.exit(child(sys.argv[1] if len(sys.argv) > 1 else "/diagnostics"))

@@ -279,6 +279,32 @@ def test_the_agent_never_maps_the_bpf_compiler(agent):
     assert [lib for lib in libraries if "LLVM" in lib or "libbcc" in lib or "clang" in lib] == []
 
 
+def _graph_read(agent: str) -> None:
+    """Waits until the agent is ready: its graph has been read."""
+    def ready() -> None:
+        try:
+            urllib.request.urlopen(agent.replace("/metrics", "/readyz"), timeout=5)
+        except urllib.error.HTTPError as e:
+            raise AssertionError(e.read()) from None
+    eventually(ready, timeout=20)
+
+
+def test_neither_the_agent_nor_its_ros2_reader_loads_openssl(agent):
+    """They speak no TLS, and OpenSSL's library is 3-4 MB of each one's own memory: Python's ssl and
+    _hashlib modules (which load it) stay out, also once the reader has created its rclpy node."""
+    proc = _agent_process(agent)
+
+    def processes() -> list:
+        reader = [c for c in proc.children() if c.name() == "drums-graph"]
+        assert reader, proc.children()
+        return [proc, *reader]
+    every = eventually(processes, timeout=10)
+    _graph_read(agent)  # the reader's node is made by now
+    for p in every:
+        libraries = {os.path.basename(line.split()[-1]) for line in open(f"/proc/{p.pid}/maps") if "/" in line}
+        assert [lib for lib in libraries if lib.startswith(("_ssl.", "_hashlib."))] == [], p.name()
+
+
 def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
     """The agent and each helper it started (here the ROS 2 graph reader), by role; CPU as the
     kernel counts it for each process, read before and after the scrape."""
@@ -289,13 +315,7 @@ def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
         assert "graph" in processes, processes
         return processes
     processes = eventually(named, timeout=10)
-    # Once the graph has been read the reader has done its imports: its memory holds still.
-    def ready() -> None:
-        try:
-            urllib.request.urlopen(agent.replace("/metrics", "/readyz"), timeout=5)
-        except urllib.error.HTTPError as e:
-            raise AssertionError(e.read()) from None
-    eventually(ready, timeout=20)
+    _graph_read(agent)  # the reader has done its imports: its memory holds still
     before = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}
     text = scrape(agent)
     after = {role: sum(p.cpu_times()[:2]) for role, p in processes.items()}

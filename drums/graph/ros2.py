@@ -29,6 +29,7 @@ from drums.graph.nodepids import ProcScan, map_nodes
 from drums.netfmt import is_address
 from drums.proctable import name_helper
 from drums.rclchild import RCLPY_ARGS
+from drums.selfcost import without_openssl
 
 # Measured: a reader that is not root sees the topics of a root node but not the node, nor its
 # endpoints (Fast DDS carries them over shared memory, whose segments are closed to other users).
@@ -261,6 +262,7 @@ def main() -> int:
                         help="publish the DiagnosticArrays read on stdin (JSON lines) on this topic too")
     args = parser.parse_args()
     name_helper("graph")
+    without_openssl()
     return child(args.interval, args.announce, args.diagnostics)
 
 
