@@ -243,7 +243,7 @@ WHY = {
     "latency": "its map, empty unless the TCP latency probe is asked for",
     "rest of the collect": "process table, PIDs to read, the graph's join, the budget's ranking and folds, "
                            "self-metrics",
-    "render, gzip, HTTP": "the text of families that changed, ISA-L gzip, aiohttp, and the client's gunzip",
+    "render, gzip, HTTP": "the text of families that changed, ISA-L gzip, h11 on asyncio, and the client's gunzip",
 }
 
 

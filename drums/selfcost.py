@@ -30,10 +30,9 @@ BUSY = 0.1
 def without_openssl() -> None:
     """Leave OpenSSL out of this process, before anything imports it. The agent and its helpers
     speak no TLS, and each process that loads libcrypto holds 3-4 MB of it as its own memory: the
-    agent did (aiohttp's client module builds verified SSL contexts at import, 60 ms of a warm start
-    too), and so did the ROS 2 graph reader (creating an rclpy node imports hashlib): 3.7 MB of its
-    58. Without the ssl module, aiohttp, asyncio and urllib leave TLS out; without _hashlib, hashlib
-    takes Python's own hashes."""
+    agent did (aiohttp, its HTTP front then, built verified SSL contexts at import), and so did the
+    ROS 2 graph reader (creating an rclpy node imports hashlib): 3.7 MB of its 58. Without the ssl
+    module, asyncio and urllib leave TLS out; without _hashlib, hashlib takes Python's own hashes."""
     sys.modules.setdefault("ssl", None)
     sys.modules.setdefault("_hashlib", None)
 

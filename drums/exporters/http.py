@@ -5,15 +5,16 @@ Reads are open to anyone who can reach the port. With a token, every request tha
 something (POST, DELETE) must carry `Authorization: Bearer <token>`, compared in constant time;
 the CLI refuses to bind off loopback without one.
 
-It holds against clients that are slow, many or gone (aiohttp on one event loop, so a connection
-costs a few kilobytes and no thread):
+It holds against clients that are slow, many or gone (h11's HTTP/1.1 parser on one asyncio event
+loop, so a connection costs a few kilobytes and no thread):
 - a connection that has not sent a whole request within IDLE seconds is closed, and so is one
   idle that long between requests; a body must arrive within BODY_TIMEOUT, an answer must be
   taken within SEND_TIMEOUT;
 - at most `limit` connections are open (below the open-file limit): one more closes the oldest
   connection that is waiting for a request, so a flood of slow or idle connections cannot lock
   Prometheus out;
-- request lines, headers and bodies have size limits;
+- request heads and bodies have size limits, and heads a limit on their header lines; a request
+  the parser refuses is answered with a 4xx that says why, and counted;
 - scrapes and /graph reads share snapshots: a request is answered from a snapshot collected after
   it arrived, and every request that arrives while one is being collected shares the next, drawn
   once per page and query. A client that hangs up leaves the others' work running and adds none.
@@ -23,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import hmac
+import http
 import json
 import logging
 import os
@@ -34,7 +36,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 from urllib.parse import parse_qs, urlsplit
 
-from aiohttp import web
+import h11
 from isal import igzip
 
 from drums.errors import DrumsError, UsageError
@@ -46,8 +48,9 @@ log = logging.getLogger("drums")
 
 API = "/drums/v1"
 MAX_BODY = 64 << 10  # a job's body is a few bytes
-MAX_LINE = 8 << 10  # request line and each header
+MAX_HEAD = 16 << 10  # a request line and its headers
 MAX_HEADERS = 64
+READ_SIZE = 64 << 10
 IDLE = 10.0  # seconds a connection may take to send a whole request head, or stay idle between requests
 BODY_TIMEOUT = 10.0
 SEND_TIMEOUT = 30.0  # a scrape of a large host is a few MB: 30 s is a slow link, not a stalled reader
@@ -114,66 +117,106 @@ def connection_limit() -> int:
     return max(16, min(MAX_CONNECTIONS, free))
 
 
-class _Connections(web.Server):
-    """aiohttp's server, holding at most `limit` connections. Over it, the oldest connection that is
-    waiting for a request (a slow or idle one) is closed; Prometheus's keep-alive connection, if it
-    was that one, simply reconnects."""
+class _Connections:
+    """The open connections, at most `limit`. Over it, the oldest connection that is waiting for a
+    request (a slow or idle one) is closed; Prometheus's keep-alive connection, if it was that one,
+    simply reconnects."""
 
-    def __init__(self, handler, limit: int, **kwargs):
-        super().__init__(handler, logger=_ServerLog(self), **kwargs)
+    def __init__(self, limit: int):
         self.limit = limit
         self.closed = {"over_limit": 0, "slow_reader": 0, "bad_request": 0}
-        self._waiting: dict[web.RequestHandler, None] = {}  # oldest first
+        self.open: set[asyncio.Transport] = set()
+        self._waiting: dict[asyncio.Transport, None] = {}  # oldest first
         self._said = 0.0
 
-    def connection_made(self, handler, transport) -> None:
-        super().connection_made(handler, transport)
-        self._waiting[handler] = None
-        if len(self.connections) > self.limit:
+    def came(self, transport: asyncio.Transport) -> None:
+        self.open.add(transport)
+        self._waiting[transport] = None
+        if len(self.open) > self.limit:
             victim = next(iter(self._waiting))
-            del self._waiting[victim]
-            # After aiohttp has finished setting the connection up, not in the middle of it.
-            asyncio.get_running_loop().call_soon(victim.force_close)
+            self.went(victim)
+            victim.abort()  # its reader sees the end of the stream
             self.count_closed("over_limit")
 
-    def connection_lost(self, handler, exc=None) -> None:
-        self._waiting.pop(handler, None)
-        super().connection_lost(handler, exc)
+    def went(self, transport: asyncio.Transport) -> None:
+        self.open.discard(transport)
+        self._waiting.pop(transport, None)
 
-    def busy(self, handler, busy: bool) -> None:
+    def busy(self, transport: asyncio.Transport, busy: bool) -> None:
         """A request is being answered on the connection (it may not be closed), or is done."""
         if busy:
-            self._waiting.pop(handler, None)
-        elif handler.transport is not None:  # still open
-            self._waiting[handler] = None
+            self._waiting.pop(transport, None)
+        elif transport in self.open:
+            self._waiting[transport] = None
 
     def count_closed(self, reason: str, why: object = "") -> None:
         self.closed[reason] += 1
         now = time.monotonic()
         if now - self._said >= CLOSED_SAID_EVERY:
             self._said = now
-            last = f"; the last bad request: {' '.join(str(why).split())}" if why else ""
+            last = f"; the last bad request: {' '.join(str(why).split())[:200]}" if why else ""
             log.warning("http: connections closed since start: %s (at most %d are held)%s; said at most once a minute",
                         ", ".join(f"{n} {r.replace('_', ' ')}" for r, n in self.closed.items()), self.limit, last)
 
 
-class _ServerLog:
-    """What aiohttp's connections log: a request its parser refuses is a client's mistake, not the
-    agent's, so it is counted and said in one line (at most once a minute), never as a traceback."""
+class _Request:
+    """One request, as its connection read it: what the handlers need of it."""
 
-    def __init__(self, connections: _Connections):
-        self._connections = connections
+    def __init__(self, event: h11.Request, connection: "_Connection"):
+        self.method = event.method.decode("ascii")
+        self.target = event.target.decode("ascii")  # h11 takes only visible ASCII there
+        self.headers = {name.decode("latin-1"): value.decode("latin-1") for name, value in event.headers}
+        self.local = connection.local
+        self._connection = connection
 
-    def exception(self, msg, *args, exc_info=None, **_kw) -> None:
-        if not isinstance(exc_info, Exception) or getattr(exc_info, "code", 500) >= 500:
-            log.error("http: " + msg + ": %s", *args, exc_info)  # ours: one line too
-            return
-        self._connections.count_closed("bad_request", getattr(exc_info, "message", exc_info))
+    async def body(self) -> bytes:
+        """The request's body (chunked or not), at most MAX_BODY bytes, within BODY_TIMEOUT."""
+        if int(self.headers.get("content-length", 0)) > MAX_BODY:
+            raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
+        try:
+            return await asyncio.wait_for(self._connection.body(), BODY_TIMEOUT)
+        except asyncio.TimeoutError:
+            raise HttpError(408, f"the body did not arrive within {BODY_TIMEOUT:g} s") from None
 
-    def debug(self, *_args, **_kw) -> None:  # clients that hang up, requests not finished: no news
-        pass
 
-    warning = error = info = debug
+class _Connection:
+    """One client's connection: h11 reads its requests from the stream and frames the answers."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
+        self.reader, self.writer = reader, writer
+        self.h11 = h11.Connection(h11.SERVER, max_incomplete_event_size=MAX_HEAD)
+        # drain() then waits until all is handed to the kernel: a connection closed after it loses nothing.
+        writer.transport.set_write_buffer_limits(0)
+        sockname = writer.get_extra_info("sockname")
+        self.local = sockname[0] if sockname else "127.0.0.1"
+
+    async def next_event(self):
+        """The next event of the client, reading as needed; None when the client hung up (or the
+        server closed the connection) between or inside requests."""
+        while True:
+            event = self.h11.next_event()
+            if event is not h11.NEED_DATA:
+                return event
+            data = await self.reader.read(READ_SIZE)
+            if not data:
+                return None
+            self.h11.receive_data(data)
+
+    async def body(self) -> bytes:
+        body = bytearray()
+        if self.h11.they_are_waiting_for_100_continue:
+            await self.send(h11.InformationalResponse(status_code=100, headers=[]))
+        while isinstance(event := await self.next_event(), h11.Data):
+            body += event.data
+            if len(body) > MAX_BODY:
+                raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
+        if event is None:
+            raise ConnectionResetError("the client left in the middle of its body")
+        return bytes(body)
+
+    async def send(self, *events) -> None:
+        self.writer.write(b"".join(self.h11.send(event) for event in events))
+        await self.writer.drain()
 
 
 class _Shared:
@@ -319,19 +362,18 @@ class HttpServer:
 
     async def _serve(self) -> None:
         self._loop, self._stopping = asyncio.get_running_loop(), asyncio.Event()
-        self._server = _Connections(self._handle, self._limit, handler_cancellation=True, keepalive_timeout=IDLE,
-                                    max_line_size=MAX_LINE, max_field_size=MAX_LINE, max_headers=MAX_HEADERS,
-                                    access_log=None)
-        runner = web.ServerRunner(self._server, handle_signals=False)
-        await runner.setup()
+        self._server = _Connections(self._limit)
         self._loop.set_exception_handler(self._loop_error)
         # asyncio accepts as many connections at a time as the listen backlog it is given, each an open
         # file before the limit sees it: it gets a small one, and the kernel's queue is set long again.
-        await web.SockSite(runner, self._sock, backlog=ACCEPT_BATCH).start()
+        server = await asyncio.start_server(self._connection, sock=self._sock, backlog=ACCEPT_BATCH,
+                                            limit=READ_SIZE)
         self._sock.listen(BACKLOG)
         self._ready.set()
         await self._stopping.wait()
-        await runner.cleanup()
+        server.close()
+        for transport in list(self._server.open):
+            transport.abort()
 
     def _loop_error(self, _loop, context: dict) -> None:
         """asyncio's complaints (accept failing when the open files run out) in one line a minute."""
@@ -344,22 +386,68 @@ class HttpServer:
         """The snapshot with the server's own metrics (read from the collecting thread: a few ints)."""
         server = self._server
         if server is not None:
-            snap.add(HTTP_CONNECTIONS, (), len(server.connections))
+            snap.add(HTTP_CONNECTIONS, (), len(server.open))
             snap.add(HTTP_CONNECTION_LIMIT, (), server.limit)
             for reason, count in server.closed.items():
                 snap.add(HTTP_CLOSED, (reason,), count)
         return snap
 
-    async def _handle(self, request: web.BaseRequest) -> web.StreamResponse:
-        self._server.busy(request.protocol, True)
+    async def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Serve one connection's requests, one after the other, until either side ends it."""
+        connections, transport = self._server, writer.transport
+        connection = _Connection(reader, writer)
+        connections.came(transport)
         try:
-            code, body, content_type, headers = await self._answer(request)
-            return await self._send(request, code, body, content_type, headers)
+            while True:
+                try:  # a whole request head within IDLE, from the connection or the last answer
+                    event = await asyncio.wait_for(connection.next_event(), IDLE)
+                except asyncio.TimeoutError:
+                    return
+                if not isinstance(event, h11.Request):
+                    return  # the client hung up
+                connections.busy(transport, True)
+                request = _Request(event, connection)
+                _check_head(event)
+                code, body, content_type, headers = await self._answer(request)
+                if not await self._send(connection, request, code, body, content_type, headers):
+                    return
+                connections.busy(transport, False)
+                if connection.h11.their_state is h11.SEND_BODY:  # a body we did not need: read it, bounded
+                    await request.body()
+                if connection.h11.our_state is not h11.DONE or connection.h11.their_state is not h11.DONE:
+                    return  # HTTP/1.0, or "Connection: close"
+                connection.h11.start_next_cycle()
+        except h11.RemoteProtocolError as e:
+            await self._refuse(connection, e)
+        except (HttpError, ConnectionError):
+            pass  # a body too large or too slow after its answer, or a client gone: no news
         finally:
-            self._server.busy(request.protocol, False)
+            connections.went(transport)
+            writer.close()  # all that was sent is with the kernel, or the connection is aborted
 
-    async def _answer(self, request: web.BaseRequest) -> tuple[int, bytes, str, dict]:
-        url = urlsplit(request.raw_path)
+    async def _refuse(self, connection: _Connection, error: h11.RemoteProtocolError) -> None:
+        """Answer a request h11 refused with a 4xx that says why (and close): a client's mistake,
+        not the agent's, counted and said in one line at most once a minute."""
+        code = error.error_status_hint
+        # h11 says what it refused, then quotes it ("illegal request line: bytearray(b'...')"): the
+        # first part is the reason; the client knows what it sent.
+        why = f"a request head over {MAX_HEAD >> 10} KiB" if str(error) == "Receive buffer too long" \
+            else str(error).partition(": ")[0]
+        self._server.count_closed("bad_request", why)
+        if connection.h11.our_state not in (h11.IDLE, h11.SEND_RESPONSE):
+            return
+        body = f"{why}\n".encode()
+        headers = [("Server", "drums"), ("Content-Type", TEXT), ("Content-Length", str(len(body))),
+                   ("Connection", "close")]
+        try:
+            await asyncio.wait_for(connection.send(h11.Response(status_code=code, headers=headers,
+                                                                reason=http.HTTPStatus(code).phrase),
+                                                   h11.Data(data=body), h11.EndOfMessage()), SEND_TIMEOUT)
+        except (asyncio.TimeoutError, ConnectionError, h11.LocalProtocolError):
+            pass
+
+    async def _answer(self, request: _Request) -> tuple[int, bytes, str, dict]:
+        url = urlsplit(request.target)
         in_api = self._jobs is not None and (url.path == API or url.path.startswith(API + "/"))
         method = request.method
         try:
@@ -368,7 +456,7 @@ class HttpServer:
             if method not in ("GET", "HEAD"):
                 raise HttpError(405, f"{method} {url.path}: only GET", {"Allow": "GET"})
             query = {k: v[-1] for k, v in parse_qs(url.query).items()}
-            gzipped = "gzip" in {e.split(";")[0].strip() for e in request.headers.get("Accept-Encoding", "").split(",")}
+            gzipped = "gzip" in {e.split(";")[0].strip() for e in request.headers.get("accept-encoding", "").split(",")}
             picture = self._pictures.get(url.path)
             if picture is not None:
                 snap = await self._shared.snapshot()
@@ -392,7 +480,7 @@ class HttpServer:
     async def _in_thread(self, call, *args):
         return await asyncio.get_running_loop().run_in_executor(self._workers, call, *args)
 
-    async def _api(self, request: web.BaseRequest, method: str, path: str) -> tuple[int, bytes, str, dict]:
+    async def _api(self, request: _Request, method: str, path: str) -> tuple[int, bytes, str, dict]:
         parts = [p for p in path[len(API):].split("/") if p]
         if method not in ("GET", "POST", "DELETE"):
             # Allow names what this resource takes (RFC 9110): the read-only ones take only GET.
@@ -404,12 +492,11 @@ class HttpServer:
         if method != "GET" and not authorized:
             raise HttpError(401, "a valid token is needed: Authorization: Bearer <token>",
                             {"WWW-Authenticate": "Bearer"})
-        body = await _body(request)
-        local = request.transport.get_extra_info("sockname")[0] if request.transport else "127.0.0.1"
-        return _json(*await self._in_thread(self._call, method, parts, body, local, authorized))
+        body = await request.body()
+        return _json(*await self._in_thread(self._call, method, parts, body, request.local, authorized))
 
-    def _authorized(self, request: web.BaseRequest) -> bool:
-        scheme, _, value = request.headers.get("Authorization", "").partition(" ")
+    def _authorized(self, request: _Request) -> bool:
+        scheme, _, value = request.headers.get("authorization", "").partition(" ")
         return scheme.lower() == "bearer" and hmac.compare_digest(value.strip().encode(), self._token.encode())
 
     def _call(self, method: str, parts: list[str], body: bytes, local: str, authorized: bool) -> tuple[int, object]:
@@ -447,45 +534,35 @@ class HttpServer:
         job, created = self._jobs.add(kind, target, *parse_body(kind, value))
         return (201 if created else 200), located(job)
 
-    async def _send(self, request: web.BaseRequest, code: int, body: bytes, content_type: str,
-                    headers: dict) -> web.StreamResponse:
-        response = web.StreamResponse(status=code, headers={"Server": "drums", **headers})  # not our versions
+    async def _send(self, connection: _Connection, request: _Request, code: int, body: bytes, content_type: str,
+                    headers: dict) -> bool:
+        """Send the answer within SEND_TIMEOUT: whether it went (else the connection is done)."""
+        fields = [("Server", "drums"), *headers.items()]  # not our versions
         if code != 204:
-            response.headers["Content-Type"] = content_type
-            response.content_length = len(body)
-
-        async def send() -> None:
-            await response.prepare(request)
-            if code != 204 and request.method != "HEAD":  # an answer to HEAD has no body
-                await response.write(body)
-            await response.write_eof()
+            fields += [("Content-Type", content_type), ("Content-Length", str(len(body)))]
+        events = [h11.Response(status_code=code, headers=fields, reason=http.HTTPStatus(code).phrase)]
+        if code != 204 and request.method != "HEAD":  # an answer to HEAD has no body
+            events.append(h11.Data(data=body))
+        events.append(h11.EndOfMessage())
         try:
-            await asyncio.wait_for(send(), SEND_TIMEOUT)
+            await asyncio.wait_for(connection.send(*events), SEND_TIMEOUT)
         except asyncio.TimeoutError:
             self._server.count_closed("slow_reader")
-            request.protocol.force_close()
+            connection.writer.transport.abort()
+            return False
         except ConnectionError:
-            pass  # the client hung up before the answer: no news
-        return response
+            return False  # the client hung up before the answer: no news
+        return True
+
+
+def _check_head(request: h11.Request) -> None:
+    """h11 bounds a head that arrives in parts (max_incomplete_event_size); one that came whole in a
+    read is bounded here, and so are its header lines."""
+    if len(request.headers) > MAX_HEADERS:
+        raise h11.RemoteProtocolError(f"more than {MAX_HEADERS} header lines", 431)
+    if len(request.target) + sum(len(name) + len(value) for name, value in request.headers) > MAX_HEAD:
+        raise h11.RemoteProtocolError(f"a request head over {MAX_HEAD >> 10} KiB", 431)
 
 
 def _json(code: int, value, headers: dict | None = None) -> tuple[int, bytes, str, dict]:
     return code, b"" if code == 204 else json.dumps(value).encode() + b"\n", JSON, headers or {}
-
-
-async def _body(request: web.BaseRequest) -> bytes:
-    """The request's body (chunked or not), at most MAX_BODY bytes, within BODY_TIMEOUT."""
-    if (request.content_length or 0) > MAX_BODY:
-        raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
-    body = bytearray()
-
-    async def read() -> None:
-        while len(body) <= MAX_BODY and (chunk := await request.content.read(MAX_BODY + 1 - len(body))):
-            body.extend(chunk)
-    try:
-        await asyncio.wait_for(read(), BODY_TIMEOUT)
-    except asyncio.TimeoutError:
-        raise HttpError(408, f"the body did not arrive within {BODY_TIMEOUT:g} s") from None
-    if len(body) > MAX_BODY:
-        raise HttpError(413, f"a body over {MAX_BODY >> 10} KiB")
-    return bytes(body)
