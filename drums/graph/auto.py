@@ -45,7 +45,7 @@ class AutoAdapter(Adapter):
         self._owners: dict[int, int] = {}  # socket inode -> PID, from the last reading of open files
         self._unowned: set[int] = set()  # inodes no process held at that reading
         self._read_at = float("-inf")
-        self._messages: dict = {}  # sock_diag message -> connection, of the last dump
+        self._known: dict = {}  # socket cookie -> connection, of the last dump
 
     def _owners_of(self, conns: list) -> dict[int, int]:
         """Socket inode -> PID for these connections. Every process's open files are read when a
@@ -85,7 +85,7 @@ class AutoAdapter(Adapter):
 
     def _dump(self) -> GraphState:
         try:
-            conns = sockdiag.dump_tcp((1 << ESTABLISHED) | (1 << LISTEN), info=False, known=self._messages)
+            conns = sockdiag.dump_tcp((1 << ESTABLISHED) | (1 << LISTEN), info=False, known=self._known)
         except KernelError as e:
             raise GraphError(str(e)) from None
         owners = self._owners_of(conns)
