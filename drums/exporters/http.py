@@ -50,7 +50,7 @@ API = "/drums/v1"
 MAX_BODY = 64 << 10  # a job's body is a few bytes
 MAX_HEAD = 16 << 10  # a request line and its headers
 MAX_HEADERS = 64
-READ_SIZE = 64 << 10
+READ_SIZE = 64 << 10  # bytes read from a connection at a time
 IDLE = 10.0  # seconds a connection may take to send a whole request head, or stay idle between requests
 BODY_TIMEOUT = 10.0
 SEND_TIMEOUT = 30.0  # a scrape of a large host is a few MB: 30 s is a slow link, not a stalled reader
@@ -473,6 +473,8 @@ class HttpServer:
             if in_api:
                 return _json(code, {"error": str(e)}, headers)
             return code, f"{e}\n".encode(), TEXT, headers
+        except ConnectionError:
+            raise  # the client left in the middle of its body: no answer, no news
         except Exception as e:  # a request must never take the agent down
             log.error("%s %s failed: %s", method, url.path, e, exc_info=log.isEnabledFor(logging.DEBUG))
             return 500, f"failed: {e}\n".encode(), TEXT, {}
