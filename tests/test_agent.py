@@ -305,6 +305,15 @@ def test_neither_the_agent_nor_its_ros2_reader_loads_openssl(agent):
         assert [lib for lib in libraries if lib.startswith(("_ssl.", "_hashlib."))] == [], p.name()
 
 
+def test_the_agent_imports_no_http_client_until_a_peer_is_timed():
+    """urllib.request (with http.client and email, 1.3 MB) is imported when the latency probe first
+    asks a peer agent its time, not by an agent without latency targets."""
+    code = ("import sys; import drums.probes.registry, drums.exporters.http, drums.agent; "
+            "print(sorted(m for m in ('urllib.request', 'http.client', 'email', 'statistics') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 def test_self_metrics_have_a_row_per_process_of_the_agent(agent):
     """The agent and each helper it started (here the ROS 2 graph reader), by role; CPU as the
     kernel counts it for each process, read before and after the scrape."""
