@@ -271,11 +271,17 @@ def _agent_process(url: str) -> psutil.Process:
     return proc
 
 
+def _mapped_files(pid: int) -> set[str]:
+    """The paths of the files a process has mapped (its libraries among them)."""
+    with open(f"/proc/{pid}/maps") as f:
+        return {line.split()[-1] for line in f if "/" in line}
+
+
 def test_the_agent_never_maps_the_bpf_compiler(agent):
     """bcc's compiler (LLVM, some 50 MB of the agent's own memory) stays in the loader children,
     though this agent started cold and compiled every probe; choosing a probe's attach path does
     not ask bcc about the paths after the one that loaded."""
-    libraries = {line.split()[-1] for line in open(f"/proc/{_agent_process(agent).pid}/maps") if "/" in line}
+    libraries = _mapped_files(_agent_process(agent).pid)
     assert [lib for lib in libraries if "LLVM" in lib or "libbcc" in lib or "clang" in lib] == []
 
 
@@ -301,7 +307,7 @@ def test_neither_the_agent_nor_its_ros2_reader_loads_openssl(agent):
     every = eventually(processes, timeout=10)
     _graph_read(agent)  # the reader's node is made by now
     for p in every:
-        libraries = {os.path.basename(line.split()[-1]) for line in open(f"/proc/{p.pid}/maps") if "/" in line}
+        libraries = {os.path.basename(path) for path in _mapped_files(p.pid)}
         assert [lib for lib in libraries if lib.startswith(("_ssl.", "_hashlib."))] == [], p.name()
 
 

@@ -406,10 +406,10 @@ class HttpServer:
                 if not isinstance(event, h11.Request):
                     return  # the client hung up
                 connections.busy(transport, True)
-                request = _Request(event, connection)
                 _check_head(event)
+                request = _Request(event, connection)
                 code, body, content_type, headers = await self._answer(request)
-                if not await self._send(connection, request, code, body, content_type, headers):
+                if not await self._send(connection, code, body, content_type, headers, request.method != "HEAD"):
                     return
                 connections.busy(transport, False)
                 if connection.h11.their_state is h11.SEND_BODY:  # a body we did not need: read it, bounded
@@ -434,17 +434,8 @@ class HttpServer:
         why = f"a request head over {MAX_HEAD >> 10} KiB" if str(error) == "Receive buffer too long" \
             else str(error).partition(": ")[0]
         self._server.count_closed("bad_request", why)
-        if connection.h11.our_state not in (h11.IDLE, h11.SEND_RESPONSE):
-            return
-        body = f"{why}\n".encode()
-        headers = [("Server", "drums"), ("Content-Type", TEXT), ("Content-Length", str(len(body))),
-                   ("Connection", "close")]
-        try:
-            await asyncio.wait_for(connection.send(h11.Response(status_code=code, headers=headers,
-                                                                reason=http.HTTPStatus(code).phrase),
-                                                   h11.Data(data=body), h11.EndOfMessage()), SEND_TIMEOUT)
-        except (asyncio.TimeoutError, ConnectionError, h11.LocalProtocolError):
-            pass
+        if connection.h11.our_state in (h11.IDLE, h11.SEND_RESPONSE):
+            await self._send(connection, code, f"{why}\n".encode(), TEXT, {"Connection": "close"})
 
     async def _answer(self, request: _Request) -> tuple[int, bytes, str, dict]:
         url = urlsplit(request.target)
@@ -536,14 +527,15 @@ class HttpServer:
         job, created = self._jobs.add(kind, target, *parse_body(kind, value))
         return (201 if created else 200), located(job)
 
-    async def _send(self, connection: _Connection, request: _Request, code: int, body: bytes, content_type: str,
-                    headers: dict) -> bool:
-        """Send the answer within SEND_TIMEOUT: whether it went (else the connection is done)."""
+    async def _send(self, connection: _Connection, code: int, body: bytes, content_type: str, headers: dict,
+                    with_body: bool = True) -> bool:
+        """Send the answer within SEND_TIMEOUT: whether it went (else the connection is done).
+        `with_body` is false for an answer to HEAD, which says the body's length but has none."""
         fields = [("Server", "drums"), *headers.items()]  # not our versions
         if code != 204:
             fields += [("Content-Type", content_type), ("Content-Length", str(len(body)))]
         events = [h11.Response(status_code=code, headers=fields, reason=http.HTTPStatus(code).phrase)]
-        if code != 204 and request.method != "HEAD":  # an answer to HEAD has no body
+        if code != 204 and with_body:
             events.append(h11.Data(data=body))
         events.append(h11.EndOfMessage())
         try:
