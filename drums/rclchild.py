@@ -14,7 +14,7 @@ import json
 import sys
 
 from drums.proctable import name_helper
-from drums.selfcost import without_openssl
+from drums.selfcost import numpy_on_first_use, without_openssl
 
 # Drums' rclpy children log through the agent, not to files: rcl's file log needs a writable
 # ~/.ros/log, and without one (a user whose HOME is not theirs) rclpy.init fails.
@@ -54,6 +54,14 @@ class Arrays:
         self.node.destroy_node()
 
 
+def start_helper(role: str) -> None:
+    """What each of Drums' rclpy children does first: name itself drums-<role> (the agent's
+    self-metrics count it by that), and keep out what rclpy would load and never use."""
+    name_helper(role)
+    without_openssl()
+    numpy_on_first_use()
+
+
 def answer(publish_error: str) -> str:
     """The line that answers one array: what the agent's Publisher reads."""
     return json.dumps({"answer": publish_error})
@@ -81,6 +89,5 @@ def child(topic: str) -> int:
 
 
 if __name__ == "__main__":
-    name_helper("diag")
-    without_openssl()
+    start_helper("diag")
     sys.exit(child(sys.argv[1] if len(sys.argv) > 1 else "/diagnostics"))

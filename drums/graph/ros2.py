@@ -27,9 +27,7 @@ from drums.graph.adapter import ChildAdapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
 from drums.graph.nodepids import ProcScan, map_nodes
 from drums.netfmt import is_address
-from drums.proctable import name_helper
-from drums.rclchild import RCLPY_ARGS
-from drums.selfcost import without_openssl
+from drums.rclchild import RCLPY_ARGS, start_helper
 
 # Measured: a reader that is not root sees the topics of a root node but not the node, nor its
 # endpoints (Fast DDS carries them over shared memory, whose segments are closed to other users).
@@ -261,8 +259,7 @@ def main() -> int:
     parser.add_argument("--diagnostics", metavar="TOPIC", default=None,
                         help="publish the DiagnosticArrays read on stdin (JSON lines) on this topic too")
     args = parser.parse_args()
-    name_helper("graph")
-    without_openssl()
+    start_helper("graph")
     return child(args.interval, args.announce, args.diagnostics)
 
 
