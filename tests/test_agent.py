@@ -315,11 +315,12 @@ def test_neither_the_agent_nor_its_ros2_reader_loads_what_it_does_not_use(agent)
     assert libraries(graph) & {"_ssl", "_hashlib", "_multiarray_umath"} == set()
 
 
-def test_the_agent_imports_no_http_client_until_a_peer_is_timed():
+def test_the_agent_imports_an_http_client_and_re2_only_once_it_uses_them():
     """urllib.request (with http.client and email, 1.3 MB) is imported when the latency probe first
-    asks a peer agent its time, not by an agent without latency targets."""
-    code = ("import sys; import drums.probes.registry, drums.exporters.http, drums.agent; "
-            "print(sorted(m for m in ('urllib.request', 'http.client', 'email', 'statistics') if m in sys.modules))")
+    asks a peer agent its time, and RE2 (1.5 MB) with the first name pattern: not by an agent
+    without latency targets or patterns."""
+    code = ("import sys; import drums.probes.registry, drums.exporters.http, drums.agent, drums.cli; "
+            "print(sorted(m for m in ('urllib.request', 'http.client', 'email', 'statistics', 're2') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
 
