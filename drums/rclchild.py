@@ -14,7 +14,7 @@ import json
 import sys
 
 from drums.proctable import name_helper
-from drums.selfcost import numpy_on_first_use, without_openssl
+from drums.selfcost import leave_out, on_first_use, without_openssl
 
 # Drums' rclpy children log through the agent, not to files: rcl's file log needs a writable
 # ~/.ros/log, and without one (a user whose HOME is not theirs) rclpy.init fails.
@@ -56,10 +56,17 @@ class Arrays:
 
 def start_helper(role: str) -> None:
     """What each of Drums' rclpy children does first: name itself drums-<role> (the agent's
-    self-metrics count it by that), and keep out what rclpy would load and never use."""
+    self-metrics count it by that), and keep out what rclpy would load and never use. Measured in
+    the ROS 2 graph reader (55 MB without any of this):
+    - numpy, 10.5 MB: service_msgs' generated code imports it for one fixed-size array
+      (ServiceEventInfo.client_gid) that only service introspection fills;
+    - rosidl_generator_py's code generator, 2.9 MB with the lark parser it imports: the package
+      imports it only if it can (to build message packages), beside the type support rclpy uses;
+    - yaml, 1.2 MB: rclpy.parameter imports it for parameter files, which these nodes are not given."""
     name_helper(role)
     without_openssl()
-    numpy_on_first_use()
+    leave_out("rosidl_generator_py.generate_py_impl")
+    on_first_use("numpy", "yaml")
 
 
 def answer(publish_error: str) -> str:

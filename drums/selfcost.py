@@ -29,14 +29,20 @@ MEMORY_EVERY = 5.0
 BUSY = 0.1
 
 
+def leave_out(*modules: str) -> None:
+    """Make each of these modules fail to import (ImportError), before anything imports it: for
+    what this process never uses and what imports it copes without."""
+    for name in modules:
+        sys.modules.setdefault(name, None)
+
+
 def without_openssl() -> None:
     """Leave OpenSSL out of this process, before anything imports it. The agent and its helpers
     speak no TLS, and each process that loads libcrypto holds 3-4 MB of it as its own memory: the
     agent did (aiohttp, its HTTP front then, built verified SSL contexts at import), and so did the
     ROS 2 graph reader (creating an rclpy node imports hashlib): 3.7 MB of its 58. Without the ssl
     module, asyncio and urllib leave TLS out; without _hashlib, hashlib takes Python's own hashes."""
-    sys.modules.setdefault("ssl", None)
-    sys.modules.setdefault("_hashlib", None)
+    leave_out("ssl", "_hashlib")
 
 
 class _OnFirstUse(types.ModuleType):
@@ -50,12 +56,11 @@ class _OnFirstUse(types.ModuleType):
         return getattr(importlib.import_module(self.__name__), name)
 
 
-def numpy_on_first_use() -> None:
-    """Import numpy only when something uses it, not when something imports it. rclpy imports
-    service_msgs, whose generated message code imports numpy for one fixed-size array
-    (ServiceEventInfo.client_gid) that only service introspection fills: 10.5 MB of the ROS 2
-    graph reader's 55 for nothing. The agent itself uses numpy and imports it as usual."""
-    sys.modules.setdefault("numpy", _OnFirstUse("numpy"))
+def on_first_use(*modules: str) -> None:
+    """Import each of these modules when something first uses one of its names, not when
+    something imports it: for modules imported at the top of code that this process never runs."""
+    for name in modules:
+        sys.modules.setdefault(name, _OnFirstUse(name))
 
 
 def _glibc():

@@ -311,8 +311,31 @@ def test_neither_the_agent_nor_its_ros2_reader_loads_what_it_does_not_use(agent)
 
     def libraries(p) -> set:
         return {os.path.basename(path).split(".")[0] for path in _mapped_files(p.pid)}
-    assert libraries(proc) & {"_ssl", "_hashlib", "_multiarray_umath"} == {"_multiarray_umath"}
-    assert libraries(graph) & {"_ssl", "_hashlib", "_multiarray_umath"} == set()
+    unused = {"_ssl", "_hashlib", "_multiarray_umath", "_yaml"}
+    assert libraries(proc) & unused == {"_multiarray_umath"}
+    assert libraries(graph) & unused == set()
+
+
+def test_an_rclpy_helper_imports_neither_numpy_nor_yaml_nor_the_message_generator():
+    """What rclpy imports and never runs in Drums' children: once a helper has started as they do
+    (rclchild.start_helper), made its node and published a DiagnosticArray, none of numpy, yaml,
+    rosidl_generator_py's code generator and the lark parser it loads is imported; numpy still
+    comes at its first use."""
+    code = """if True:
+        import sys
+        from drums.rclchild import RCLPY_ARGS, Arrays, start_helper
+        start_helper("test")
+        import rclpy
+        rclpy.init(args=RCLPY_ARGS)
+        arrays = Arrays("/drums_test_helper")
+        said = arrays.publish('{"status": [{"level": 0, "name": "a", "message": "", "hardware_id": "", "values": [["k", "v"]]}]}')
+        loaded = sorted(m for m in ("numpy", "yaml", "rosidl_generator_py.generate_py_impl", "lark")
+                        if type(sys.modules.get(m)).__name__ == "module")
+        from service_msgs.msg import ServiceEventInfo
+        print(repr(said), loaded, ServiceEventInfo().client_gid.tolist(), type(sys.modules["numpy"]).__name__)
+    """
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "'' [] " + str([0] * 16) + " module", out.stderr[-2000:]
 
 
 def test_the_agent_imports_an_http_client_and_re2_only_once_it_uses_them():
