@@ -178,8 +178,8 @@ def test_the_reader_that_publishes_leaves_its_domain_when_the_agent_stops(ros_do
 
 
 def test_arrays_take_a_young_scrape_snapshot_and_rate_its_counters_over_its_read_times():
-    """/diagnostics takes the snapshot of the last scrape when its probes were read less than most
-    of an interval ago, rather than collect again: the rates of its counters are then over the
+    """/diagnostics takes the snapshot of the last scrape when its probes were read recently enough,
+    rather than collect again: the rates of its counters are then over the
     time between the reads of two snapshots, not between two arrays."""
     from drums.agent import Agent
     from drums.exporters.diagnostics import Config, Diagnostics
@@ -207,6 +207,28 @@ def test_arrays_take_a_young_scrape_snapshot_and_rate_its_counters_over_its_read
     diagnostics.statuses(snapshot(1000.0, 1_000), at=50.0)
     statuses = diagnostics.statuses(snapshot(1002.5, 6_000), at=51.0)  # read 2.5 s apart, drawn 1 s apart
     assert dict(statuses[-1]["values"])["network sent bytes/s"] == "2000.000"
+
+
+def test_arrays_scraped_as_often_as_they_go_out_are_drawn_from_the_scrapes_at_any_phase():
+    """Scrapes as often as the arrays, each just after an array went out (its snapshot almost an
+    interval old at the next): every array after the first is drawn from a scrape's snapshot, and
+    the agent collects once an interval, not twice."""
+    from drums.agent import Agent
+    from drums.exporters.diagnostics import Config, Diagnostics
+    from drums.proctable import ProcessTable
+
+    agent, interval = Agent([], ProcessTable()), 0.5
+    scraped, drawn = [], []
+
+    def recent(max_age: float, after: float):
+        drawn.append(agent.recent(max_age, after))
+        threading.Timer(0.02 * interval, lambda: scraped.append(agent.collect())).start()  # the scrape after it
+        return drawn[-1]
+    diagnostics = Diagnostics(Config(interval=interval))
+    diagnostics.start(recent)
+    time.sleep(10.5 * interval)
+    diagnostics.stop()
+    assert len(drawn) >= 10 and [any(d is s for s in scraped) for d in drawn[1:]] == [True] * (len(drawn) - 1)
 
 
 @pytest.mark.parametrize("text, says", [
