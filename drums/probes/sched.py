@@ -14,7 +14,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries, within
+from drums.probes.entries import Entries, distinct, within
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -189,7 +189,7 @@ class SchedProbe(BpfProbe):
         m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
         made, cpu = self._made, self._cpu
-        alive = pt.alive_among(np.unique(tgids).tolist()) | exited.keys()
+        alive = pt.alive_among(distinct(tgids)) | exited.keys()
         ended = made.keys() - alive
         was = [made.pop(tgid) for tgid in ended]  # ended, and made again: their last rows
         for tgid in ended:

@@ -17,7 +17,7 @@ from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
                               needs_fentry, needs_kprobes, needs_tracepoints, offset_defines, typed)
-from drums.probes.entries import Entries, Matched
+from drums.probes.entries import Entries, Matched, distinct
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -164,7 +164,7 @@ class SocketsProbe(BpfProbe):
         # Per process, not per socket: which are gone, and which were renamed since the last collect.
         names, self._names = self._names, {}
         dead, renamed = [], []
-        for pid in np.unique(pids).tolist():
+        for pid in distinct(pids):
             if not pt.alive(pid):
                 dead.append(pid)
                 continue
@@ -236,7 +236,7 @@ class SocketsProbe(BpfProbe):
         closed = np.zeros(len(pids), bool)
         idle = m.same & (klass != _TCP)
         now = time.monotonic()
-        due = [pid for pid in np.unique(pids[idle]).tolist()
+        due = [pid for pid in distinct(pids[idle])
                if self.proctable.alive(pid) and now - self._fds_read_at.get(pid, float("-inf")) >= FD_CHECK_INTERVAL]
         if due:
             inodes_of = {pid: self.proctable.socket_inodes(pid) for pid in due}

@@ -1,6 +1,8 @@
 """Map entries matched against the last read in bulk: what is new, counted on, changed or gone."""
 import random
 import struct
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -94,3 +96,12 @@ def test_a_read_the_caller_did_not_keep_makes_the_next_read_make_every_row_anew(
     assert m.words[:, 1].tolist() == [6, 5]
     e.keep(m, m.keys > 0)
     assert e.kept
+
+
+def test_distinct_values_come_ascending_without_importing_numpy_ma():
+    """What the sockets and sched probes take per process each collect: np.unique asked for values
+    alone imports numpy.ma (1.2 MB) at its first call."""
+    code = ("import sys, numpy as np; from drums.probes.entries import distinct; "
+            "print(distinct(np.array([7, 3, 7, 1, 3], np.int64)), distinct(np.array([], np.uint32)), 'numpy.ma' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split("\n")[0] == "[1, 3, 7] [] False"
