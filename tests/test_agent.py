@@ -17,7 +17,7 @@ import pytest
 
 from drums.client import Agent
 from tests.agentproc import free_port, running_agent, samples, scrape
-from tests.conftest import eventually
+from tests.conftest import TEST_PIN_ROOT, eventually
 
 
 @pytest.fixture(scope="module")
@@ -346,6 +346,37 @@ def test_the_agent_imports_an_http_client_and_re2_only_once_it_uses_them():
             "print(sorted(m for m in ('urllib.request', 'http.client', 'email', 'statistics', 're2') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_probes_collect_without_importing_numpy_ma():
+    """np.unique and np.isin (numpy 2.4) import numpy.ma at their first call, 1.2 MB: the sockets
+    and sched probes, loaded in the kernel and collected twice over sockets, threads and processes
+    that come and go (forty a collect, for np.isin's sorting path), take their distinct PIDs and
+    memberships without them."""
+    code = f"""if True:
+        import socket, subprocess, sys, threading
+        from drums.agent import Agent
+        from drums.kernel.features import Features
+        from drums.probes import registry
+        from drums.proctable import ProcessTable
+        table = ProcessTable()
+        agent = Agent(registry.build(Features(), table, names=["sockets", "sched"], pin_root={TEST_PIN_ROOT + "_numpy_ma"!r}), table)
+        agent.start(strict=True)
+        try:
+            for _ in range(2):
+                a, b = socket.socketpair()
+                worker = threading.Thread(target=lambda: (a.send(b"x" * 100), b.recv(100)))
+                worker.start(); worker.join(); a.close(); b.close()
+                crowd = [subprocess.Popen(["sleep", "5"]) for _ in range(40)]
+                snap = agent.collect()
+                for p in crowd:
+                    p.kill(); p.wait()
+        finally:
+            agent.stop(unload=True)
+        print(len(snap.series) > 0, "numpy.ma" in sys.modules)
+    """
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip() == "True False", out.stderr[-2000:]
 
 
 def test_self_metrics_have_a_row_per_process_of_the_agent(agent):

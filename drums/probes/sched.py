@@ -209,7 +209,7 @@ class SchedProbe(BpfProbe):
             if before is None or tgid in dirty or before.seen != seen:
                 again[tgid] = seen
         threads: dict[int, list[tuple[int, bytes]]] = {tgid: [] for tgid in again}
-        for i in np.flatnonzero(np.isin(tgids, np.fromiter(again, np.uint64, len(again)))).tolist():
+        for i in np.flatnonzero(within(tgids, np.sort(np.fromiter(again, np.uint64, len(again))))).tolist():
             threads[int(tgids[i])].append((int(m.keys[i]), m.words[i].tobytes()))
         remade = []
         for tgid, seen in again.items():
