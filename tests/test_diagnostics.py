@@ -179,8 +179,8 @@ def test_the_reader_that_publishes_leaves_its_domain_when_the_agent_stops(ros_do
 
 def test_arrays_take_a_young_scrape_snapshot_and_rate_its_counters_over_its_read_times():
     """/diagnostics takes the snapshot of the last scrape when its probes were read recently enough,
-    rather than collect again: the rates of its counters are then over the
-    time between the reads of two snapshots, not between two arrays."""
+    rather than collect again: the rates of its counters are then over the time between the reads
+    of two snapshots, not between two arrays."""
     from drums.agent import Agent
     from drums.exporters.diagnostics import Config, Diagnostics
     from drums.metrics import Snapshot
