@@ -23,7 +23,7 @@ previous one, so the first array goes out one interval after the start.
 rclpy runs in a child process (drums.rclchild) for the reasons the ros2 graph reader
 does: the agent stays lean, and a DDS stack that hangs or crashes costs the diagnostics, never the
 agent's kernel data. With the ros2 graph that child is the graph reader (one rclpy process and one
-DDS participant, not two of 50 MB each); else one of its own. A child that exits or stops
+DDS participant, not two of 40 MB each); else one of its own. A child that exits or stops
 answering is logged once and started again.
 """
 from __future__ import annotations
