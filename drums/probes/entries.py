@@ -36,6 +36,11 @@ def within(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
     return sorted_keys[np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)] == keys
 
 
+def among(keys: np.ndarray, values) -> np.ndarray:
+    """Whether each of `keys` is among `values`, a collection of ints: `within`, sorted for it."""
+    return within(keys, np.sort(np.fromiter(values, keys.dtype, len(values))))
+
+
 def distinct(values: np.ndarray) -> list[int]:
     """The distinct values, ascending, as Python ints. Asked for the values alone, np.unique (numpy
     2.4) first asks numpy.ma whether the array is masked, importing it at its first call: 1.2 MB of

@@ -14,7 +14,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries, distinct, within
+from drums.probes.entries import Entries, among, distinct
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -185,7 +185,7 @@ class SchedProbe(BpfProbe):
         dirty = set(tgids[~m.same].tolist())
         dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)
         if running:
-            dirty.update(tgids[within(m.keys, np.sort(np.fromiter(running, np.uint64, len(running))))].tolist())
+            dirty.update(tgids[among(m.keys, running)].tolist())
         m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
         made, cpu = self._made, self._cpu
@@ -209,7 +209,7 @@ class SchedProbe(BpfProbe):
             if before is None or tgid in dirty or before.seen != seen:
                 again[tgid] = seen
         threads: dict[int, list[tuple[int, bytes]]] = {tgid: [] for tgid in again}
-        for i in np.flatnonzero(within(tgids, np.sort(np.fromiter(again, np.uint64, len(again))))).tolist():
+        for i in np.flatnonzero(among(tgids, again)).tolist():
             threads[int(tgids[i])].append((int(m.keys[i]), m.words[i].tobytes()))
         remade = []
         for tgid, seen in again.items():

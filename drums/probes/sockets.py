@@ -17,7 +17,7 @@ from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
                               needs_fentry, needs_kprobes, needs_tracepoints, offset_defines, typed)
-from drums.probes.entries import Entries, Matched, distinct, within
+from drums.probes.entries import Entries, Matched, among, distinct
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -171,14 +171,14 @@ class SocketsProbe(BpfProbe):
             name = self._names[pid] = pt.name(pid)
             if names.get(pid, name) != name:
                 renamed.append(pid)
-        stale = within(pids, np.array(dead, np.int64)) | self._closed(m, pids, klass)
+        stale = among(pids, dead) | self._closed(m, pids, klass)
         if stale.any():
             entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])]
             self.opened["socket_traffic"].delete_unchanged(entries)  # one that changed instead comes back marked
         live = ~stale
         # Sockets whose labels changed though the socket did not: its process was renamed, or (a
         # unix socket) the path it is bound to changed.
-        relabel = within(pids, np.array(renamed, np.int64))
+        relabel = among(pids, renamed)
         unix = np.flatnonzero(live & (klass == _UNIX))
         paths = unix_paths(self.proc_net_unix) if len(unix) else {}
         for i in unix.tolist():
@@ -242,7 +242,7 @@ class SocketsProbe(BpfProbe):
             inodes_of = {pid: self.proctable.socket_inodes(pid) for pid in due}
             for pid in due:
                 self._fds_read_at[pid] = now
-            for i in np.flatnonzero(idle & within(pids, np.array(due, np.int64))).tolist():
+            for i in np.flatnonzero(idle & among(pids, due)).tolist():
                 closed[i] = int(m.words[i, 0]) not in inodes_of[int(pids[i])]
             self._fds_read_at = {pid: t for pid, t in self._fds_read_at.items() if self.proctable.alive(pid)}
         return closed
