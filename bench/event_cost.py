@@ -27,8 +27,7 @@ import textwrap
 
 from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, percentile,
                     print_table, progress, ratio, require_root, require_tool)
-
-from drums.kernel import tracing  # after common, which puts the project on sys.path
+from floor import Floor
 
 PIN_ROOT = "/sys/fs/bpf/drums_bench"
 STATS_SYSCTL = "/proc/sys/kernel/bpf_stats_enabled"
@@ -43,15 +42,6 @@ WORKLOAD_LABEL = {
     "tcp": "send+recv 1 B, loopback TCP",
     "pingpong": "pipe ping-pong round trip, 2 processes on 1 CPU",
 }
-FLOOR_SOURCE = b"""
-int floor_send(struct bpf_raw_tracepoint_args *ctx) { return 0; }
-int floor_recv(struct bpf_raw_tracepoint_args *ctx) { return 0; }
-int floor_switch(struct bpf_raw_tracepoint_args *ctx) { return 0; }
-int floor_wakeup(struct bpf_raw_tracepoint_args *ctx) { return 0; }
-"""
-FLOOR_FN = {"sock_send_length": b"floor_send", "sock_recv_length": b"floor_recv",
-            "sched_switch": b"floor_switch", "sched_wakeup": b"floor_wakeup"}
-
 # The workload, run as `python -c WORKLOAD kind ops batches cpu`; prints ns per op of each batch
 # and the probed events per op, counted from the workload's own view (not from BPF, which would
 # also count every other process on the host): a send and a receive call per socket operation;
@@ -115,44 +105,6 @@ def run_workload(kind: str, ops: int, batches: int, cpu: int) -> tuple[float, di
         raise BenchError(f"workload {kind} failed: {proc.stderr.strip()[-300:]}")
     data = json.loads(proc.stdout)
     return min(data["ns_per_op"]), data["events_per_op"]
-
-
-class Floor:
-    """The empty programs, compiled once with bcc and attached only while measured."""
-
-    def __init__(self, headers: str | None):
-        if headers:
-            os.environ["BCC_KERNEL_SOURCE"] = headers
-        try:
-            from bcc import BPF
-        except ImportError:
-            raise BenchError("bcc is not installed (apt-get install python3-bpfcc)") from None
-        self.bpf = BPF(text=FLOOR_SOURCE)
-        self.attached: dict[str, tuple[int, int]] = {}  # tracepoint -> (program fd, link fd)
-
-    def attach(self, tracepoints) -> None:
-        """As the probes attach theirs where the kernel offers it: as tp_btf programs (the same
-        dispatch as a raw tracepoint's)."""
-        for tp in tracepoints:
-            self.attached[tp] = tracing.attach(self.bpf.module, FLOOR_FN[tp].decode(), tp)
-
-    def detach(self) -> None:
-        for prog, link in self.attached.values():
-            os.close(link)
-            os.close(prog)
-        self.attached = {}
-
-    def prog_ids(self, tracepoints) -> dict[str, int]:
-        out = {}
-        for tp in tracepoints:
-            with open(f"/proc/self/fdinfo/{self.attached[tp][0]}") as f:
-                info = dict(line.split(":", 1) for line in f if ":" in line)
-            out[tp] = int(info["prog_id"])
-        return out
-
-    def close(self) -> None:
-        self.detach()
-        self.bpf.cleanup()
 
 
 def make_probe(name: str):

@@ -1,6 +1,7 @@
-"""What monitoring costs a network workload: iperf3 over loopback with no monitor, with the Drums
-agent (all probes, scraped every second), and with tcpdump capturing headers (the paper's pcap
-socket monitor). Conditions are interleaved round by round so that drift of the host hits all
+"""What monitoring costs a network workload: iperf3 over loopback with no monitor, with empty BPF
+programs where the agent's run on every send, receive and context switch (the floor of any monitor
+that sees each call, bench/floor.py), with the Drums agent (all probes, scraped every second), and
+with tcpdump capturing headers (the paper's pcap socket monitor). Conditions are interleaved round by round so that drift of the host hits all
 of them alike; the table gives the median of the rounds. Beside throughput it gives iperf3's own
 CPU time per KiB, where the probes' per-event work is charged: on a host shared with other work,
 throughput swings from run to run and that figure is the steadier one. Goal: the agent costs at
@@ -21,8 +22,11 @@ import time
 
 from common import (PIN_ROOT, Agent, BenchError, ForeignWatch, cpu_seconds, drums_unload, fetch, fmt, free_port,
                     main_wrapper, median, pin_cpu, print_table, progress, require_root, require_tool, terminate)
+from floor import Floor
 
-CONDITIONS = ("none", "drums", "tcpdump")
+CONDITIONS = ("none", "empty", "drums", "tcpdump")
+# The tracepoints of the agent's programs that run per call or per context switch.
+PER_EVENT = ("sock_send_length", "sock_recv_length", "sched_switch")
 WORKLOADS = {
     # name: (iperf3 client arguments, what the table calls it)
     "tcp": (["-l", "1K"], "TCP, 1 KiB writes"),
@@ -73,8 +77,9 @@ def iperf_client(port: int, args: list[str], seconds: float, cpu: int | None) ->
 class Monitor:
     """One condition's monitor, started before and stopped after each workload run."""
 
-    def __init__(self, condition: str, scrape_interval: float, snaplen: int):
+    def __init__(self, condition: str, scrape_interval: float, snaplen: int, floor: Floor):
         self.condition = condition
+        self.floor = floor
         self.scrape_interval = scrape_interval
         self.snaplen = snaplen
         self.agent: Agent | None = None
@@ -96,6 +101,8 @@ class Monitor:
             if self.scrape_interval > 0:
                 self.scraper = Scraper(self.agent.url, self.scrape_interval)
                 self.scraper.start()
+        elif self.condition == "empty":
+            self.floor.attach(PER_EVENT)
         elif self.condition == "tcpdump":
             self._err = tempfile.TemporaryFile(mode="w+")
             self.tcpdump = subprocess.Popen(["tcpdump", "-i", "lo", "-s", str(self.snaplen), "-n",
@@ -123,6 +130,7 @@ class Monitor:
                                   "another agent or `drums unload` on this host)")
             self.agent.stop()
             self.agent = None
+        self.floor.detach()
         if self.tcpdump is not None:
             self.tcpdump.send_signal(2)  # SIGINT: tcpdump prints its capture statistics
             try:
@@ -141,6 +149,8 @@ def run(args) -> None:
     for tool in ("iperf3", "tcpdump", "taskset", "bpftool"):
         require_tool(tool)
     drums_unload()
+    from drums.kernel.features import Features
+    floor = Floor(Features().kernel_headers)
     watch = ForeignWatch(HOT_TRACEPOINTS)
     notes: list[str] = []
     server_cpu, client_cpu = (None, None) if args.no_pin else (1, 0)
@@ -157,7 +167,7 @@ def run(args) -> None:
                     progress(f"round {rnd + 1}/{args.rounds}: {workload} with {condition}")
                     if condition != "drums":
                         watch.look()
-                    monitor = Monitor(condition, args.scrape_interval, args.snaplen)
+                    monitor = Monitor(condition, args.scrape_interval, args.snaplen, floor)
                     monitor.start()
                     try:
                         cpu0, t0 = (cpu_seconds(monitor.pid) if monitor.pid else 0.0), time.monotonic()
@@ -175,21 +185,23 @@ def run(args) -> None:
                     time.sleep(args.pause)
     finally:
         terminate(server)
+        floor.close()
         drums_unload()
 
     rows = []
     for workload, (_, label) in WORKLOADS.items():
         med = {c: median(r["gbps"] for r in results[workload, c]) for c in CONDITIONS}
-        rows.append([f"{label}: received Gbit/s", fmt(med["none"]), fmt(med["drums"]), fmt(med["tcpdump"]),
-                     _cost(med["drums"], med["none"]), _cost(med["tcpdump"], med["none"])])
+        rows.append([f"{label}: received Gbit/s", *(fmt(med[c]) for c in CONDITIONS),
+                     *(_cost(med[c], med["none"]) for c in CONDITIONS[1:])])
         if workload == "udp":
             loss = {c: median(r["loss"] for r in results[workload, c]) for c in CONDITIONS}
-            rows.append([f"{label}: loss %", fmt(loss["none"]), fmt(loss["drums"]), fmt(loss["tcpdump"]), "", ""])
+            rows.append([f"{label}: loss %", *(fmt(loss[c]) for c in CONDITIONS), "", "", ""])
         cpu = {c: median(r["cpu_us_per_kib"] for r in results[workload, c]) for c in CONDITIONS}
-        rows.append([f"{label}: iperf3 CPU us per KiB", fmt(cpu["none"], 3), fmt(cpu["drums"], 3),
-                     fmt(cpu["tcpdump"], 3), _cost(cpu["drums"], cpu["none"]), _cost(cpu["tcpdump"], cpu["none"])])
+        rows.append([f"{label}: iperf3 CPU us per KiB", *(fmt(cpu[c], 3) for c in CONDITIONS),
+                     *(_cost(cpu[c], cpu["none"]) for c in CONDITIONS[1:])])
         own = {c: median(r.get("monitor_cpu", 0.0) for r in results[workload, c]) for c in CONDITIONS}
-        rows.append([f"{label}: monitor's own CPU %", "", fmt(own["drums"], 1), fmt(own["tcpdump"], 1), "", ""])
+        rows.append([f"{label}: monitor's own CPU %", "", "", fmt(own["drums"], 1), fmt(own["tcpdump"], 1),
+                     "", "", ""])
     for workload in WORKLOADS:
         for c in CONDITIONS:
             runs = ", ".join(fmt(r["gbps"]) for r in results[workload, c])
@@ -201,11 +213,17 @@ def run(args) -> None:
     pinning = "no CPU pinning" if args.no_pin else "iperf3 client on CPU 0, server on CPU 1"
     notes.insert(0, f"median of {args.rounds} interleaved rounds of {args.seconds} s each; {pinning}; "
                     f"the agent runs all probes and is scraped every {args.scrape_interval:g} s; "
+                    f"empty programs: one that returns at once on each of {', '.join(PER_EVENT)}, as the "
+                    "agent attaches its own (tp_btf where the kernel offers it); "
                     f"tcpdump -s {args.snaplen}. iperf3 CPU per KiB: client CPU per KiB sent plus server CPU per "
                     "KiB received, from iperf3's own accounting; a monitor's own CPU: % of one core during "
                     "the run. Goal: the agent costs at most 3%.")
+    notes.insert(1, "tcpdump sees loopback TCP as the segments the stack makes of the writes (up to 64 KiB each, "
+                    "see its packet counts below), a program on sock_send_length sees every write: on TCP the empty "
+                    "programs' column is the least that any monitor counting each call costs here.")
     print_table("Workload overhead: iperf3 over loopback",
-                ["workload", "no monitor", "Drums", "tcpdump", "Drums / none", "tcpdump / none"], rows, notes)
+                ["workload", "no monitor", "empty programs", "Drums", "tcpdump", "empty / none", "Drums / none",
+                 "tcpdump / none"], rows, notes)
 
 
 def _cost(with_monitor: float, without: float) -> str:
