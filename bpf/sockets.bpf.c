@@ -1,4 +1,9 @@
-// Bytes, calls and errors of every TCP, UDP and unix socket, per socket and per thread.
+// Bytes, calls and errors of every TCP, UDP and unix socket, per socket and per process.
+//
+// A socket's counts go to the process that first used it (its owner): a call looks up the
+// socket's entry and nothing else, which is what one call costs (a second lookup, per thread, cost
+// as much again). When an entry goes, its counts are folded into its owner's closed_traffic, so
+// that the owner's totals (its sockets' entries plus that) never go backwards.
 //
 // Kernel struct offsets arrive as -D flags read from the running kernel's BTF (drums/kernel/btf.py),
 // never from the installed headers, which may belong to another kernel. DRUMS_ATTACH picks the
@@ -13,7 +18,7 @@
 #define NCLASSES 4
 
 #define DROP_SOCKET 0
-#define DROP_THREAD 1
+#define DROP_PROCESS 1
 
 struct traffic_t {
     u64 sent_bytes;
@@ -27,7 +32,7 @@ struct traffic_t {
 // One per socket (keyed by its struct sock address); identity is read once, at first use.
 struct socket_traffic_t {
     u64 ino;          // socket inode: tells a reused struct sock from the socket that held it before
-    u32 tgid;         // process that first used the socket
+    u32 tgid;         // process that first used the socket: its owner
     u32 netns;
     u16 family;
     u16 protocol;
@@ -40,17 +45,12 @@ struct socket_traffic_t {
     u8 raddr[16];
     struct traffic_t t;
     u64 marked;       // the generation in which the socket was last marked changed (see below)
+    u64 process_start;  // of the owner: with tgid, what tells it from a later process with its PID
 };
 
-struct thread_traffic_t {
-    u32 tgid;
-    u32 pad;
-    u64 process_start;
-    struct traffic_t by_class[NCLASSES];
-};
-
-// Exited threads of one process. The PID of a process that was just reaped can go to a new process
-// before sched_process_free frees this entry: process_start tells the two apart.
+// What a process's sockets counted that their entries no longer hold. The PID of a process that was
+// just reaped can go to a new process before sched_process_free frees this entry: process_start
+// tells the two apart.
 struct process_traffic_t {
     u64 process_start;
     struct traffic_t by_class[NCLASSES];
@@ -58,10 +58,8 @@ struct process_traffic_t {
 
 // Sized for the benchmark's 10,000 open sockets with room for churn; a full map is counted.
 BPF_HASH(socket_traffic, u64, struct socket_traffic_t, 32768);
-// One entry per live thread that used a socket.
-BPF_HASH(thread_traffic, u32, struct thread_traffic_t, 32768);
-// Traffic of threads that exited, kept per process until the process is reaped.
-BPF_HASH(exited_traffic, u32, struct process_traffic_t, 16384);
+// Counts of closed sockets (and of calls on sockets without an entry), per owner, until it is reaped.
+BPF_HASH(closed_traffic, u32, struct process_traffic_t, 16384);
 
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
 // main file, so each program declares this map and its helper itself.)
@@ -115,6 +113,48 @@ static __always_inline u16 classify(u16 family, u16 protocol)
     return CLASS_OTHER;
 }
 
+static __always_inline void add_traffic(struct traffic_t *into, struct traffic_t *from)
+{
+    // Atomic: the sockets of a process close on several CPUs at once.
+    __sync_fetch_and_add(&into->sent_bytes, from->sent_bytes);
+    __sync_fetch_and_add(&into->sent_calls, from->sent_calls);
+    __sync_fetch_and_add(&into->recv_bytes, from->recv_bytes);
+    __sync_fetch_and_add(&into->recv_calls, from->recv_calls);
+    __sync_fetch_and_add(&into->send_errors, from->send_errors);
+    __sync_fetch_and_add(&into->recv_errors, from->recv_errors);
+}
+
+// Counts that no socket entry holds, added to the process's closed_traffic.
+static __always_inline void fold(u32 tgid, u64 start, u16 klass, struct traffic_t *t)
+{
+    if (klass >= NCLASSES)
+        return;
+    struct process_traffic_t *p = closed_traffic.lookup(&tgid);
+    if (p && p->process_start != start) {
+        closed_traffic.delete(&tgid);  // left by the process that had this PID before
+        p = 0;
+    }
+    if (!p) {
+        struct process_traffic_t fresh = {.process_start = start};
+        closed_traffic.insert(&tgid, &fresh);
+        p = closed_traffic.lookup(&tgid);
+    }
+    if (p)
+        add_traffic(&p->by_class[klass], t);
+    else
+        count_drop(DROP_PROCESS);
+}
+
+// A socket's entry goes, and its counts to its owner.
+static __always_inline void forget(u64 sk, struct socket_traffic_t *s)
+{
+    struct socket_traffic_t gone = *s;  // a copy: a deleted entry can be given to another key at once
+    if (socket_traffic.delete(&sk) == 0) {  // the one CPU that deleted it, if several found it over
+        fold(gone.tgid, gone.process_start, gone.klass, &gone.t);
+        mark_changed(sk, 0);
+    }
+}
+
 static __always_inline u64 socket_ino(u64 sk)
 {
     u64 sock = 0, ino = 0;
@@ -143,12 +183,26 @@ static __always_inline void read_identity(struct socket_traffic_t *s, u64 sk)
     s->klass = classify(s->family, s->protocol);
 }
 
-// The socket's entry, created at first use; *klass gets its protocol class even when there is none.
-static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid, u16 *klass)
+// One call's counts, in a zeroed traffic_t.
+static __always_inline void one_call(struct traffic_t *t, int ret, int is_send)
+{
+    if (ret < 0) {
+        *(is_send ? &t->send_errors : &t->recv_errors) = 1;
+    } else if (is_send) {
+        t->sent_bytes = ret;
+        t->sent_calls = 1;
+    } else {
+        t->recv_bytes = ret;
+        t->recv_calls = 1;
+    }
+}
+
+// The socket's entry, created at first use. A call on a socket that gets none (see below) is
+// folded into the calling process's closed_traffic here.
+static __always_inline struct socket_traffic_t *socket_entry(u64 sk, int ret, int is_send)
 {
     struct socket_traffic_t *s = socket_traffic.lookup(&sk);
     if (s) {
-        *klass = s->klass;
         // TCP entries are deleted when the connection closes; other sockets are freed without a
         // tracepoint, so a recycled struct sock is recognised by its new inode.
         if (s->klass == CLASS_TCP)
@@ -156,84 +210,47 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u32 tgid, u
         u64 ino = socket_ino(sk);
         if (ino == s->ino)
             return s;
-        socket_traffic.delete(&sk);
-        mark_changed(sk, 0);  // whether or not a fresh entry takes its place
+        forget(sk, s);  // whether or not a fresh entry takes its place
     }
     struct socket_traffic_t fresh = {};
-    fresh.tgid = tgid;
+    fresh.tgid = bpf_get_current_pid_tgid() >> 32;
+    fresh.process_start = process_start(CURRENT_TASK());
     fresh.ino = socket_ino(sk);
     read_identity(&fresh, sk);
-    *klass = fresh.klass;
-    if (fresh.klass == CLASS_TCP) {
-        // A TCP socket in CLOSE (never connected, or reset) would never pass CLOSE again to free
-        // its entry, and its struct sock would pass the entry to the next socket: count such
-        // calls in the thread totals only.
-        u8 state = 0;
+    // A TCP socket in CLOSE (never connected, or reset) would never pass CLOSE again to free its
+    // entry, and its struct sock would pass the entry to the next socket: it gets none.
+    u8 state = 0;
+    if (fresh.klass == CLASS_TCP)
         KREAD(state, sk + SK_STATE_OFF);
-        if (state == TCP_CLOSE)
-            return 0;
-    }
-    if (socket_traffic.insert(&sk, &fresh) != 0) {
+    if (state != TCP_CLOSE) {
+        if (socket_traffic.insert(&sk, &fresh) == 0)
+            return socket_traffic.lookup(&sk);
         count_drop(DROP_SOCKET);
-        return 0;
     }
-    return socket_traffic.lookup(&sk);
+    one_call(&fresh.t, ret, is_send);
+    fold(fresh.tgid, fresh.process_start, fresh.klass, &fresh.t);
+    return 0;
 }
 
-static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 klass_hint)
+static __always_inline void count(u64 sk, int ret, int flags, int is_send)
 {
     if (ret == -EAGAIN || ret == -EINTR)
         return;  // non-blocking polls and interrupted calls are not failures of the socket
     if (!is_send && ret >= 0 && (flags & MSG_PEEK))
         return;  // the bytes will be counted when they are really read
-    u64 id = bpf_get_current_pid_tgid();
-    u32 tid = (u32)id, tgid = id >> 32;
-
-    u16 klass = klass_hint;
-    struct socket_traffic_t *s = socket_entry(sk, tgid, &klass);
-    u64 bytes = ret > 0 ? ret : 0;
-    if (s) {
-        mark_changed(sk, s);
-        // Atomic: threads of a process may share a socket.
-        if (ret < 0) {
-            __sync_fetch_and_add(is_send ? &s->t.send_errors : &s->t.recv_errors, 1);
-        } else if (is_send) {
-            __sync_fetch_and_add(&s->t.sent_bytes, bytes);
-            __sync_fetch_and_add(&s->t.sent_calls, 1);
-        } else {
-            __sync_fetch_and_add(&s->t.recv_bytes, bytes);
-            __sync_fetch_and_add(&s->t.recv_calls, 1);
-        }
-    }
-
-    struct thread_traffic_t *th = thread_traffic.lookup(&tid);
-    if (!th) {
-        struct thread_traffic_t fresh = {};
-        fresh.tgid = tgid;
-        fresh.process_start = process_start(CURRENT_TASK());
-        if (thread_traffic.insert(&tid, &fresh) != 0) {
-            count_drop(DROP_THREAD);
-            return;
-        }
-        th = thread_traffic.lookup(&tid);
-        if (!th)
-            return;
-    }
-    if (klass >= NCLASSES)
+    struct socket_traffic_t *s = socket_entry(sk, ret, is_send);
+    if (!s)
         return;
-    // Plain adds: only this thread writes its entry, and it runs on one CPU at a time.
-    struct traffic_t *t = &th->by_class[klass];
+    mark_changed(sk, s);
+    // Atomic: the threads of a process, and processes that share a socket, call at once.
     if (ret < 0) {
-        if (is_send)
-            t->send_errors++;
-        else
-            t->recv_errors++;
+        __sync_fetch_and_add(is_send ? &s->t.send_errors : &s->t.recv_errors, 1);
     } else if (is_send) {
-        t->sent_bytes += bytes;
-        t->sent_calls++;
+        __sync_fetch_and_add(&s->t.sent_bytes, ret);
+        __sync_fetch_and_add(&s->t.sent_calls, 1);
     } else {
-        t->recv_bytes += bytes;
-        t->recv_calls++;
+        __sync_fetch_and_add(&s->t.recv_bytes, ret);
+        __sync_fetch_and_add(&s->t.recv_calls, 1);
     }
 }
 
@@ -241,13 +258,13 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send, u16 k
 // sock:sock_send_length / sock_recv_length (sk, ret, flags), kernel >= 6.6.
 int on_send(struct bpf_raw_tracepoint_args *ctx)
 {
-    count(ctx->args[0], (int)ctx->args[1], (int)ctx->args[2], 1, CLASS_OTHER);
+    count(ctx->args[0], (int)ctx->args[1], (int)ctx->args[2], 1);
     return 0;
 }
 
 int on_recv(struct bpf_raw_tracepoint_args *ctx)
 {
-    count(ctx->args[0], (int)ctx->args[1], (int)ctx->args[2], 0, CLASS_OTHER);
+    count(ctx->args[0], (int)ctx->args[1], (int)ctx->args[2], 0);
     return 0;
 }
 #endif
@@ -256,27 +273,27 @@ int on_recv(struct bpf_raw_tracepoint_args *ctx)
 // fexit sees arguments and return value together: no per-call state to keep.
 KRETFUNC_PROBE(tcp_sendmsg, struct sock *sk, struct msghdr *msg, size_t size, int ret)
 {
-    count((u64)sk, ret, 0, 1, CLASS_TCP);
+    count((u64)sk, ret, 0, 1);
     return 0;
 }
 
 KFUNC_PROBE(tcp_cleanup_rbuf, struct sock *sk, int copied)
 {
     if (copied > 0)
-        count((u64)sk, copied, 0, 0, CLASS_TCP);
+        count((u64)sk, copied, 0, 0);
     return 0;
 }
 
 KRETFUNC_PROBE(udp_sendmsg, struct sock *sk, struct msghdr *msg, size_t len, int ret)
 {
-    count((u64)sk, ret, 0, 1, CLASS_UDP);
+    count((u64)sk, ret, 0, 1);
     return 0;
 }
 
 KRETFUNC_PROBE(udp_recvmsg, struct sock *sk, struct msghdr *msg, size_t len, int flags,
                int *addr_len, int ret)
 {
-    count((u64)sk, ret, flags, 0, CLASS_UDP);
+    count((u64)sk, ret, flags, 0);
     return 0;
 }
 #endif
@@ -298,13 +315,13 @@ static __always_inline void remember(u64 sk, int flags)
     calls.update(&tid, &c);
 }
 
-static __always_inline void finish(struct pt_regs *ctx, int is_send, u16 klass)
+static __always_inline void finish(struct pt_regs *ctx, int is_send)
 {
     u32 tid = (u32)bpf_get_current_pid_tgid();
     struct call_t *c = calls.lookup(&tid);
     if (!c)
         return;
-    count(c->sk, (int)PT_REGS_RC(ctx), c->flags, is_send, klass);
+    count(c->sk, (int)PT_REGS_RC(ctx), c->flags, is_send);
     calls.delete(&tid);
 }
 
@@ -316,14 +333,14 @@ int enter_tcp_sendmsg(struct pt_regs *ctx, struct sock *sk)
 
 int exit_tcp_sendmsg(struct pt_regs *ctx)
 {
-    finish(ctx, 1, CLASS_TCP);
+    finish(ctx, 1);
     return 0;
 }
 
 int enter_tcp_cleanup_rbuf(struct pt_regs *ctx, struct sock *sk, int copied)
 {
     if (copied > 0)
-        count((u64)sk, copied, 0, 0, CLASS_TCP);
+        count((u64)sk, copied, 0, 0);
     return 0;
 }
 
@@ -335,7 +352,7 @@ int enter_udp_sendmsg(struct pt_regs *ctx, struct sock *sk)
 
 int exit_udp_sendmsg(struct pt_regs *ctx)
 {
-    finish(ctx, 1, CLASS_UDP);
+    finish(ctx, 1);
     return 0;
 }
 
@@ -347,78 +364,29 @@ int enter_udp_recvmsg(struct pt_regs *ctx, struct sock *sk, void *msg, size_t le
 
 int exit_udp_recvmsg(struct pt_regs *ctx)
 {
-    finish(ctx, 0, CLASS_UDP);
+    finish(ctx, 0);
     return 0;
 }
 #endif
 
 // sock:inet_sock_set_state (sk, oldstate, newstate): a TCP socket that reaches CLOSE is done;
-// its entry goes before the struct sock can be reused. Its bytes stay in the thread totals.
+// its entry goes before the struct sock can be reused, and its counts to its owner.
 int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
 {
+    if ((int)ctx->args[2] != TCP_CLOSE)
+        return 0;
     u64 sk = ctx->args[0];
-    if ((int)ctx->args[2] == TCP_CLOSE && socket_traffic.delete(&sk) == 0)
-        mark_changed(sk, 0);
+    struct socket_traffic_t *s = socket_traffic.lookup(&sk);
+    if (s)
+        forget(sk, s);
     return 0;
 }
 
-// A thread is gone: fold its traffic into its process, so that the process totals never go
-// backwards, and free its entry.
-static __always_inline void thread_gone(u32 tid)
-{
-    struct thread_traffic_t *th = thread_traffic.lookup(&tid);
-    if (!th)
-        return;
-    u32 tgid = th->tgid;
-    struct process_traffic_t *p = exited_traffic.lookup(&tgid);
-    if (p && p->process_start != th->process_start) {
-        exited_traffic.delete(&tgid);  // left by the process that had this PID before
-        p = 0;
-    }
-    if (!p) {
-        struct process_traffic_t fresh = {.process_start = th->process_start};
-        exited_traffic.insert(&tgid, &fresh);
-        p = exited_traffic.lookup(&tgid);
-    }
-    if (p) {
-        // Atomic: threads of one process can exit on several CPUs at once (once per thread).
-#pragma unroll
-        for (int i = 0; i < NCLASSES; i++) {
-            __sync_fetch_and_add(&p->by_class[i].sent_bytes, th->by_class[i].sent_bytes);
-            __sync_fetch_and_add(&p->by_class[i].sent_calls, th->by_class[i].sent_calls);
-            __sync_fetch_and_add(&p->by_class[i].recv_bytes, th->by_class[i].recv_bytes);
-            __sync_fetch_and_add(&p->by_class[i].recv_calls, th->by_class[i].recv_calls);
-            __sync_fetch_and_add(&p->by_class[i].send_errors, th->by_class[i].send_errors);
-            __sync_fetch_and_add(&p->by_class[i].recv_errors, th->by_class[i].recv_errors);
-        }
-    } else {
-        count_drop(DROP_THREAD);
-    }
-    thread_traffic.delete(&tid);
-}
-
-// sched:sched_process_exit (task, group_dead) runs in the exiting thread.
-int on_thread_exit(struct bpf_raw_tracepoint_args *ctx)
-{
-    thread_gone((u32)bpf_get_current_pid_tgid());
-    return 0;
-}
-
-// sched:sched_process_exec (task, old_pid, bprm): a thread other than the leader that calls exec
-// takes over the leader's PID, so its old thread ID is gone without an exit.
-int on_exec(struct bpf_raw_tracepoint_args *ctx)
-{
-    u32 old_tid = (u32)ctx->args[1];
-    if (old_tid != (u32)bpf_get_current_pid_tgid())
-        thread_gone(old_tid);
-    return 0;
-}
-
-// sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
+// sched:sched_process_free (task): a reaped process leader takes its closed sockets' counts with it.
 int on_task_free(struct bpf_raw_tracepoint_args *ctx)
 {
     u32 tgid = leader_tgid(ctx->args[0]);
     if (tgid)
-        exited_traffic.delete(&tgid);
+        closed_traffic.delete(&tgid);
     return 0;
 }

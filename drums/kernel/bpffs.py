@@ -200,14 +200,13 @@ class PinnedMap:
         """Delete the entry if it is there."""
         libbpf().bpf_map_delete_elem(self.fd, key)
 
-    def delete_unchanged(self, entries: list[tuple[bytes, bytes]]) -> None:
+    def delete_unchanged(self, entries: list[tuple[bytes, bytes]]) -> list[bool]:
         """Delete entries that still hold the value read; one that changed since (its key now
-        names a new socket) or is gone already stays as it is."""
+        names a new socket) or is gone already stays as it is. Whether each was deleted."""
         lib = libbpf()
         current = ctypes.create_string_buffer(self.value_stride)
-        for key, value in entries:
-            if lib.bpf_map_lookup_elem(self.fd, key, current) == 0 and current.raw == value:
-                lib.bpf_map_delete_elem(self.fd, key)
+        return [lib.bpf_map_lookup_elem(self.fd, key, current) == 0 and current.raw == value
+                and lib.bpf_map_delete_elem(self.fd, key) == 0 for key, value in entries]
 
 
 def sum_percpu(values: bytes, fmt: str, ncpus: int) -> list[tuple]:

@@ -1,8 +1,9 @@
 """Bytes, calls and errors of every TCP, UDP and unix socket (bpf/sockets.bpf.c), exported per
-socket, per process and per thread.
+socket and per process.
 
-Per-process totals include threads that exited and sockets that closed, so they never go
-backwards; a closed socket's own series simply ends.
+A socket counts for the process that first used it (its owner; a socket handed to another process
+keeps it). Per-process totals include sockets that closed, so they never go backwards; a closed
+socket's own series simply ends.
 """
 from __future__ import annotations
 
@@ -15,8 +16,8 @@ import numpy as np
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals,
-                              needs_fentry, needs_kprobes, needs_tracepoints, offset_defines, typed)
+from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_fentry,
+                              needs_kprobes, needs_tracepoints, offset_defines, typed)
 from drums.probes.entries import Entries, Matched, among, distinct
 from drums.proctable import ProcessTable
 
@@ -32,22 +33,17 @@ _HELP = {
 }
 SOCKET_LABELS = ("pid", "process", "protocol", "local", "remote", "netns", "inode")
 PROCESS_LABELS = ("pid", "process", "protocol")
-THREAD_LABELS = ("pid", "tid", "protocol")
 
 SOCKET = {c: Metric(f"drums_socket_{c}_total", COUNTER, f"{_HELP[c]} on this socket", SOCKET_LABELS)
           for c in _COUNTS}
 SOCKET_GROUP = tuple(SOCKET[c] for c in _COUNTS)  # a socket's counters, in the map value's order
 PROCESS = {c: Metric(f"drums_process_socket_{c}_total", COUNTER,
-                     f"{_HELP[c]} by this process on sockets of this protocol, closed ones included",
-                     PROCESS_LABELS) for c in _COUNTS}
-THREAD = {c: Metric(f"drums_thread_socket_{c}_total", COUNTER,
-                    f"{_HELP[c]} by this thread on sockets of this protocol", THREAD_LABELS)
-          for c in ("sent_bytes", "received_bytes")}
+                     f"{_HELP[c]} on the sockets of this protocol that this process used first, closed ones "
+                     "included", PROCESS_LABELS) for c in _COUNTS}
 
 # Map layouts, as in bpf/sockets.bpf.c.
-_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQ")  # the counts, then the generation marked in
+_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQQ")  # the counts, the generation marked in, the owner's start
 _IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
-_THREAD_VALUE = struct.Struct("<IIQ24Q")
 _PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
@@ -59,9 +55,7 @@ FD_CHECK_INTERVAL = 10.0
 SEND_RECV = ("sock_send_length", "sock_recv_length")
 LIFECYCLE = (
     ("raw_tracepoint", "inet_sock_set_state", "on_tcp_state"),
-    ("raw_tracepoint", "sched_process_exit", "on_thread_exit"),
     ("raw_tracepoint", "sched_process_free", "on_task_free"),
-    ("raw_tracepoint", "sched_process_exec", "on_exec"),
 )
 _LIFECYCLE_EVENTS = tuple(event for _, event, _ in LIFECYCLE)
 _RAW = AttachPath("raw_tracepoint",
@@ -71,9 +65,10 @@ _RAW = AttachPath("raw_tracepoint",
 
 
 # The map value as 8-byte words (bpf/sockets.bpf.c): the identity (inode, process, addresses) in
-# the first 8, the six counts after it.
+# the first 8, the six counts after it, then the generation marked in and the owner's start.
 _WORDS_IDENTITY = _IDENTITY.size // 8
 _WORDS_COUNTS = _WORDS_IDENTITY + len(_COUNTS)  # the end of the counts
+_WORD_START = _WORDS_COUNTS + 1
 _TCP, _UNIX = PROTOCOLS.index("tcp"), PROTOCOLS.index("unix")
 
 
@@ -100,17 +95,30 @@ def unix_paths(path: str) -> dict[int, str]:
     return out
 
 
-def _by_class(flat) -> list[tuple[int, ...]]:
-    """24 counters -> 4 protocol classes x 6 counts, in _COUNTS order (the C struct's order)."""
-    return [tuple(flat[6 * i: 6 * i + 6]) for i in range(len(PROTOCOLS))]
+def _add(totals: dict, key: tuple, counts) -> None:
+    """Add six counts to those of `key`, unless they are all 0."""
+    if any(counts):
+        was = totals.get(key)
+        totals[key] = list(counts) if was is None else [a + b for a, b in zip(was, counts)]
+
+
+def _owned(tgid: np.ndarray, start: np.ndarray, klass: np.ndarray, counts: np.ndarray) -> dict:
+    """(pid, start, class) -> its six counts summed: rows of sockets grouped by owner, in bulk."""
+    if not len(tgid):
+        return {}
+    key = tgid << 2 | klass  # classes are 0 to 3
+    order = np.lexsort((key, start))
+    key, start = key[order], start[order]
+    first = np.flatnonzero(np.concatenate(([True], (key[1:] != key[:-1]) | (start[1:] != start[:-1]))))
+    sums = np.add.reduceat(np.take(counts, order, axis=0), first, axis=0).tolist()  # take: 4x faster here
+    return {(k >> 2, s, k & 3): row for k, s, row in zip(key[first].tolist(), start[first].tolist(), sums)}
 
 
 class SocketsProbe(BpfProbe):
     name = "sockets"
     source = "sockets.bpf.c"
-    maps = ("socket_traffic", "generation", "changed_even", "changed_odd", "thread_traffic", "exited_traffic",
-            "dropped")
-    metrics = tuple(SOCKET.values()) + tuple(PROCESS.values()) + tuple(THREAD.values())
+    maps = ("socket_traffic", "generation", "changed_even", "changed_odd", "closed_traffic", "dropped")
+    metrics = tuple(SOCKET.values()) + tuple(PROCESS.values())
     paths = (
         typed(_RAW),
         _RAW,
@@ -138,6 +146,10 @@ class SocketsProbe(BpfProbe):
         self._fds_read_at: dict[int, float] = {}
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)  # rows: each socket's row, as exported last
         self._names: dict[int, str] = {}  # pid -> its name in its sockets' rows
+        # (pid, start, class) -> the counts of sockets whose entries this probe deleted (they had
+        # closed) while their owner lives on: closed_traffic's counterpart in user space.
+        self._forgotten: dict[tuple[int, int, int], list[int]] = {}
+        self._live_totals: dict = {}  # _owned() of the live entries at the last collect that changed any
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -157,6 +169,9 @@ class SocketsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
+        # Before the sockets: an entry the kernel deletes between the two reads is then missing
+        # from both for this collect (which Monotonic holds back), never counted twice.
+        closed_keys, closed_values, _ = self.read("closed_traffic")
         m = self.read_marked("socket_traffic", self._entries)
         words = m.words
         pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
@@ -173,8 +188,7 @@ class SocketsProbe(BpfProbe):
                 renamed.append(pid)
         stale = among(pids, dead) | self._closed(m, pids, klass)
         if stale.any():
-            entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words[stale])]
-            self.opened["socket_traffic"].delete_unchanged(entries)  # one that changed instead comes back marked
+            self._forget(m, np.flatnonzero(stale))
         live = ~stale
         # Sockets whose labels changed though the socket did not: its process was renamed, or (a
         # unix socket) the path it is bound to changed.
@@ -204,30 +218,58 @@ class SocketsProbe(BpfProbe):
         snap.group_rows(SOCKET_GROUP).extend(m.rows[live].tolist())
         snap.changes[SOCKET_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)
 
-        totals = ProcessTotals()
-        keys, values, _ = self.read("exited_traffic")
-        for (tgid,), (start, *flat) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
-            if pt.alive(tgid):
-                totals.add_exited(tgid, start, flat)
-        keys, values, _ = self.read("thread_traffic")
-        for (tid,), (tgid, _pad, start, *flat) in zip(_U32.iter_unpack(keys), _THREAD_VALUE.iter_unpack(values)):
-            if not pt.alive(tgid):
-                continue
-            totals.add_thread(tgid, start, flat)
-            for klass, row in enumerate(_by_class(flat)):
-                if any(row):
-                    labels = (str(tgid), str(tid), PROTOCOLS[klass])
-                    snap.add(THREAD["sent_bytes"], labels, row[0])
-                    snap.add(THREAD["received_bytes"], labels, row[2])
-        m = self._monotonic
-        for (tgid, start), flat in totals.items():
-            for klass, row in enumerate(_by_class(flat)):
-                if any(row):
-                    labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
-                    for c, value in zip(_COUNTS, row):
-                        snap.add(PROCESS[c], labels, m((c, tgid, start, klass), value))
-        m.next_collect()
+        if remade or stale.any() or len(m.gone):
+            w = words[live]
+            self._live_totals = _owned(w[:, 1] & 0xFFFFFFFF, w[:, _WORD_START], (w[:, 3] >> 16) & 0xFFFF,
+                                 w[:, _WORDS_IDENTITY:_WORDS_COUNTS])
+        self._process_totals(snap, closed_keys, closed_values)
         self.read_dropped()
+
+    def _process_totals(self, snap: Snapshot, closed_keys: bytes, closed_values: bytes) -> None:
+        """Per process and protocol: its live sockets' counts (_live_totals) and what its closed sockets
+        left in closed_traffic and in this probe's _forgotten."""
+        pt = self.proctable
+        totals = dict(self._live_totals)
+        # A process's closed_traffic goes when the kernel reaps it, unless a socket it owned (and
+        # handed on) closes after that: such are deleted here.
+        ended = []
+        size = _PROCESS_VALUE.size
+        for i, ((tgid,), (start, *flat)) in enumerate(zip(_U32.iter_unpack(closed_keys),
+                                                           _PROCESS_VALUE.iter_unpack(closed_values))):
+            if not pt.alive(tgid):
+                ended.append((closed_keys[4 * i: 4 * i + 4], closed_values[size * i: size * (i + 1)]))
+                continue
+            for klass in range(len(PROTOCOLS)):
+                _add(totals, (tgid, start, klass), flat[6 * klass: 6 * klass + 6])
+        if ended:
+            self.opened["closed_traffic"].delete_unchanged(ended)
+        self._forgotten = {k: v for k, v in self._forgotten.items() if pt.alive(k[0])}
+        for key, row in self._forgotten.items():
+            _add(totals, key, row)
+        # A PID's counts are those of its latest process (the highest start): what an earlier one
+        # left is gone with it.
+        latest: dict[int, int] = {}
+        for tgid, start, _ in totals:
+            latest[tgid] = max(start, latest.get(tgid, start))
+        m = self._monotonic
+        for (tgid, start, klass), row in totals.items():
+            if latest[tgid] != start or not pt.alive(tgid):
+                continue
+            labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
+            for c, value in zip(_COUNTS, row):
+                snap.add(PROCESS[c], labels, m((c, tgid, start, klass), value))
+        m.next_collect()
+
+    def _forget(self, m: Matched, stale: np.ndarray) -> None:
+        """Delete the entries of sockets that are gone (their process ended, or it holds them no
+        more); the counts of those that the deletion took go to _forgotten."""
+        words = m.words[stale]
+        entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words)]
+        deleted = self.opened["socket_traffic"].delete_unchanged(entries)  # one that changed comes back marked
+        for w in words[np.array(deleted, bool)].tolist():
+            if self.proctable.alive(w[1] & 0xFFFFFFFF):
+                _add(self._forgotten, (w[1] & 0xFFFFFFFF, w[_WORD_START], (w[3] >> 16) & 0xFFFF),
+                     w[_WORDS_IDENTITY:_WORDS_COUNTS])
 
     def _closed(self, m: Matched, pids: np.ndarray, klass: np.ndarray) -> np.ndarray:
         """Entries of sockets the kernel freed without a tracepoint (all but TCP): the process no
