@@ -140,8 +140,9 @@ def highest(prev, value):
 class Monotonic:
     """Holds per-process totals at their highest value from one collect to the next.
 
-    A total is read as live threads plus exited threads, from two maps one after the other; a
-    thread that exits between the two reads is missing from both for that one collect. A series
+    A total is read from two maps one after the other: the live threads (or sockets) and what
+    those that ended left, folded per process; one that ends between the two reads is missing
+    from both for that one collect. A series
     not seen in a collect is forgotten, so a process that ends (and a PID reused later) starts
     afresh.
     """
