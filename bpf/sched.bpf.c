@@ -4,11 +4,12 @@
 // (seen: 30% more than /proc on a busy VM). A thread's time is its runtime at its last switch-out
 // less its runtime when its entry was made, so no switch is needed to pair with another; where the
 // programs see typed tasks (tp_btf), run-queue waits are the kernel's own account likewise (see
-// count_waits). One hash entry per thread holds its counts, with no atomics: a thread's counters
-// are only written by the CPU that switches it in or out (the waker's CPU writes enqueued_at
-// alone). With tp_btf a context switch looks up one entry (the thread switched out) and reads no
-// clock, and only new tasks' wakeups have a program; raw tracepoint programs time the waits
-// themselves.
+// count_waits). One entry per thread holds its counts, with no atomics: a thread's counters are
+// only written by the CPU that switches it in or out (the waker's CPU writes enqueued_at alone).
+// The entry is in the thread's slot of an array (by thread ID) when that is free, else in a hash:
+// an array lookup is a few instructions, a hash lookup a function call (half the cost of a switch).
+// With tp_btf a context switch looks up one entry (the thread switched out) and reads no clock, and
+// only new tasks' wakeups have a program; raw tracepoint programs time the waits themselves.
 //
 // Task offsets (TASK_*_OFF) come from BTF.
 #include "drums.h"
@@ -33,7 +34,7 @@ struct sched_t {
 
 struct thread_sched_t {
     u32 tgid;
-    u32 pad;
+    u32 tid;  // with tgid, the owner of a slot (see thread_slots); 0 in a free one
     u64 enqueued_at;  // raw tracepoints: when the thread became runnable; 0 while running or sleeping
     u64 process_start;
     // The thread's runtime when this entry was made: s.oncpu_ns counts from it; with tp_btf, its
@@ -54,6 +55,10 @@ struct exited_sched_t {
 
 // pid_max is 32768 on small systems and 4M on large ones; 65536 live threads covers a robot.
 BPF_HASH(thread_sched, u32, struct thread_sched_t, 65536);
+// Slot tid % THREAD_SLOTS holds the entry of the first live thread with that remainder (the others'
+// are in thread_sched). Taken with a compare-and-swap of its first word (Linux >= 5.12; elsewhere
+// THREAD_SLOTS is 1 and no slot is used); memory-mapped, so the agent reads it in place.
+BPF_F_TABLE("array", u32, struct thread_sched_t, thread_slots, THREAD_SLOTS, BPF_F_MMAPABLE);
 // Threads that exited, folded per process until the process is reaped.
 BPF_HASH(exited_sched, u32, struct exited_sched_t, 16384);
 // The current task of each CPU and its runtime when it was switched in: the agent reads the runtime
@@ -93,19 +98,40 @@ static __always_inline void mark_renamed(u32 tgid)
         count_drop(DROP_RENAMED);  // the agent then reads every name again
 }
 
+// The thread's entry, if it has one.
+static __always_inline struct thread_sched_t *thread_of(u32 tid)
+{
+#if THREAD_SLOTS > 1
+    u32 slot = tid & (THREAD_SLOTS - 1);
+    struct thread_sched_t *t = thread_slots.lookup(&slot);
+    if (t && t->tid == tid)
+        return t;
+#endif
+    return thread_sched.lookup(&tid);
+}
+
 // `base`: the thread's runtime (and sched_info) when it started to be counted.
 static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, struct oncpu_t *base)
 {
-    struct thread_sched_t *t = thread_sched.lookup(&tid);
+    struct thread_sched_t *t = thread_of(tid);
     if (t)
         return t;
-    struct thread_sched_t fresh = {};
+    struct thread_sched_t fresh = {.tid = tid};
     KREAD(fresh.tgid, task + TASK_TGID_OFF);
     bpf_probe_read_kernel(fresh.comm, sizeof(fresh.comm), (void *)(task + TASK_COMM_OFF));
     fresh.process_start = process_start(task);
     fresh.runtime_base = base->runtime;
     fresh.delay_base = base->run_delay;
     fresh.runs_base = base->runs;
+#if THREAD_SLOTS > 1
+    u32 slot = tid & (THREAD_SLOTS - 1);
+    t = thread_slots.lookup(&slot);
+    // Of two CPUs that make entries for two threads of one free slot at once, one takes it.
+    if (t && __sync_val_compare_and_swap((u64 *)t, 0, *(u64 *)&fresh) == 0) {
+        *t = fresh;
+        return t;
+    }
+#endif
     if (thread_sched.insert(&tid, &fresh) != 0) {
         count_drop(DROP_THREAD);
         return 0;
@@ -146,6 +172,17 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
     }
     if (p)
         fold(&p->s, &t->s);
+#if THREAD_SLOTS > 1
+    u32 slot = tid & (THREAD_SLOTS - 1);
+    struct thread_sched_t *own = thread_slots.lookup(&slot);
+    if (own && own->tid == tid) {
+        // Emptied, then given up (its first word last), before another thread can take it.
+        u64 owner = *(u64 *)own;
+        __builtin_memset((u8 *)own + 8, 0, sizeof(*own) - 8);
+        __sync_val_compare_and_swap((u64 *)own, owner, 0);
+        return;
+    }
+#endif
     thread_sched.delete(&tid);
 }
 
@@ -232,8 +269,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
 
     if (prev_tid) {  // tid 0 is the idle task
         // A dead thread's last switch: its entry is only looked up, never made (see thread_died).
-        struct thread_sched_t *t = (state & TASK_DEAD) ? thread_sched.lookup(&prev_tid)
-                                                       : thread_entry(prev_tid, prev, &in);
+        struct thread_sched_t *t = (state & TASK_DEAD) ? thread_of(prev_tid) : thread_entry(prev_tid, prev, &in);
         if (t) {
             if (prev_runtime > t->runtime_base)
                 t->s.oncpu_ns = prev_runtime - t->runtime_base;
@@ -264,7 +300,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
     }
 #if DRUMS_ATTACH != ATTACH_TP_BTF
     if (next_tid) {
-        struct thread_sched_t *t = thread_sched.lookup(&next_tid);
+        struct thread_sched_t *t = thread_of(next_tid);
         if (t && t->enqueued_at) {
             count_wait(t, now - t->enqueued_at);
             t->enqueued_at = 0;
@@ -306,7 +342,7 @@ int on_exit(struct bpf_raw_tracepoint_args *ctx)
     u32 tid = (u32)id;
     if (tid == (u32)(id >> 32))
         mark_renamed(tid);  // its PID may come back as another process
-    struct thread_sched_t *t = thread_sched.lookup(&tid);
+    struct thread_sched_t *t = thread_of(tid);
     if (!t)
         return 0;
 #if DRUMS_ATTACH == ATTACH_TP_BTF
@@ -328,7 +364,7 @@ int on_exec(struct bpf_raw_tracepoint_args *ctx)
     mark_renamed(tid);  // a new command line, whether or not its name changed
     if (old_tid == tid)
         return 0;
-    struct thread_sched_t *t = thread_sched.lookup(&old_tid);
+    struct thread_sched_t *t = thread_of(old_tid);
     if (t)
         thread_died(old_tid, t, true);
     return 0;
@@ -343,7 +379,7 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
     KREAD(tgid, task + TASK_TGID_OFF);
     if (tid == tgid)
         mark_renamed(tgid);  // the process's name is its leader's
-    struct thread_sched_t *t = thread_sched.lookup(&tid);
+    struct thread_sched_t *t = thread_of(tid);
     if (t)
         bpf_probe_read_kernel_str(t->comm, sizeof(t->comm), (void *)ctx->args[1]);
     return 0;

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import errno
+import mmap
 import os
 import struct
 from functools import lru_cache
@@ -118,11 +119,27 @@ class PinnedMap:
         self.value_size = (info.value_size + 7) // 8 * 8 if self.ncpus > 1 else info.value_size
         self.value_stride = self.value_size * self.ncpus
         self._batch_ok = True
+        self._mapped: mmap.mmap | None = None
 
     def close(self) -> None:
+        if self._mapped is not None:
+            self._mapped.close()  # raises if a view of it is still held: callers keep none
+            self._mapped = None
         if self.fd >= 0:
             os.close(self.fd)
             self.fd = -1
+
+    def mapped(self) -> mmap.mmap:
+        """The values of an array map made with BPF_F_MMAPABLE, in place and read-only: what the
+        programs write shows there, with no copy and no system call."""
+        if self._mapped is None:
+            size = self.max_entries * ((self.value_size + 7) // 8 * 8)
+            try:
+                self._mapped = mmap.mmap(self.fd, -(-size // mmap.PAGESIZE) * mmap.PAGESIZE, mmap.MAP_SHARED,
+                                         mmap.PROT_READ)
+            except OSError as e:
+                raise KernelError(f"cannot map {self.path} into memory: {e.strerror}") from None
+        return self._mapped
 
     def read(self, delete: bool = False) -> tuple[bytes, bytes, int]:
         """All entries as (keys, values, count): contiguous buffers, as the kernel returned them.

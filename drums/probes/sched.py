@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from itertools import takewhile
 
 import numpy as np
 
@@ -47,6 +48,19 @@ _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 DROP_RENAMED = 2  # the index of bpf/sched.bpf.c's count of marks lost to a full `renamed` map
 _ONCPU = struct.Struct("<QIIQQ")  # struct oncpu_t
+# Slots of the threads' array (bpf/sched.bpf.c), a power of two: 8,192 hold a host's threads but
+# for those whose slot another thread holds (a hash lookup more per switch), in 1.6 MB.
+THREAD_SLOTS = 8192
+_WORD_START = 2  # of a thread's value as 8-byte words: its process's start time
+
+
+def _release(release: str) -> tuple[int, int]:
+    """(major, minor) of a kernel release string: 6.1.0-18-amd64 -> (6, 1)."""
+    try:
+        major, minor = release.split(".")[:2]
+        return int(major), int("".join(takewhile(str.isdigit, minor)) or 0)
+    except ValueError:
+        return 0, 0
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -80,7 +94,7 @@ _RAW = AttachPath("raw_tracepoint", tuple(("raw_tracepoint", tp, fn) for tp, fn 
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
-    maps = ("thread_sched", "exited_sched", "oncpu", "renamed", "dropped")
+    maps = ("thread_sched", "thread_slots", "exited_sched", "oncpu", "renamed", "dropped")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
     paths = (typed(_RAW, without=("sched_wakeup",),
@@ -111,6 +125,8 @@ class SchedProbe(BpfProbe):
         if btf.has_field("task_struct", "sched_info.run_delay"):  # CONFIG_SCHED_INFO: the tp_btf path needs it
             d.update(offset_defines(btf, {"TASK_RUN_DELAY_OFF": ("task_struct", "sched_info.run_delay"),
                                           "TASK_PCOUNT_OFF": ("task_struct", "sched_info.pcount")}))
+        # Threads' slots need the compare-and-swap of BPF atomics (Linux 5.12).
+        d["THREAD_SLOTS"] = THREAD_SLOTS if _release(self.features.kernel_release) >= (5, 12) else 1
         args = btf.tracepoint_args("sched_switch") or []
         if len(args) >= 4:
             d["SWITCH_HAS_PREV_STATE"] = 1  # Linux 5.18 added prev_state to the tracepoint
@@ -131,6 +147,18 @@ class SchedProbe(BpfProbe):
             self._renames_lost = lost
             return None
         return {tgid for (tgid,) in _U32.iter_unpack(keys)}
+
+    def thread_entries(self) -> tuple[bytes, bytes]:
+        """Every thread's entry, as (keys, values): thread IDs as 8-byte words, and values. Those in
+        slots are read in place; one whose slot a thread is taking or giving up shows its owner but
+        not yet its process's start time, and waits for the next collect."""
+        keys, values, _ = self.read("thread_sched")
+        slots = np.frombuffer(self.opened["thread_slots"].mapped(), np.uint64)
+        slots = slots[:len(slots) // self._threads.width * self._threads.width].reshape(-1, self._threads.width)
+        taken = slots[(slots[:, 0] != 0) & (slots[:, _WORD_START] != 0)]  # a copy, now: they move on
+        del slots  # no view of the mapping outlives this call (closing it needs none)
+        return (np.concatenate((np.frombuffer(keys, np.uint32).astype(np.uint64), taken[:, 0] >> 32)).tobytes(),
+                values + taken.tobytes())
 
     def _running(self) -> dict[int, int]:
         """Thread id -> its runtime now, for the thread each CPU runs: a thread may keep its CPU for
@@ -176,11 +204,11 @@ class SchedProbe(BpfProbe):
                 # of one of its threads may come after it and fold into a new one: the process is
                 # gone, so is its entry.
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
-        keys, values, _ = self.read("thread_sched")
+        keys, values = self.thread_entries()
         running = self._running()
         # The thread entries matched against the last read in bulk: only processes with a thread
         # new, changed, gone or on a CPU now are made again.
-        m = self._threads.read(np.frombuffer(keys, np.uint32).astype(np.uint64).tobytes(), values)
+        m = self._threads.read(keys, values)
         tgids = m.words[:, 0] & 0xFFFFFFFF
         dirty = set(tgids[~m.same].tolist())
         dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)

@@ -317,10 +317,10 @@ def value(snap, metric: str, **labels):
 
 
 def thread_entries(probe) -> dict[int, tuple]:
-    """tid -> (tgid, pad, enqueued_at, process_start, runtime_base, delay_base, runs_base, comm,
-    oncpu_ns, ...) straight from the thread_sched map."""
-    keys, values, _ = probe.read("thread_sched")
-    return {tid: v for (tid,), v in zip(struct.iter_unpack("<I", keys), _THREAD_VALUE.iter_unpack(values))}
+    """tid -> (tgid, tid, enqueued_at, process_start, runtime_base, delay_base, runs_base, comm,
+    oncpu_ns, ...) straight from the maps: the threads' slots and thread_sched."""
+    keys, values = probe.thread_entries()
+    return {tid: v for (tid,), v in zip(struct.iter_unpack("<Q", keys), _THREAD_VALUE.iter_unpack(values))}
 
 
 def exited_entries(probe) -> dict[int, tuple]:
@@ -615,6 +615,65 @@ def reuse_pid(pid: int, spawn, script: str | list) -> Child:
     pytest.skip(f"PID {pid} could not be reused: other forks on the host came first")
 
 
+# Two threads with the same remainder of their thread IDs by the slots' count: short threads come
+# and go until one has the remainder of the first, and stays. Each says its tid; on "go" both burn
+# argv[2] seconds of CPU; the child says so, and waits for its stdin to close.
+SAME_SLOT = r'''
+slots, seconds = int(sys.argv[1]), float(sys.argv[2])
+go, tids, cpu = threading.Event(), [], []
+def worker():
+    go.wait()
+    cpu.append(burn(seconds))
+    threading.Event().wait()
+def first():
+    tids.append(threading.get_native_id())
+    worker()
+def candidate():
+    if threading.get_native_id() % slots == tids[0] % slots:
+        tids.append(threading.get_native_id())
+        worker()
+threading.Thread(target=first, daemon=True).start()
+while not tids:
+    time.sleep(0.001)
+while len(tids) < 2:
+    t = threading.Thread(target=candidate, daemon=True)
+    t.start()
+    t.join(0.01)
+say(tids=tids)
+sys.stdin.readline()
+go.set()
+while len(cpu) < 2:
+    time.sleep(0.01)
+say(cpu=cpu)
+sys.stdin.read()
+'''
+
+
+def test_threads_in_slots_and_in_the_hash_count_alike(sched_probe, collect, spawn):
+    """A thread's entry is in its slot of thread_slots, unless another live thread holds that slot:
+    then in thread_sched. Both count the kernel's own runtime to the nanosecond."""
+    slots = sched_probe.opened["thread_slots"].max_entries
+    assert slots == sched.THREAD_SLOTS  # this kernel has BPF atomics (Linux >= 5.12)
+    child = spawn(SAME_SLOT, slots, 0.3)
+    pid, tids = child.pid, child.read()["tids"]
+    assert tids[0] != tids[1] and (tids[1] - tids[0]) % slots == 0
+    settle(pid)
+    before = collect(sched_probe)
+    k_before = {tid: schedstat(pid, tid)[0] for tid in tids}
+    child.go()
+    child.read()
+    settle(pid)
+    after = collect(sched_probe)
+    for tid in tids:
+        cpu = value(after, THREAD_CPU, pid=pid, tid=tid) - value(before, THREAD_CPU, pid=pid, tid=tid)
+        assert abs(cpu - (schedstat(pid, tid)[0] - k_before[tid]) / 1e9) <= 1e-6, (tid, cpu)
+        assert cpu >= 0.3
+    keys, _, _ = sched_probe.read("thread_sched")
+    in_hash = {tid for (tid,) in struct.iter_unpack("<I", keys)} & set(tids)
+    assert in_hash == {tids[1]}  # the first holds the slot, the second is in the hash
+    assert set(thread_entries(sched_probe)) >= set(tids)
+
+
 def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn, collect):
     count = 200
     forker = spawn(FORKER, count)
@@ -622,7 +681,7 @@ def test_short_lived_processes_leave_no_map_entries(sched_probe, spawn, collect)
     settle(forker.pid)
     dropped = sched_probe.read("dropped")[1]
     alive_before = pids_alive()
-    threads_before, exited_before = sched_probe.read("thread_sched")[2], sched_probe.read("exited_sched")[2]
+    threads_before, exited_before = len(thread_entries(sched_probe)), sched_probe.read("exited_sched")[2]
 
     forker.go()
     done = forker.read()
