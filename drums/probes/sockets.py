@@ -149,7 +149,8 @@ class SocketsProbe(BpfProbe):
         # (pid, start, class) -> the counts of sockets whose entries this probe deleted (they had
         # closed) while their owner lives on: closed_traffic's counterpart in user space.
         self._forgotten: dict[tuple[int, int, int], list[int]] = {}
-        self._live_totals: dict = {}  # _owned() of the live entries at the last collect that changed any
+        self._live_totals: dict = {}  # _owned() of the live entries, as of the last collect
+        self._entries_summed = False  # whether _live_totals is that of the entries the last collect kept
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -169,6 +170,7 @@ class SocketsProbe(BpfProbe):
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
+        summed, self._entries_summed = self._entries_summed, False  # likewise
         # Before the sockets: an entry the kernel deletes between the two reads is then missing
         # from both for this collect (which Monotonic holds back), never counted twice.
         closed_keys, closed_values, _ = self.read("closed_traffic")
@@ -202,6 +204,9 @@ class SocketsProbe(BpfProbe):
         remade = np.flatnonzero(live & ~(m.same & ~relabel)).tolist()
         # What the last collect gave and this one does not: sockets gone, and old names.
         gone = [row[0] for row in m.gone.tolist() + m.rows[stale].tolist() + m.rows[remade].tolist() if row]
+        # Sockets counted before that counted further, with their counts then: as a rule, all that
+        # changed, and what brings the owners' sums up to date.
+        grown = [(i, m.rows[i][1]) for i in remade if m.same_head[i] and m.rows[i] is not None]
         for i in remade:
             counts = tuple(words[i, _WORDS_IDENTITY:_WORDS_COUNTS].tolist())
             if m.same_head[i] and not relabel[i]:
@@ -218,10 +223,16 @@ class SocketsProbe(BpfProbe):
         snap.group_rows(SOCKET_GROUP).extend(m.rows[live].tolist())
         snap.changes[SOCKET_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)
 
-        if remade or stale.any() or len(m.gone):
+        if len(grown) < len(remade) or stale.any() or len(m.gone) or not summed:
             w = words[live]
             self._live_totals = _owned(w[:, 1] & 0xFFFFFFFF, w[:, _WORD_START], (w[:, 3] >> 16) & 0xFFFF,
-                                 w[:, _WORDS_IDENTITY:_WORDS_COUNTS])
+                                       w[:, _WORDS_IDENTITY:_WORDS_COUNTS])
+        else:
+            for i, was in grown:
+                w = words[i].tolist()
+                key = (w[1] & 0xFFFFFFFF, w[_WORD_START], (w[3] >> 16) & 0xFFFF)
+                _add(self._live_totals, key, [a - b for a, b in zip(w[_WORDS_IDENTITY:_WORDS_COUNTS], was)])
+        self._entries_summed = True
         self._process_totals(snap, closed_keys, closed_values)
         self.read_dropped()
 

@@ -377,6 +377,40 @@ def test_closed_udp_and_unix_sockets_stay_in_their_process_totals(sockets_probe,
     assert socket_rows(snap, pid=child.pid) == {}  # all found closed
 
 
+STEADY_SENDER = r"""
+port = int(sys.argv[1])
+udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+tcp = socket.create_connection(("127.0.0.1", port))
+report(ready=True)
+while (line := command()):
+    size = int(line)
+    udp.sendto(b"u" * size, ("127.0.0.1", port))
+    report(calls=send_in_calls(tcp, 3 * size, 65_536))
+"""
+
+
+def test_process_totals_follow_sockets_that_keep_counting(sockets_probe, collect, spawn):
+    """Between two collects most sockets of a process only count further: its totals are brought up
+    to date by what those grew, and stay exact step after step."""
+    with tcp_listener() as lst, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", lst.getsockname()[1]))
+        child = spawn(STEADY_SENDER, lst.getsockname()[1])
+        conn, _ = lst.accept()
+        with conn:
+            assert child.expect() == {"ready": True}
+            udp, tcp = dict(ZERO), dict(ZERO)
+            for step in range(1, 9):
+                size = 1_000 * step + 7
+                child.tell(str(size))
+                calls = child.expect()["calls"]
+                recv_exactly(conn, 3 * size)
+                rx.recv(65_536)
+                udp = dict(udp, sent_bytes=udp["sent_bytes"] + size, send_calls=udp["send_calls"] + 1)
+                tcp = dict(tcp, sent_bytes=tcp["sent_bytes"] + 3 * size, send_calls=tcp["send_calls"] + calls)
+                snap = collect(sockets_probe)
+                assert (process_counts(snap, child.pid, "udp"), process_counts(snap, child.pid, "tcp")) == (udp, tcp)
+
+
 HANDED_ON = r"""
 s = socket.socket(fileno=int(sys.argv[1]))
 report(calls=send_in_calls(s, int(sys.argv[2]), 10_007))
