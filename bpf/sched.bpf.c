@@ -100,12 +100,20 @@ static __always_inline void mark_renamed(u32 tgid)
         count_drop(DROP_RENAMED);  // the agent then reads every name again
 }
 
+#if THREAD_SLOTS > 1
+// The slot a thread's entry goes in, whoever holds it.
+static __always_inline struct thread_sched_t *slot_of(u32 tid)
+{
+    u32 slot = tid & (THREAD_SLOTS - 1);
+    return thread_slots.lookup(&slot);
+}
+#endif
+
 // The thread's entry, if it has one.
 static __always_inline struct thread_sched_t *thread_of(u32 tid)
 {
 #if THREAD_SLOTS > 1
-    u32 slot = tid & (THREAD_SLOTS - 1);
-    struct thread_sched_t *t = thread_slots.lookup(&slot);
+    struct thread_sched_t *t = slot_of(tid);
     if (t && t->tid == tid)
         return t;
 #endif
@@ -126,8 +134,7 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, st
     fresh.delay_base = base->run_delay;
     fresh.runs_base = base->runs;
 #if THREAD_SLOTS > 1
-    u32 slot = tid & (THREAD_SLOTS - 1);
-    t = thread_slots.lookup(&slot);
+    t = slot_of(tid);
     // Of two CPUs that make entries for two threads of one free slot at once, one takes it.
     if (t && __sync_val_compare_and_swap((u64 *)t, 0, *(u64 *)&fresh) == 0) {
         *t = fresh;
@@ -175,8 +182,7 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
     if (p)
         fold(&p->s, &t->s);
 #if THREAD_SLOTS > 1
-    u32 slot = tid & (THREAD_SLOTS - 1);
-    struct thread_sched_t *own = thread_slots.lookup(&slot);
+    struct thread_sched_t *own = slot_of(tid);
     if (own && own->tid == tid) {
         // Emptied, then given up (its first word last), before another thread can take it.
         u64 owner = *(u64 *)own;

@@ -77,3 +77,12 @@ def test_doctor_as_an_ordinary_user_tells_no_permission_from_not_mounted():
     assert lines[at:at + 2] == ["NO  tracefs      /sys/kernel/tracing is mounted but not readable as uid 65534",
                                 "    fix: run the agent (and this doctor) as root"]
     assert any(l.startswith("ok  bpffs") for l in lines)
+
+
+def test_bpf_atomics_are_told_by_the_kernel_release():
+    def kernel(release):
+        k = Features()
+        k.__dict__["kernel_release"] = release
+        return k.bpf_atomics
+    assert [kernel(r) for r in ("6.18.44-fc-v669", "5.12.0", "5.11.22-generic", "4.19.0-27-amd64", "odd")] == [
+        True, True, False, False, False]

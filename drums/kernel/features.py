@@ -9,6 +9,7 @@ import importlib.util
 import os
 import platform
 from functools import cached_property
+from itertools import takewhile
 
 from drums.errors import KernelError
 from drums.kernel.btf import VMLINUX_BTF, Btf, names
@@ -95,6 +96,11 @@ class Features:
         return b"\0bpf_perf_link\0" in found, b"\0btf_trace_sched_switch\0" in found
 
     @cached_property
+    def bpf_atomics(self) -> bool:
+        """BPF atomic operations that return a value, compare-and-swap among them (Linux >= 5.12)."""
+        return release_version(self.kernel_release) >= (5, 12)
+
+    @cached_property
     def uprobes(self) -> bool:
         return os.path.isdir("/sys/bus/event_source/devices/uprobe")
 
@@ -116,6 +122,15 @@ class Features:
             return False
         from drums.kernel.loader import can_load_fentry
         return can_load_fentry(self.kernel_headers)
+
+
+def release_version(release: str) -> tuple[int, int]:
+    """(major, minor) of a kernel release string: 6.1.0-18-amd64 -> (6, 1); (0, 0) if it has none."""
+    try:
+        major, minor = release.split(".")[:2]
+        return int(major), int("".join(takewhile(str.isdigit, minor)) or 0)
+    except ValueError:
+        return 0, 0
 
 
 def _listdir(path: str) -> list[str]:

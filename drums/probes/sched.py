@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from itertools import takewhile
 
 import numpy as np
 
@@ -52,15 +51,6 @@ _ONCPU = struct.Struct("<QIIQQ")  # struct oncpu_t
 # for those whose slot another thread holds (a hash lookup more per switch), in 1.6 MB.
 THREAD_SLOTS = 8192
 _WORD_START = 2  # of a thread's value as 8-byte words: its process's start time
-
-
-def _release(release: str) -> tuple[int, int]:
-    """(major, minor) of a kernel release string: 6.1.0-18-amd64 -> (6, 1)."""
-    try:
-        major, minor = release.split(".")[:2]
-        return int(major), int("".join(takewhile(str.isdigit, minor)) or 0)
-    except ValueError:
-        return 0, 0
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -125,8 +115,7 @@ class SchedProbe(BpfProbe):
         if btf.has_field("task_struct", "sched_info.run_delay"):  # CONFIG_SCHED_INFO: the tp_btf path needs it
             d.update(offset_defines(btf, {"TASK_RUN_DELAY_OFF": ("task_struct", "sched_info.run_delay"),
                                           "TASK_PCOUNT_OFF": ("task_struct", "sched_info.pcount")}))
-        # Threads' slots need the compare-and-swap of BPF atomics (Linux 5.12).
-        d["THREAD_SLOTS"] = THREAD_SLOTS if _release(self.features.kernel_release) >= (5, 12) else 1
+        d["THREAD_SLOTS"] = THREAD_SLOTS if self.features.bpf_atomics else 1  # slots are taken by compare-and-swap
         args = btf.tracepoint_args("sched_switch") or []
         if len(args) >= 4:
             d["SWITCH_HAS_PREV_STATE"] = 1  # Linux 5.18 added prev_state to the tracepoint

@@ -102,6 +102,11 @@ def _add(totals: dict, key: tuple, counts) -> None:
         totals[key] = list(counts) if was is None else [a + b for a, b in zip(was, counts)]
 
 
+def _owner(words: list[int]) -> tuple[int, int, int]:
+    """(pid, start, class) of a socket's entry, from its value as 8-byte words."""
+    return words[1] & 0xFFFFFFFF, words[_WORD_START], (words[3] >> 16) & 0xFFFF
+
+
 def _owned(tgid: np.ndarray, start: np.ndarray, klass: np.ndarray, counts: np.ndarray) -> dict:
     """(pid, start, class) -> its six counts summed: rows of sockets grouped by owner, in bulk."""
     if not len(tgid):
@@ -230,8 +235,7 @@ class SocketsProbe(BpfProbe):
         else:
             for i, was in grown:
                 w = words[i].tolist()
-                key = (w[1] & 0xFFFFFFFF, w[_WORD_START], (w[3] >> 16) & 0xFFFF)
-                _add(self._live_totals, key, [a - b for a, b in zip(w[_WORDS_IDENTITY:_WORDS_COUNTS], was)])
+                _add(self._live_totals, _owner(w), [a - b for a, b in zip(w[_WORDS_IDENTITY:_WORDS_COUNTS], was)])
         self._entries_summed = True
         self._process_totals(snap, closed_keys, closed_values)
         self.read_dropped()
@@ -278,9 +282,9 @@ class SocketsProbe(BpfProbe):
         entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words)]
         deleted = self.opened["socket_traffic"].delete_unchanged(entries)  # one that changed comes back marked
         for w in words[np.array(deleted, bool)].tolist():
-            if self.proctable.alive(w[1] & 0xFFFFFFFF):
-                _add(self._forgotten, (w[1] & 0xFFFFFFFF, w[_WORD_START], (w[3] >> 16) & 0xFFFF),
-                     w[_WORDS_IDENTITY:_WORDS_COUNTS])
+            owner = _owner(w)
+            if self.proctable.alive(owner[0]):
+                _add(self._forgotten, owner, w[_WORDS_IDENTITY:_WORDS_COUNTS])
 
     def _closed(self, m: Matched, pids: np.ndarray, klass: np.ndarray) -> np.ndarray:
         """Entries of sockets the kernel freed without a tracepoint (all but TCP): the process no
