@@ -325,8 +325,7 @@ def run_agent(args) -> int:
                                                        query.get("all") == "1", rates)}
     pages = {"/healthz": lambda _query: health.healthz(agent.probes, graph, adapter_name),
              "/readyz": lambda _query: health.readyz(graph, adapter_name)}
-    server = HttpServer(args.address, args.port, pages, pictures, agent.collect, jobs, info, token,
-                        {"port": stream.port, "curve_public_key": stream.public_key})
+    server = HttpServer(args.address, args.port, pages, pictures, agent.collect, jobs, info, token, stream)
     try:
         start = time.perf_counter()
         agent.start(strict=args.strict)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 import time
 
+import psutil
 import pytest
 
 from drums.client import AgentError, Client
@@ -28,6 +29,29 @@ def receive(client: Client, seconds: float, key: str, at_least: int = 0) -> list
     while time.monotonic() - began < (seconds if len(got) >= at_least else 20):
         got += [s for s in client.poll(0.2) if s.key == key]
     return got
+
+
+def zeromq_loaded(url: str) -> bool:
+    """Whether the agent serving `url` has libzmq mapped."""
+    port = url.rsplit(":", 1)[1].split("/")[0]
+    pid, = [p.pid for p in psutil.process_iter(["cmdline"])
+            if "agent" in (p.info["cmdline"] or []) and port in (p.info["cmdline"] or [])]
+    with open(f"/proc/{pid}/maps") as f:
+        return "libzmq" in f.read()
+
+
+def test_zeromq_comes_with_the_first_sample_and_an_earlier_subscriber_gets_the_samples():
+    with running_agent(*CHEAP, bpf=False) as url, Client([url.rsplit("/", 1)[0]]) as c:
+        agent = c.agents[0]
+        info = agent.info()
+        c.subscribe({"address": info["stream"]["address"], "key": f"{info['host']}:host:", "curve_public_key": ""})
+        time.sleep(0.5)  # connected to the socket that holds the port, which accepts nobody
+        assert not zeromq_loaded(url)
+        job = agent.start("host", interval=0.1)
+        assert job["stream"]["key"] == f"{info['host']}:host:"
+        got = receive(c, 0.5, job["stream"]["key"], at_least=3)
+        assert zeromq_loaded(url)
+    assert len(got) >= 3 and [s.seq for s in got] == list(range(got[0].seq, got[-1].seq + 1))
 
 
 def test_samples_on_the_stream_are_the_samples_of_the_api(agent):

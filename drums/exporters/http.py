@@ -42,6 +42,7 @@ from isal import igzip
 from drums.errors import DrumsError, UsageError
 from drums.exporters import READ_AT
 from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body
+from drums.exporters.stream import Stream
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
 
 log = logging.getLogger("drums")
@@ -316,9 +317,9 @@ def _listen(address: str, port: int) -> socket.socket:
 class HttpServer:
     def __init__(self, address: str, port: int, pages: dict[str, Page], pictures: dict[str, Picture],
                  collect: Callable[[], Snapshot], jobs: Jobs | None, info: Callable[[], dict] | None,
-                 token: str = "", stream: dict | None = None):
+                 token: str = "", stream: Stream | None = None):
         """`pages` are drawn on each request, `pictures` from the shared snapshot `collect()` takes.
-        `stream`: the stream's {"port", "curve_public_key"}, named in every job. Without `jobs`
+        `stream`: the stream of job samples, named in every job. Without `jobs`
         there is no job API (the detector serves only its pages)."""
         self._sock = _listen(address, port)
         self.port = self._sock.getsockname()[1]
@@ -327,7 +328,7 @@ class HttpServer:
         self._pages = {"/": lambda _query: (home, "text/html; charset=utf-8"), **pages}
         self._pictures = pictures
         self._links = sorted([*self._pages, *pictures, *([f"{API}/openapi.json"] if jobs is not None else [])])
-        self._jobs, self._info, self._token, self._stream = jobs, info, token, stream or {}
+        self._jobs, self._info, self._token, self._stream = jobs, info, token, stream
         self._workers = ThreadPoolExecutor(WORKERS, thread_name_prefix="http")
         self._shared = _Shared(lambda: self._counted(collect()), self._workers)
         self._server: _Connections | None = None
@@ -496,8 +497,8 @@ class HttpServer:
         """(status, JSON value) of a request under /drums/v1 that reached the agent at `local`; the
         stream's key goes only to a caller with the token (or to all, where there is none)."""
         stream = self._stream
-        where = {"address": f"tcp://{f'[{local}]' if ':' in local else local}:{stream['port']}",
-                 "curve_public_key": stream["curve_public_key"] if authorized else ""} if stream else {}
+        where = {"address": f"tcp://{f'[{local}]' if ':' in local else local}:{stream.port}",
+                 "curve_public_key": stream.public_key if authorized else ""} if stream else {}
 
         def located(job: dict) -> dict:  # the stream as this client can reach it
             job["stream"].update(where)
