@@ -18,7 +18,7 @@ from drums.budget import Budget
 from drums.errors import DrumsError, UsageError
 from drums.graph.join import GID_HEX, INFINITE_NS, join
 from drums.graph.model import ENTITIES, Graph
-from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, Columns, Metric, Snapshot
 from drums.probes.base import Probe
 from drums.proctable import ProcessTable
 from drums.selfcost import BUSY, MEMORY_EVERY, TreeCost
@@ -326,12 +326,16 @@ class Agent:
         return list(dict.fromkeys(kept + rest))[:limit]
 
     def _select(self, snap: Snapshot) -> Snapshot:
-        chosen = {str(pid) for pid in self._chosen()}
+        pids = self._chosen()
+        chosen = {str(pid) for pid in pids}
         out = Snapshot()
         for metric, rows in snap.singles.items():
             out.rows(metric).extend(_of_chosen(metric, rows, chosen))
         for metrics, rows in snap.groups.items():
-            out.group_rows(metrics).extend(_of_chosen(metrics[0], rows, chosen))
+            if isinstance(rows, Columns):
+                out.groups[metrics] = rows.of_processes(pids)
+            else:
+                out.group_rows(metrics).extend(_of_chosen(metrics[0], rows, chosen))
         return out
 
     def _self_metrics(self, snap: Snapshot) -> None:

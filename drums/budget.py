@@ -7,21 +7,23 @@ backwards: it is kept as a running total that each folded row adds its growth to
 leaves it (its entity ended, or got its own series) leaves what it added.
 
 The budget remembers each row between collects and does per-row work only for rows that changed:
-on an idle host with ten thousand sockets a collect is a few dict and set operations. A probe that
-tells its rows as changes to those of its last collect (Snapshot.changes) spares it even comparing
-them.
+on an idle host with ten thousand processes' rows a collect is a few dict and set operations. A
+probe that tells its rows as changes to those of its last collect (Snapshot.changes) spares it even
+comparing them. A group given as Columns (the sockets) is ranked and summed as arrays, and label
+values are asked for only for the rows kept: ten thousand sockets hold no Python object each.
 """
 from __future__ import annotations
 
 import heapq
-from collections.abc import KeysView
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from itertools import islice
 from operator import itemgetter
 
 import numpy as np
 
-from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot
+from drums.arrays import distinct, within
+from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
 DIMENSIONS = {"protocol", "kind"}
@@ -189,6 +191,31 @@ class _Group:
         (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(emitted.values())
 
 
+class _Columnar:
+    """What the budget remembers of a group given as Columns: arrays of its entities, ascending,
+    and what each has summed into `other`. Its series are all counters (sockets' bytes and calls)."""
+
+    def __init__(self, metrics: tuple[Metric, ...], kind: str, dim_names: tuple[str, ...]):
+        if not all(m.kind == COUNTER for m in metrics):
+            raise ValueError(f"{metrics[0].name}: columns are of counters only")
+        labels = metrics[0].labels
+        self.metrics, self.dim_names = metrics, dim_names
+        self.rank = [i for i, m in enumerate(metrics) if m.name in KINDS[kind][1]]
+        self.dim = next((i for i, label in enumerate(labels) if label in DIMENSIONS), None)
+        self.given = self.order = np.empty(0, np.int64)  # the entities as the last Columns gave them, and their order
+        self.ids = np.empty(0, np.int64)
+        self.last = np.empty((0, len(metrics)), np.int64)  # each entity's values at the last collect
+        self.folded = np.empty((0, len(metrics)), np.int64)  # and as last summed into `other`, where
+        self.infold = np.empty(0, bool)  # it is in `other`
+        self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
+
+    def other_labels(self, dim: int) -> tuple[str, ...]:
+        labels = [OTHER] * len(self.metrics[0].labels)
+        if self.dim is not None:
+            labels[self.dim] = self.dim_names[dim]
+        return tuple(labels)
+
+
 @dataclass
 class _KindState:
     limit: int
@@ -198,6 +225,7 @@ class _KindState:
     totals: dict = field(default_factory=dict)  # (metrics, labels of other) -> values
     members: dict = field(default_factory=dict)  # the same key -> rows summed into it now (for gauges)
     folded_total: int = 0  # entities that went into `other`, ever
+    columnar: _Columnar | None = None  # the kind's one group, where it comes as Columns
 
 
 class Budget:
@@ -210,12 +238,14 @@ class Budget:
 
     def folded(self) -> dict[str, int]:
         """Entities of each kind whose series are currently summed into `other`."""
-        return {kind: len(st.entities) - len(st.kept) for kind, st in self.kinds.items()}
+        return {kind: (len(st.columnar.ids) if st.columnar else len(st.entities)) - len(st.kept)
+                for kind, st in self.kinds.items()}
 
     def kept(self, kind: str) -> set:
         """Entities of a kind that had their own series at the last collect: a label value for
         kinds named by one label (a pid, an inode), a tuple of values for the others."""
-        return set(self.kinds[kind].kept)
+        st = self.kinds[kind]
+        return {str(e) for e in st.kept} if st.columnar else set(st.kept)
 
     def limit(self, kind: str) -> int:
         return self.kinds[kind].limit
@@ -240,6 +270,13 @@ class Budget:
         return out
 
     def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, out: Snapshot) -> None:
+        columns = [(metrics, rows) for metrics, (rows, _) in groups.items() if isinstance(rows, Columns)]
+        if columns or (st.columnar is not None and not groups):  # none: every entity gone
+            if len(groups) > 1:
+                raise ValueError(f"{kind}: a group given as columns must be the only one of its kind")
+            metrics, cols = columns[0] if columns else (st.columnar.metrics, None)
+            self._apply_columns(st, kind, metrics, cols, out)
+            return
         # Ten thousand sockets pass here at each scrape, few of which did anything since the last:
         # only changed rows get per-row work, the rest is dict and set operations.
         seen = []  # (group, changed rows, labels gone)
@@ -258,7 +295,7 @@ class Budget:
                 activity[entity] = activity.get(entity, 0.0) + d / whole
         st.kept -= ended  # entities that ended free their slots
         was_kept = set(st.kept)
-        self._choose(st, entities, activity)
+        self._choose(st, lambda n: islice(entities - st.kept, n), activity)
         kept = st.kept
         promoted, demoted = kept - was_kept, was_kept - kept
         for g, changed, gone in seen:
@@ -272,6 +309,64 @@ class Budget:
                 out.rows(metrics[0]).append((labels, values[0]))
             else:
                 out.group_rows(metrics).append((labels, tuple(values)))
+
+    def _apply_columns(self, st: _KindState, kind: str, metrics: tuple[Metric, ...], cols: Columns | None,
+                       out: Snapshot) -> None:
+        """The rows of a group given as Columns, in bulk: as _apply_kind does for rows, with each
+        entity's values and its part of `other` in arrays beside the entities (ascending), and
+        labels made for the rows kept alone."""
+        c = st.columnar = st.columnar or _Columnar(metrics, kind, cols.dim_names)
+        k = len(metrics)
+        if cols is None:
+            ids, vals, dims, order = c.ids[:0], c.last[:0], np.empty(0, np.intp), np.empty(0, np.intp)
+        else:
+            if not np.array_equal(cols.ids, c.given):  # as a rule the sockets of the last collect, in its order
+                c.given, c.order = cols.ids, np.argsort(cols.ids)
+            order = c.order
+            ids, vals, dims = cols.ids[order], cols.values[order], cols.dims[order]
+        # Matched against the last collect's entities.
+        if np.array_equal(ids, c.ids):
+            at, known = np.arange(len(ids)), np.ones(len(ids), bool)
+        else:
+            at = np.minimum(np.searchsorted(c.ids, ids), max(len(c.ids) - 1, 0))
+            known = c.ids[at] == ids if len(c.ids) else np.zeros(len(ids), bool)
+        # (Masked writes into copies: np.where over two dimensions costs four times as much.)
+        old, base = (c.last[at], c.folded[at]) if len(c.ids) else np.zeros((2, len(ids), k), np.int64)
+        infold = known & c.infold[at] if len(c.ids) else known
+        old[~known] = 0
+        base[~infold] = 0
+        # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
+        grew = np.maximum(vals[:, c.rank] - old[:, c.rank], 0)
+        whole = grew.sum(axis=0)
+        share = (grew / np.where(whole > 0, whole, 1)).sum(axis=1)
+        active = np.flatnonzero(share > 0)
+        activity = dict(zip(ids[active].tolist(), share[active].tolist()))
+        kept = np.fromiter(st.kept, np.int64, len(st.kept))
+        st.kept = set(kept[within(kept, ids)].tolist())  # entities that ended free their slots
+        was_kept = set(st.kept)
+
+        def idle(n: int) -> list[int]:  # entities without series of their own, the first n
+            taken = np.sort(np.fromiter(st.kept, np.int64, len(st.kept)))
+            return ids[~within(ids, taken)][:n].tolist()
+        self._choose(st, idle, activity)
+        demoted = was_kept - st.kept
+        own = within(ids, np.sort(np.fromiter(st.kept, np.int64, len(st.kept))))
+        if cols is not None:
+            out.group_rows(metrics).extend(cols.rows(order[own].tolist()))
+        # `other`: what each entity not kept counted since it last added to it (all of it if it is
+        # new, just left its own series, or went back); an entity that gets its own series leaves
+        # in it what it added.
+        infold &= ~own
+        entering = ~own & (~known | (vals != old).any(axis=1) | ~infold)
+        now, was = vals[entering], base[entering]
+        steps, into = np.where(now < was, now, now - was), dims[entering]
+        for d in distinct(into):
+            c.totals[d] = c.totals.get(d, 0) + steps[into == d].sum(axis=0)
+        base[entering] = now
+        c.ids, c.last, c.folded, c.infold = ids, vals, base, infold | entering
+        st.folded_total += int((~known & ~own).sum()) + len(demoted)
+        for d, total in c.totals.items():
+            out.group_rows(metrics).append((c.other_labels(d), tuple(total.tolist())))
 
     @staticmethod
     def _count_entities(st: _KindState, groups: list) -> tuple[set, set]:
@@ -344,7 +439,8 @@ class Budget:
             st.members[key] = st.members.get(key, 0) + joined
 
     @staticmethod
-    def _choose(st: _KindState, entities: KeysView, activity: dict) -> None:
+    def _choose(st: _KindState, idle: Callable[[int], Iterable], activity: dict) -> None:
+        """`idle(n)`: n entities at most that have no series of their own (st.kept), whatever they did."""
         # Activity is what an entity did since the last collect; a newcomer's is all it did so
         # far, so a busy new process can win a slot at once.
         kept = st.kept
@@ -352,7 +448,7 @@ class Budget:
         free = st.limit - len(kept)
         kept.update(active[:free])
         if free > len(active):  # slots left: idle entities take them
-            kept.update(islice(entities - kept, free - len(active)))
+            kept.update(idle(free - len(active)))
         rivals = active[free:] if free > 0 else active  # those left without a slot
         if not rivals:
             return  # every kept entity stays: no need to rank them (a thousand, at each collect)

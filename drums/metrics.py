@@ -7,6 +7,11 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from drums.arrays import among
 
 COUNTER, GAUGE, HISTOGRAM, INFO = "counter", "gauge", "histogram", "info"
 
@@ -73,17 +78,46 @@ class Changes:
     gone: list  # labels in collect `since` and no longer
 
 
+@dataclass
+class Columns:
+    """A group's rows as arrays, one row per entity: for the ten thousand sockets of a host, of
+    which the budget gives a hundred series of their own and sums the rest. Label values are made
+    only for the rows asked for (`rows`); the budget ranks and sums the others as arrays."""
+
+    ids: np.ndarray  # (n,) int64: the entity of each row, one row each
+    values: np.ndarray  # (n, k) int64: the row's counters, in the group's metrics' order
+    dims: np.ndarray  # (n,) intp: its value of the group's one dimension label, as an index of dim_names
+    dim_names: tuple[str, ...]
+    pids: np.ndarray  # (n,) int64: the process the row belongs to, for the agent's selection
+    labels: Callable[[list[int]], list[tuple[str, ...]]]  # the label values of the rows at these indices
+
+    def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
+        """(labels, values) rows, as a group's rows are: all, or those at these indices."""
+        at = list(range(len(self.ids))) if at is None else at
+        return list(zip(self.labels(at), map(tuple, self.values[at].tolist())))
+
+    def of_processes(self, pids: set[int]) -> "Columns":
+        """The rows of these processes."""
+        where = np.flatnonzero(among(self.pids, pids))
+        return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names, self.pids[where],
+                       lambda at: self.labels(where[at].tolist()))
+
+
+def _rows(rows: "list | Columns") -> list:
+    return rows.rows() if isinstance(rows, Columns) else rows
+
+
 class Snapshot:
     """What the agent knows at one instant: metric -> [(label values, value)].
 
     Metrics that always come together with the same labels (the six counters of a socket) can be
     added as one group row: the budget then handles ten thousand sockets as ten thousand rows,
-    not sixty thousand. `series` shows every row, groups spread out.
+    not sixty thousand; or as Columns, as arrays. `series` shows every row, groups spread out.
     """
 
     def __init__(self):
         self._series: dict[Metric, list[tuple[tuple[str, ...], object]]] = {}
-        self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]]] = {}
+        self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]] | Columns] = {}
         self.read_at: float | None = None  # time.time() when the probes were read, if known
         self.changes: dict[tuple[Metric, ...], Changes] = {}  # by group (a metric alone: a group of one)
         self._spreading = threading.Lock()
@@ -92,6 +126,7 @@ class Snapshot:
     def series(self) -> dict[Metric, list[tuple[tuple[str, ...], object]]]:
         with self._spreading:  # one snapshot goes to a scrape's render and to /diagnostics at once
             for metrics, rows in self.groups.items():
+                rows = _rows(rows)
                 for i, metric in enumerate(metrics):
                     self._series.setdefault(metric, []).extend((labels, values[i]) for labels, values in rows)
             self.groups = {}
@@ -109,8 +144,15 @@ class Snapshot:
         for metrics, rows in self.groups.items():
             if metric in metrics:
                 i = metrics.index(metric)
-                return [(labels, values[i]) for labels, values in rows]
+                return [(labels, values[i]) for labels, values in _rows(rows)]
         return []
+
+    def narrow(self, pids: set[int]) -> None:
+        """Only the rows of these processes in the groups given as Columns, before anything spreads
+        them into rows: of a host's ten thousand sockets, the few of the processes a job follows."""
+        for metrics, rows in self.groups.items():
+            if isinstance(rows, Columns):
+                self.groups[metrics] = rows.of_processes(pids)
 
     def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
         self._series.setdefault(metric, []).append((labels, value))

@@ -93,6 +93,7 @@ def test_pid_job_samples_the_process(api, traffic):
                                                                protocol="tcp") is not None
                        and value(s, "drums_process_cpu_seconds_total") >= burned)
     assert value(series, "drums_process_socket_sent_bytes_total", protocol="tcp") == 12345
+    assert value(series, "drums_socket_sent_bytes_total", protocol="tcp") == 12345  # its one socket's own row
     assert burned <= value(series, "drums_process_cpu_seconds_total") <= burned + 0.05
     assert value(series, "drums_process_resident_memory_bytes") == pytest.approx(
         psutil.Process(child.pid).memory_info().rss, rel=0.05)

@@ -2,12 +2,14 @@
 import random
 import sys
 
+import numpy as np
+
 from prometheus_client.parser import text_string_to_metric_families
 
 from drums import docs
 from drums.budget import Budget
 from drums.exporters.prometheus import Renderer, render
-from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Changes, Histogram, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
 
 CPU = Metric("drums_process_cpu_seconds_total", COUNTER, "cpu", ("pid", "process"))
 MEM = Metric("drums_process_resident_memory_bytes", GAUGE, "rss", ("pid", "process"))
@@ -206,6 +208,42 @@ def test_a_budget_told_the_changes_gives_what_one_that_compares_every_row_gives(
                 snap.changes[group] = changes
             outs.append({m.name: sorted(r) for m, r in budget.apply(snap).series.items()})
         assert outs[0] == outs[1], step
+
+
+def test_a_budget_given_sockets_as_columns_gives_what_one_given_rows_gives():
+    """Sockets of two protocols come, count on, get their own series, lose them and end; one
+    budget is given them as Columns (in no order), the other as rows: both keep the same sockets,
+    sum the same `other` and count the same folded. Every socket counts at every step, each by
+    its own amount, so that which are kept does not hang on how ties are broken."""
+    rng = random.Random(11)
+    by_columns, by_rows = Budget({"socket": 5}), Budget({"socket": 5})
+    counts: dict[int, list[int]] = {}  # inode -> [protocol, sent, received]
+    protocols = ("tcp", "udp")
+    for step in range(150):
+        for inode in [i for i in counts if rng.random() < 0.08]:
+            del counts[inode]
+        for _ in range(rng.randint(0, 4) if step else 30):
+            counts[rng.randint(1, 10**9)] = [rng.randint(0, 1), 0, 0]
+        for c in counts.values():  # now and then one socket outdoes the kept ones, and takes a slot
+            c[1] += rng.randint(1, 10**6 if rng.random() < 0.97 else 10**9)
+            c[2] += rng.randint(1, 10**4)
+        inodes = list(counts)
+        rng.shuffle(inodes)
+
+        def labels(at: list[int]) -> list[tuple]:
+            return [("1", str(inodes[i]), protocols[counts[inodes[i]][0]]) for i in at]
+        columns, rows = Snapshot(), Snapshot()
+        columns.groups[(SOCKET_SENT, SOCKET_RECEIVED)] = Columns(
+            np.array(inodes, np.int64), np.array([counts[i][1:] for i in inodes], np.int64).reshape(-1, 2),
+            np.array([counts[i][0] for i in inodes], np.intp), protocols, np.ones(len(inodes), np.int64), labels)
+        rows.group_rows((SOCKET_SENT, SOCKET_RECEIVED)).extend(zip(labels(list(range(len(inodes)))),
+                                                                   (tuple(counts[i][1:]) for i in inodes)))
+        outs = [{m.name: sorted(r) for m, r in budget.apply(snap).series.items()}
+                for budget, snap in ((by_columns, columns), (by_rows, rows))]
+        assert outs[0] == outs[1], step
+        assert by_columns.kept("socket") == by_rows.kept("socket"), step
+        assert by_columns.folded() == by_rows.folded() and by_columns.folded_total() == by_rows.folded_total()
+    assert by_rows.folded_total()["socket"] > 100  # sockets were folded, promoted and demoted alike
 
 
 def test_the_budget_counts_its_entities_by_their_changes_as_a_count_of_all_would():

@@ -360,6 +360,8 @@ class Jobs:
 
     def _sample(self, due: list[Job]) -> None:
         raw = self.collect(set().union(*(PROBES_OF[j.kind] for j in due)), any(j.kind == "topic" for j in due))
+        if not any(j.kind in ("socket", "topic") for j in due):  # the others name a process, or none
+            raw.narrow({int(j.target) for j in due if j.kind == "pid"})
         at = time.time()
         for job in due:
             sample = {"time": at, "series": job.pick(raw)}

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drums.arrays import within
 from drums.kernel.bpffs import LRU_TYPES, PinnedMap
 
 
@@ -26,26 +27,8 @@ class Matched:
     same: np.ndarray  # (n,) bool: ... with the very same value
     rows: np.ndarray  # (n,) object: what the caller kept for the key at the previous read (None if new)
     gone: np.ndarray  # object: what the caller kept for the keys of the previous read that are gone
-
-
-def within(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
-    """Whether each of `keys` is among `sorted_keys`: a binary search each (np.isin hashes both,
-    ten times slower for ten thousand keys, and imports numpy.ma: see distinct)."""
-    if not len(sorted_keys):
-        return np.zeros(len(keys), bool)
-    return sorted_keys[np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)] == keys
-
-
-def among(keys: np.ndarray, values) -> np.ndarray:
-    """Whether each of `keys` is among `values`, a collection of ints: `within`, sorted for it."""
-    return within(keys, np.sort(np.fromiter(values, keys.dtype, len(values))))
-
-
-def distinct(values: np.ndarray) -> list[int]:
-    """The distinct values, ascending, as Python ints. Asked for the values alone, np.unique (numpy
-    2.4) first asks numpy.ma whether the array is masked, importing it at its first call: 1.2 MB of
-    the agent's memory for nothing. Asked for their counts too, it does not."""
-    return np.unique(values, return_counts=True)[0].tolist()
+    grown: np.ndarray  # (g,) intp: the entries counted on (same head, another value), ascending
+    before: np.ndarray  # (g, width) uint64: their values at the previous read
 
 
 class Entries:
@@ -80,14 +63,16 @@ class Entries:
         rows = np.full(len(k), None, object)
         if not len(self._keys):
             new = np.zeros(len(k), bool)
-            return Matched(k, w, new, new, rows, self._rows)
+            return Matched(k, w, new, new, rows, self._rows, np.empty(0, np.intp), self._words[:0])
         at = np.minimum(np.searchsorted(self._keys, k), len(self._keys) - 1)
         known = self._keys[at] == k
         head, value = self._compare(self._words[at], w)
         same_head = known & head
         same = same_head & value
         rows[known] = self._rows[at[known]]
-        return Matched(k, w, same_head, same, rows, self._rows[~within(self._keys, k)])
+        grown = np.flatnonzero(same_head & ~same)
+        return Matched(k, w, same_head, same, rows, self._rows[~within(self._keys, k)], grown,
+                       self._words[at[grown]])
 
     def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
         """The entries of the last read (as kept) with these changes: a key's value, or None if the
@@ -107,9 +92,12 @@ class Entries:
         known[inside] = keys[at[inside]] == changed[inside]
         same_head, same = np.ones(len(keys), bool), np.ones(len(keys), bool)
         counted = known & present  # a key of the last read, with a value now: compared, then written
+        grown_keys, before = keys[:0], words[:0]
         if counted.any():
             pos, now = at[counted], values[counted[present]]
             same_head[pos], same[pos] = self._compare(words[pos], now)
+            on = pos[same_head[pos] & ~same[pos]]
+            grown_keys, before = keys[on], words[on]  # copies (fancy indexing), made before the writes
             words[pos] = now
         ended, new = known & ~present, ~known & present
         gone = rows[at[ended]]
@@ -124,7 +112,9 @@ class Entries:
             keys, words = np.insert(keys, pos, new_keys), np.insert(words, pos, new_words, axis=0)
             rows = np.insert(rows, pos, None)
             same_head, same = np.insert(same_head, pos, False), np.insert(same, pos, False)
-        return Matched(keys, words, same_head, same, rows, gone)
+        order = np.argsort(grown_keys)  # as the changes came: ascending, as the entries are
+        return Matched(keys, words, same_head, same, rows, gone, np.searchsorted(keys, grown_keys[order]),
+                       before[order])
 
     def _compare(self, old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per entry: whether the head is the same, and whether the whole value is."""

@@ -10,11 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drums.arrays import among, distinct
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries, among, distinct
+from drums.probes.entries import Entries
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24

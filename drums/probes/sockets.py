@@ -13,12 +13,13 @@ from sys import intern
 
 import numpy as np
 
+from drums.arrays import among, distinct
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, Changes, Metric, Monotonic, Snapshot
+from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_fentry,
                               needs_kprobes, needs_tracepoints, offset_defines, typed)
-from drums.probes.entries import Entries, Matched, among, distinct
+from drums.probes.entries import Entries, Matched
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -69,7 +70,7 @@ _RAW = AttachPath("raw_tracepoint",
 _WORDS_IDENTITY = _IDENTITY.size // 8
 _WORDS_COUNTS = _WORDS_IDENTITY + len(_COUNTS)  # the end of the counts
 _WORD_START = _WORDS_COUNTS + 1
-_TCP, _UNIX = PROTOCOLS.index("tcp"), PROTOCOLS.index("unix")
+_TCP = PROTOCOLS.index("tcp")
 
 
 def _identity(raw: bytes) -> tuple:
@@ -119,6 +120,29 @@ def _owned(tgid: np.ndarray, start: np.ndarray, klass: np.ndarray, counts: np.nd
     return {(k >> 2, s, k & 3): row for k, s, row in zip(key[first].tolist(), start[first].tolist(), sums)}
 
 
+class _Labels:
+    """The label values of sockets, made from their entries' words when the budget or a reader
+    of the snapshot asks for them (of ten thousand sockets, the hundred with series of their own)."""
+
+    def __init__(self, words: np.ndarray, names: dict[int, str], proc_net_unix: str):
+        self.words, self.names, self.proc_net_unix = words, names, proc_net_unix
+        self._paths: dict[int, str] | None = None  # unix sockets' bound paths, read at the first asked for
+
+    def __call__(self, at: list[int]) -> list[tuple[str, ...]]:
+        out = []
+        for raw in self.words[at, :_WORDS_IDENTITY]:
+            ino, pid, netns, protocol, local, remote = _identity(raw.tobytes())
+            if protocol == "unix":
+                if self._paths is None:
+                    self._paths = unix_paths(self.proc_net_unix)
+                local = self._paths.get(ino, "")
+            # Interned: the label values many sockets share (their process's pid, their namespace),
+            # and the addresses the tcp probe's rows name too, are one string each.
+            out.append((intern(str(pid)), self.names[pid], protocol, intern(local), intern(remote),
+                        intern(str(netns)), str(ino)))
+        return out
+
+
 class SocketsProbe(BpfProbe):
     name = "sockets"
     source = "sockets.bpf.c"
@@ -149,8 +173,7 @@ class SocketsProbe(BpfProbe):
         self._monotonic = Monotonic()
         self._collects = 0
         self._fds_read_at: dict[int, float] = {}
-        self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)  # rows: each socket's row, as exported last
-        self._names: dict[int, str] = {}  # pid -> its name in its sockets' rows
+        self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)
         # (pid, start, class) -> the counts of sockets whose entries this probe deleted (they had
         # closed) while their owner lives on: closed_traffic's counterpart in user space.
         self._forgotten: dict[tuple[int, int, int], list[int]] = {}
@@ -183,59 +206,34 @@ class SocketsProbe(BpfProbe):
         words = m.words
         pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
         klass = (words[:, 3] >> 16) & 0xFFFF
-        # Per process, not per socket: which are gone, and which were renamed since the last collect.
-        names, self._names = self._names, {}
-        dead, renamed = [], []
+        # Per process, not per socket: which are gone, and the names of the others.
+        names, dead = {}, []
         for pid in distinct(pids):
-            if not pt.alive(pid):
+            if pt.alive(pid):
+                names[pid] = pt.name(pid)
+            else:
                 dead.append(pid)
-                continue
-            name = self._names[pid] = pt.name(pid)
-            if names.get(pid, name) != name:
-                renamed.append(pid)
         stale = among(pids, dead) | self._closed(m, pids, klass)
         if stale.any():
             self._forget(m, np.flatnonzero(stale))
         live = ~stale
-        # Sockets whose labels changed though the socket did not: its process was renamed, or (a
-        # unix socket) the path it is bound to changed.
-        relabel = among(pids, renamed)
-        unix = np.flatnonzero(live & (klass == _UNIX))
-        paths = unix_paths(self.proc_net_unix) if len(unix) else {}
-        for i in unix.tolist():
-            if m.rows[i] is not None and m.rows[i][0][3] != paths.get(int(words[i, 0]), ""):
-                relabel[i] = True
-        # An idle socket's row is the very one of the last collect; only the others are made again.
-        remade = np.flatnonzero(live & ~(m.same & ~relabel)).tolist()
-        # What the last collect gave and this one does not: sockets gone, and old names.
-        gone = [row[0] for row in m.gone.tolist() + m.rows[stale].tolist() + m.rows[remade].tolist() if row]
-        # Sockets counted before that counted further, with their counts then: as a rule, all that
-        # changed, and what brings the owners' sums up to date.
-        grown = [(i, m.rows[i][1]) for i in remade if m.same_head[i] and m.rows[i] is not None]
-        for i in remade:
-            counts = tuple(words[i, _WORDS_IDENTITY:_WORDS_COUNTS].tolist())
-            if m.same_head[i] and not relabel[i]:
-                m.rows[i] = (m.rows[i][0], counts)  # the same socket, counted further
-                continue
-            ino, pid, netns, protocol, local, remote = _identity(words[i, :_WORDS_IDENTITY].tobytes())
-            if protocol == "unix":
-                local = paths.get(ino, "")
-            # Interned: the label values ten thousand sockets share (their process's pid, their
-            # namespace), and the addresses the tcp probe's rows name too, are one string each.
-            m.rows[i] = ((intern(str(pid)), self._names[pid], protocol, intern(local), intern(remote),
-                          intern(str(netns)), str(ino)), counts)
         self._entries.keep(m, live)
-        snap.group_rows(SOCKET_GROUP).extend(m.rows[live].tolist())
-        snap.changes[SOCKET_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)
-
-        if len(grown) < len(remade) or stale.any() or len(m.gone) or not summed:
-            w = words[live]
+        w = words[live]  # a copy: the next collect writes the entries' words in place
+        # Each socket by its inode; one without (it had no struct socket when first counted) by its
+        # entry's key, a kernel address, which as an int64 is below 0 and so no inode.
+        ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
+        snap.groups[SOCKET_GROUP] = Columns(
+            np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].astype(np.int64),
+            klass[live].astype(np.intp), PROTOCOLS, pids[live], _Labels(w, names, self.proc_net_unix))
+        # The owners' sums: brought up to date by what the sockets counted since the last collect
+        # when no socket came or went, else summed anew.
+        if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:
             self._live_totals = _owned(w[:, 1] & 0xFFFFFFFF, w[:, _WORD_START], (w[:, 3] >> 16) & 0xFFFF,
                                        w[:, _WORDS_IDENTITY:_WORDS_COUNTS])
         else:
-            for i, was in grown:
-                w = words[i].tolist()
-                _add(self._live_totals, _owner(w), [a - b for a, b in zip(w[_WORDS_IDENTITY:_WORDS_COUNTS], was)])
+            for now, was in zip(words[m.grown].tolist(), m.before.tolist()):
+                _add(self._live_totals, _owner(now), [a - b for a, b in zip(now[_WORDS_IDENTITY:_WORDS_COUNTS],
+                                                                            was[_WORDS_IDENTITY:_WORDS_COUNTS])])
         self._entries_summed = True
         self._process_totals(snap, closed_keys, closed_values)
         self.read_dropped()

@@ -47,9 +47,11 @@ def test_an_empty_map_reads_as_nothing():
 
 def test_changes_applied_to_the_last_read_match_as_a_whole_read_does():
     """Random steps of a map (keys come, go, are counted on, or reused for another thing): what
-    update() makes of the changes alone equals what read() makes of the whole map."""
+    update() makes of the changes alone equals what read() makes of the whole map, and the
+    entries counted on come with their values of the last kept read."""
     rng = random.Random(7)
     state: dict[int, tuple[int, int]] = {}  # key -> (head, count)
+    kept: dict[int, tuple[int, int]] = {}  # as the last kept read had them
     by_changes, by_reads = Entries(16, 8), Entries(16, 8)
     for step in range(200):
         changes = {}
@@ -71,11 +73,16 @@ def test_changes_applied_to_the_last_read_match_as_a_whole_read_does():
         assert (part.words == whole.words).all() and part.same.tolist() == whole.same.tolist(), step
         assert part.same_head.tolist() == whole.same_head.tolist() and part.rows.tolist() == whole.rows.tolist()
         assert sorted(part.gone.tolist()) == sorted(whole.gone.tolist()), step  # the rows of keys gone
+        on = sorted(k for k, (h, c) in state.items() if k in kept and kept[k][0] == h and kept[k][1] != c)
+        for m in (whole, part):
+            assert m.keys[m.grown].tolist() == on, step
+            assert [tuple(w) for w in m.before.tolist()] == [kept[k] for k in on], step
         keep = np.array([rng.random() > 0.05 for _ in range(len(whole.keys))], bool)
         by_reads.keep(whole, keep)
         by_changes.keep(part, keep)
         for k in whole.keys[~keep].tolist():  # not kept: the caller deleted it from the map
             state.pop(k, None)
+        kept = dict(state)
 
 
 def test_a_read_the_caller_did_not_keep_makes_the_next_read_make_every_row_anew():
@@ -101,7 +108,7 @@ def test_a_read_the_caller_did_not_keep_makes_the_next_read_make_every_row_anew(
 def test_distinct_values_come_ascending_without_importing_numpy_ma():
     """What the sockets and sched probes take per process each collect: np.unique asked for values
     alone imports numpy.ma (1.2 MB) at its first call."""
-    code = ("import sys, numpy as np; from drums.probes.entries import distinct; "
+    code = ("import sys, numpy as np; from drums.arrays import distinct; "
             "print(distinct(np.array([7, 3, 7, 1, 3], np.int64)), distinct(np.array([], np.uint32)), 'numpy.ma' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split("\n")[0] == "[1, 3, 7] [] False"

@@ -15,6 +15,8 @@ import time
 
 import pytest
 
+from drums.budget import Budget
+from drums.metrics import Columns
 from drums.probes import sockets
 from drums.probes.sockets import _SOCKET_VALUE
 from tests.conftest import TRACEPOINT_PATHS, connected_pairs, eventually, series, started_on_path, wait_until
@@ -776,42 +778,25 @@ def test_a_collect_looks_up_the_sockets_that_changed_and_keeps_the_idle_ones(soc
         assert looked_up >= 20
 
 
-def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sockets_probe, collect):
-    """What the budget applies instead of comparing every row: the rows of the last collect, less
-    those told gone, with those told changed, are this collect's rows; and idle sockets are not
-    told of. 100 connections; step after step one sends, one closes and one opens."""
-    group = sockets.SOCKET_GROUP
-    with tcp_listener() as lst:
-        pairs = []
-
-        def connect():
-            client = socket.create_connection(lst.getsockname())
-            pairs.append((client, lst.accept()[0]))
-        for _ in range(100):
-            connect()
-        try:
-            for client, server in pairs:
-                client.sendall(b"x")
-                recv_exactly(server, 1)
-            snap = collect(sockets_probe)
-            for step in range(30):
-                before, mark = dict(snap.groups[group]), snap.changes[group].mark
-                client, server = pairs[step]
-                client.sendall(b"y")
-                recv_exactly(server, 1)
-                for sock in pairs.pop():
-                    sock.close()
-                connect()
-                snap = collect(sockets_probe)
-                told = snap.changes[group]
-                assert told.since == mark
-                for labels in told.gone:
-                    before.pop(labels, None)
-                before.update(told.rows)
-                assert before == dict(snap.groups[group]), step
-                ours = [labels for labels, _ in told.rows if labels[0] == str(os.getpid())]
-                assert len(ours) == 2, (step, ours)  # the pair that sent, not the 200 sockets of this test
-        finally:
-            for pair in pairs:
-                for sock in pair:
-                    sock.close()
+def test_sockets_come_as_columns_and_only_those_kept_get_labels(sockets_probe, collect):
+    """The sockets reach the budget as arrays, one row each: label values are made for the
+    sockets given series of their own (5 here, of 200 and more), and the rest are summed into
+    `other` per protocol as arrays."""
+    with connected_pairs(100) as pairs:
+        for client, server in pairs:
+            client.sendall(b"x")
+            recv_exactly(server, 1)
+        snap = collect(sockets_probe)
+    cols = snap.groups[sockets.SOCKET_GROUP]
+    assert isinstance(cols, Columns) and len(set(cols.ids.tolist())) == len(cols.ids) >= 200
+    made, labels = [], cols.labels
+    cols.labels = lambda at: made.extend(at) or labels(at)
+    rows = Budget({"socket": 5}).apply(snap).groups[sockets.SOCKET_GROUP]
+    own = [(labels, values) for labels, values in rows if labels[0] != "other"]
+    assert len(own) == 5 and len(made) == 5
+    for i, protocol in enumerate(sockets.PROTOCOLS):
+        total = cols.values[cols.dims == i].sum(axis=0).tolist()
+        others = [values for labels, values in rows if labels[0] == "other" and labels[2] == protocol]
+        kept = [values for labels, values in own if labels[2] == protocol]
+        folded = int((cols.dims == i).sum()) - len(kept)  # sockets of the protocol in `other`: it has a row if any
+        assert others == [tuple(a - sum(v[j] for v in kept) for j, a in enumerate(total))] * (folded > 0), protocol
