@@ -246,6 +246,25 @@ def test_a_budget_given_sockets_as_columns_gives_what_one_given_rows_gives():
     assert by_rows.folded_total()["socket"] > 100  # sockets were folded, promoted and demoted alike
 
 
+def test_a_socket_that_loses_its_series_while_idle_goes_into_other_whole():
+    """One slot: a busy socket holds it while another is folded; then the other outdoes it, which
+    sits idle and so goes into `other` with all it counted, given as rows or as Columns alike."""
+    steps = [{1: 100, 2: 1}, {1: 100, 2: 1001}, {1: 100, 2: 1001}]
+    others = [1, 101, 101]  # 2's first 1 stays in `other` when it gets the slot; 1 brings its 100
+    for as_columns in (False, True):
+        budget = Budget({"socket": 1})
+        for sent, other in zip(steps, others):
+            snap, ids = Snapshot(), list(sent)
+            rows = [(("1", str(i), "tcp"), (sent[i], 0)) for i in ids]
+            if as_columns:
+                snap.groups[(SOCKET_SENT, SOCKET_RECEIVED)] = Columns(
+                    np.array(ids, np.int64), np.array([v for _, v in rows], np.int64), np.zeros(len(ids), np.intp),
+                    ("tcp",), np.ones(len(ids), np.int64), lambda at: [rows[i][0] for i in at])
+            else:
+                snap.group_rows((SOCKET_SENT, SOCKET_RECEIVED)).extend(rows)
+            assert budget.apply(snap).values(SOCKET_SENT)[("other", "other", "tcp")] == other, (as_columns, sent)
+
+
 def test_the_budget_counts_its_entities_by_their_changes_as_a_count_of_all_would():
     """Processes come, go, are renamed (their rows change labels, the process stays) and hold rows
     in some metrics only: what the budget keeps, folds and has ever folded is what counting every
