@@ -369,7 +369,8 @@ class Budget:
         steps, into = np.where(now < was, now, now - was), cols.dims[entering]
         for d in distinct(into):
             c.totals[d] = c.totals.get(d, 0) + steps[into == d].sum(axis=0)
-        c.folded[entering], c.infold[entering], c.last = now, True, vals
+        c.folded[entering], c.infold[entering] = now, True
+        c.last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
         st.folded_total += len(set(cols.ids[new].tolist()) - st.kept) + len(demoted)
         for d, total in c.totals.items():
             out.group_rows(metrics).append((c.other_labels(d), tuple(total.tolist())))

@@ -85,7 +85,9 @@ class Columns:
     only for the rows asked for (`rows`); the budget ranks and sums the others as arrays."""
 
     ids: np.ndarray  # (n,) int64: the entity of each row, one row each
-    values: np.ndarray  # (n, k) int64: the row's counters, in the group's metrics' order
+    # (n, k) int64: the row's counters, in the group's metrics' order. Maybe a view of a probe's
+    # arrays, which its next collect writes over: what is kept of them is copied.
+    values: np.ndarray
     dims: np.ndarray  # (n,) intp: its value of the group's one dimension label, as an index of dim_names
     dim_names: tuple[str, ...]
     pids: np.ndarray  # (n,) int64: the process the row belongs to, for the agent's selection
@@ -148,11 +150,12 @@ class Snapshot:
         return []
 
     def narrow(self, pids: set[int]) -> None:
-        """Only the rows of these processes in the groups given as Columns, before anything spreads
-        them into rows: of a host's ten thousand sockets, the few of the processes a job follows."""
+        """Only the rows of these processes in the groups given as Columns, made into rows now (the
+        probe's next collect writes over its arrays): of a host's ten thousand sockets, the few of
+        the processes a job follows."""
         for metrics, rows in self.groups.items():
             if isinstance(rows, Columns):
-                self.groups[metrics] = rows.of_processes(pids)
+                self.groups[metrics] = rows.of_processes(pids).rows()
 
     def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
         self._series.setdefault(metric, []).append((labels, value))

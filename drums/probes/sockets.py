@@ -218,12 +218,15 @@ class SocketsProbe(BpfProbe):
             self._forget(m, np.flatnonzero(stale))
         live = ~stale
         self._entries.keep(m, live)
-        w = words[live]  # a copy: the next collect writes the entries' words in place
+        # The entries' own arrays as a rule (no socket went): a copy a scrape of ten thousand sockets'
+        # words costs page faults more than it saves. The next collect writes over them in place,
+        # so what a reader keeps of the columns it copies.
+        w = words if live.all() else words[live]
         # Each socket by its inode; one without (it had no struct socket when first counted) by its
         # entry's key, a kernel address, which as an int64 is below 0 and so no inode.
         ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
         snap.groups[SOCKET_GROUP] = Columns(
-            np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].astype(np.int64),
+            np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
             klass[live].astype(np.intp), PROTOCOLS, pids[live], _Labels(w, names, self.proc_net_unix))
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
