@@ -22,7 +22,7 @@ from operator import itemgetter
 
 import numpy as np
 
-from drums.arrays import distinct, within
+from drums.arrays import within
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
@@ -221,16 +221,19 @@ class _Columnar:
         went, or they came in another order): the arrays follow them. Which are new."""
         order = np.argsort(ids)
         ascending = ids[order]
-        pos = np.minimum(np.searchsorted(self.sorted, ascending), max(len(self.ids) - 1, 0))  # ascending: 8x faster
-        held = self.sorted[pos] == ascending if len(self.ids) else np.zeros(len(ids), bool)
-        src, dst = self.order[pos[held]], order[held]
-        last, folded, infold = self.last, self.folded, self.infold
-        self.last, self.folded = np.zeros((2, len(ids), last.shape[1]), np.int64)
-        self.infold = np.zeros(len(ids), bool)
-        self.last[dst], self.folded[dst], self.infold[dst] = last[src], folded[src], infold[src]
-        self.ids, self.order, self.sorted = ids, order, ascending
         new = np.ones(len(ids), bool)
-        new[dst] = False
+        if len(self.ids):
+            pos = np.minimum(np.searchsorted(self.sorted, ascending), len(self.ids) - 1)  # ascending: 8x faster
+            src = np.empty(len(ids), np.intp)
+            src[order] = self.order[pos]  # where each entity was; any row for a new one, zeroed below
+            new[order[self.sorted[pos] == ascending]] = False
+            # take: four times faster than indexing with an array
+            self.last, self.folded, self.infold = (a.take(src, axis=0) for a in (self.last, self.folded, self.infold))
+        else:
+            self.last, self.folded = np.zeros((2, len(ids), self.last.shape[1]), np.int64)
+            self.infold = np.zeros(len(ids), bool)
+        self.last[new], self.folded[new], self.infold[new] = 0, 0, False
+        self.ids, self.order, self.sorted = ids, order, ascending
         return new
 
     def other_labels(self, dim: int) -> tuple[str, ...]:
@@ -367,8 +370,10 @@ class Budget:
         entering = np.union1d(np.setdiff1d(changed, own, assume_unique=True), demoted)
         now, was = vals[entering], np.where(c.infold[entering, None], c.folded[entering], 0)
         steps, into = np.where(now < was, now, now - was), cols.dims[entering]
-        for d in distinct(into):
-            c.totals[d] = c.totals.get(d, 0) + steps[into == d].sum(axis=0)
+        sums = np.zeros((len(c.dim_names), len(metrics)), np.int64)
+        np.add.at(sums, into, steps)
+        for d in np.flatnonzero(np.bincount(into, minlength=len(c.dim_names))).tolist():
+            c.totals[d] = c.totals.get(d, 0) + sums[d]
         c.folded[entering], c.infold[entering] = now, True
         c.last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
         st.folded_total += len(set(cols.ids[new].tolist()) - st.kept) + len(demoted)
