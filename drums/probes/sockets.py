@@ -122,7 +122,9 @@ def _owned(tgid: np.ndarray, start: np.ndarray, klass: np.ndarray, counts: np.nd
 
 class _Labels:
     """The label values of sockets, made from their entries' words when the budget or a reader
-    of the snapshot asks for them (of ten thousand sockets, the hundred with series of their own)."""
+    of the snapshot asks for them (of ten thousand sockets, the hundred with series of their own).
+    A reader that asks after the probe's next collect may find an entry given to another socket
+    meanwhile, of a process this collect did not name: its name is then empty."""
 
     def __init__(self, words: np.ndarray, names: dict[int, str], proc_net_unix: str):
         self.words, self.names, self.proc_net_unix = words, names, proc_net_unix
@@ -138,7 +140,7 @@ class _Labels:
                 local = self._paths.get(ino, "")
             # Interned: the label values many sockets share (their process's pid, their namespace),
             # and the addresses the tcp probe's rows name too, are one string each.
-            out.append((intern(str(pid)), self.names[pid], protocol, intern(local), intern(remote),
+            out.append((intern(str(pid)), self.names.get(pid, ""), protocol, intern(local), intern(remote),
                         intern(str(netns)), str(ino)))
         return out
 
