@@ -367,7 +367,11 @@ class Budget:
         # what it added.
         c.infold[own] = False
         demoted = c.at(np.array(sorted(was_kept - st.kept), np.int64))
-        entering = np.union1d(np.setdiff1d(changed, own, assume_unique=True), demoted)
+        enters = np.zeros(len(cols.ids), bool)  # (a mask, not setdiff1d and union1d, which import numpy.ma)
+        enters[changed] = True
+        enters[own] = False
+        enters[demoted] = True
+        entering = np.flatnonzero(enters)
         now, was = vals[entering], np.where(c.infold[entering, None], c.folded[entering], 0)
         steps, into = np.where(now < was, now, now - was), cols.dims[entering]
         sums = np.zeros((len(c.dim_names), len(metrics)), np.int64)
