@@ -350,17 +350,20 @@ class Budget:
         changed = np.flatnonzero((vals != c.last).any(axis=1) | new)
         # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
         grew = np.maximum(vals[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
-        share = (grew / np.where(grew.sum(axis=0) > 0, grew.sum(axis=0), 1)).sum(axis=1)
+        whole = grew.sum(axis=0)
+        share = (grew / np.where(whole > 0, whole, 1)).sum(axis=1)
         activity = dict(zip(cols.ids[changed[share > 0]].tolist(), share[share > 0].tolist()))
-        kept = np.fromiter(st.kept, np.int64, len(st.kept))
-        st.kept = set(kept[within(kept, c.sorted)].tolist())  # entities that ended free their slots
+
+        def kept() -> np.ndarray:  # the entities with series of their own, ascending
+            return np.sort(np.fromiter(st.kept, np.int64, len(st.kept)))
+        held = kept()
+        st.kept = set(held[within(held, c.sorted)].tolist())  # entities that ended free their slots
         was_kept = set(st.kept)
 
         def idle(n: int) -> list[int]:  # entities without series of their own, the first n
-            taken = np.sort(np.fromiter(st.kept, np.int64, len(st.kept)))
-            return c.sorted[~within(c.sorted, taken)][:n].tolist()
+            return c.sorted[~within(c.sorted, kept())][:n].tolist()
         self._choose(st, idle, activity)
-        own = c.at(np.sort(np.fromiter(st.kept, np.int64, len(st.kept))))
+        own = c.at(kept())
         out.group_rows(metrics).extend(cols.rows(own.tolist()))
         # `other`: what each entity not kept counted since it last added to it (all of it if it is
         # new, just left its own series, or went back); one that gets its own series leaves in it

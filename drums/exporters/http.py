@@ -33,7 +33,7 @@ import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 from urllib.parse import parse_qs, urlsplit
 
 import h11
@@ -42,8 +42,10 @@ from isal import igzip
 from drums.errors import DrumsError, UsageError
 from drums.exporters import READ_AT
 from drums.exporters.jobs import KINDS, Forbidden, Jobs, NotFound, job_id, job_target, parse_body
-from drums.exporters.stream import Stream
 from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+
+if TYPE_CHECKING:
+    from drums.exporters.stream import Stream
 
 log = logging.getLogger("drums")
 

@@ -173,7 +173,6 @@ class SocketsProbe(BpfProbe):
         self.proctable = proctable
         self.proc_net_unix = proc_net_unix
         self._monotonic = Monotonic()
-        self._collects = 0
         self._fds_read_at: dict[int, float] = {}
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)
         # (pid, start, class) -> the counts of sockets whose entries this probe deleted (they had
@@ -199,8 +198,8 @@ class SocketsProbe(BpfProbe):
 
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
-        self._collects += 1  # first: a collect that fails is one the next cannot be told against
-        summed, self._entries_summed = self._entries_summed, False  # likewise
+        # First: a collect that fails leaves sums the next cannot bring up to date.
+        summed, self._entries_summed = self._entries_summed, False
         # Before the sockets: an entry the kernel deletes between the two reads is then missing
         # from both for this collect (which Monotonic holds back), never counted twice.
         closed_keys, closed_values, _ = self.read("closed_traffic")
