@@ -134,16 +134,20 @@ def test_bad_input_is_one_line_and_exit_2(argv, message):
     assert len(lines) == 1 and lines[0].startswith("drums: ") and message in lines[0], out.stderr
 
 
-def test_port_in_use_is_one_line():
+@pytest.mark.parametrize("taken, said", [("--port", "cannot listen on"),
+                                         ("--stream-port", "cannot publish the stream on")])
+def test_port_in_use_is_one_line(taken, said):
+    """The /metrics port, or the stream's, which is held from start though ZeroMQ comes later."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        out = subprocess.run([sys.executable, "-m", "drums", "agent", "--port", str(port), "--probe", "host",
-                              "--stream-port", "0"],
+        ports = {"--port": "0", "--stream-port": "0", taken: str(port)}
+        out = subprocess.run([sys.executable, "-m", "drums", "agent", "--probe", "host",
+                              *[arg for flag, value in ports.items() for arg in (flag, value)]],
                              capture_output=True, text=True, timeout=30)
     assert out.returncode == 2
-    assert out.stderr.strip() == f"drums: cannot listen on 127.0.0.1:{port}: Address already in use"
+    assert out.stderr.strip() == f"drums: {said} 127.0.0.1:{port}: Address already in use"
 
 
 def test_strict_refuses_when_a_probe_cannot_attach(tmp_path):
