@@ -332,8 +332,8 @@ class Agent:
         for metric, rows in snap.singles.items():
             out.rows(metric).extend(_of_chosen(metric, rows, chosen))
         for metrics, rows in snap.groups.items():
-            if isinstance(rows, Columns):
-                out.groups[metrics] = rows.of_processes(pids)
+            if isinstance(rows, Columns):  # as _of_chosen: rows about no process pass whole
+                out.groups[metrics] = rows.of_processes(pids) if rows.pids is not None else rows
             else:
                 out.group_rows(metrics).extend(_of_chosen(metrics[0], rows, chosen))
         return out

@@ -9,8 +9,9 @@ leaves it (its entity ended, or got its own series) leaves what it added.
 The budget remembers each row between collects and does per-row work only for rows that changed:
 on an idle host with ten thousand processes' rows a collect is a few dict and set operations. A
 probe that tells its rows as changes to those of its last collect (Snapshot.changes) spares it even
-comparing them. A group given as Columns (the sockets) is ranked and summed as arrays, and label
-values are asked for only for the rows kept: ten thousand sockets hold no Python object each.
+comparing them. A group given as Columns (the sockets, the TCP connections) is ranked and summed as
+arrays, and label values are asked for only for the rows kept: ten thousand sockets hold no Python
+object each.
 """
 from __future__ import annotations
 
@@ -195,7 +196,7 @@ class _Columnar:
     """What the budget remembers of a group given as Columns: its entities in the order the last
     Columns gave them (a probe hands its sockets on in the same order while none come or go), the
     same ascending for lookups, and each entity's values and what it has summed into `other`. Its
-    series are all counters (sockets' bytes and calls)."""
+    series are all counters (sockets' bytes and calls, connections' retransmits and resets)."""
 
     def __init__(self, metrics: tuple[Metric, ...], kind: str, dim_names: tuple[str, ...]):
         if not all(m.kind == COUNTER for m in metrics):
@@ -211,6 +212,11 @@ class _Columnar:
         self.folded = np.empty((0, len(metrics)), np.int64)  # and as last summed into `other`, where
         self.infold = np.empty(0, bool)  # it is in `other`
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
+        self.entity_of = itemgetter(*[labels.index(label) for label in KINDS[kind][0]])
+        # The entities kept, by their labels as a kind given as rows names them (ids are the probe's),
+        # and those that only the groups beside the columns have, shown too.
+        self.named: set = set()
+        self.extra: set = set()
 
     def at(self, ids: np.ndarray) -> np.ndarray:
         """Where these entities (all of them held) are in `ids`."""
@@ -272,7 +278,7 @@ class Budget:
         """Entities of a kind that had their own series at the last collect: a label value for
         kinds named by one label (a pid, an inode), a tuple of values for the others."""
         st = self.kinds[kind]
-        return {str(e) for e in st.kept} if st.columnar else set(st.kept)
+        return st.columnar.named | st.columnar.extra if st.columnar else set(st.kept)
 
     def limit(self, kind: str) -> int:
         return self.kinds[kind].limit
@@ -298,11 +304,14 @@ class Budget:
 
     def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, out: Snapshot) -> None:
         columns = [(metrics, rows) for metrics, (rows, _) in groups.items() if isinstance(rows, Columns)]
-        if columns or (st.columnar is not None and not groups):  # none: every entity gone
-            if len(groups) > 1:
-                raise ValueError(f"{kind}: a group given as columns must be the only one of its kind")
+        if columns or st.columnar is not None:  # none now: every entity gone
+            beside = {metrics: group for metrics, group in groups.items() if not isinstance(group[0], Columns)}
+            if len(columns) > 1 or any(m.additive for metrics in beside for m in metrics):
+                raise ValueError(f"{kind}: a group given as columns must be its kind's only one, but for gauges "
+                                 "that do not add up")
             metrics, cols = columns[0] if columns else (st.columnar.metrics, None)
             self._apply_columns(st, kind, metrics, cols, out)
+            self._beside_columns(st, kind, beside, out)
             return
         # Ten thousand sockets pass here at each scrape, few of which did anything since the last:
         # only changed rows get per-row work, the rest is dict and set operations.
@@ -364,7 +373,9 @@ class Budget:
             return c.sorted[~within(c.sorted, kept())][:n].tolist()
         self._choose(st, idle, activity)
         own = c.at(kept())
-        out.group_rows(metrics).extend(cols.rows(own.tolist()))
+        rows = cols.rows(own.tolist())
+        out.group_rows(metrics).extend(rows)
+        c.named = {c.entity_of(labels) for labels, _ in rows}
         # `other`: what each entity not kept counted since it last added to it (all of it if it is
         # new, just left its own series, or went back); one that gets its own series leaves in it
         # what it added.
@@ -386,6 +397,22 @@ class Budget:
         st.folded_total += len(set(cols.ids[new].tolist()) - st.kept) + len(demoted)
         for d, total in c.totals.items():
             out.group_rows(metrics).append((c.other_labels(d), tuple(total.tolist())))
+
+    @staticmethod
+    def _beside_columns(st: _KindState, kind: str, groups: dict, out: Snapshot) -> None:
+        """The rows of gauges that do not add up (a connection's RTT) beside a group given as
+        Columns: those of the entities kept, and of entities the columns do not have (a connection
+        older than the agent, which never moved under its probes) as far as slots are free, the
+        first by their labels."""
+        c, ident = st.columnar, KINDS[kind][0]
+        named = {metrics: (itemgetter(*[metrics[0].labels.index(label) for label in ident]), rows, single)
+                 for metrics, (rows, single) in groups.items()}
+        others = {entity_of(row[0]) for entity_of, rows, _ in named.values() for row in rows} - c.named
+        c.extra = set(sorted(others)[:max(st.limit - len(st.kept), 0)])
+        shown = c.named | c.extra
+        for metrics, (entity_of, rows, single) in named.items():
+            (out.rows(metrics[0]) if single else out.group_rows(metrics)).extend(
+                row for row in rows if entity_of(row[0]) in shown)
 
     @staticmethod
     def _count_entities(st: _KindState, groups: list) -> tuple[set, set]:

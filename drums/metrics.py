@@ -90,7 +90,7 @@ class Columns:
     values: np.ndarray
     dims: np.ndarray  # (n,) intp: its value of the group's one dimension label, as an index of dim_names
     dim_names: tuple[str, ...]
-    pids: np.ndarray  # (n,) int64: the process the row belongs to, for the agent's selection
+    pids: np.ndarray | None  # (n,) int64: the process the row belongs to, for the agent's selection; None: of none
     labels: Callable[[list[int]], list[tuple[str, ...]]]  # the label values of the rows at these indices
 
     def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
@@ -99,10 +99,10 @@ class Columns:
         return list(zip(self.labels(at), map(tuple, self.values[at].tolist())))
 
     def of_processes(self, pids: set[int]) -> "Columns":
-        """The rows of these processes."""
-        where = np.flatnonzero(among(self.pids, pids))
-        return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names, self.pids[where],
-                       lambda at: self.labels(where[at].tolist()))
+        """The rows of these processes (none, for rows that belong to no process)."""
+        where = np.flatnonzero(among(self.pids, pids)) if self.pids is not None else np.empty(0, np.intp)
+        return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names,
+                       None if self.pids is None else self.pids[where], lambda at: self.labels(where[at].tolist()))
 
 
 def _rows(rows: "list | Columns") -> list:
@@ -152,7 +152,7 @@ class Snapshot:
     def narrow(self, pids: set[int]) -> None:
         """Only the rows of these processes in the groups given as Columns, made into rows now (the
         probe's next collect writes over its arrays): of a host's ten thousand sockets, the few of
-        the processes a job follows."""
+        the processes a job follows, and none of the connections, which are no process's."""
         for metrics, rows in self.groups.items():
             if isinstance(rows, Columns):
                 self.groups[metrics] = rows.of_processes(pids).rows()

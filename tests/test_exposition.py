@@ -10,6 +10,7 @@ from drums import docs
 from drums.budget import Budget
 from drums.exporters.prometheus import Renderer, render
 from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
+from drums.probes import tcp
 
 CPU = Metric("drums_process_cpu_seconds_total", COUNTER, "cpu", ("pid", "process"))
 MEM = Metric("drums_process_resident_memory_bytes", GAUGE, "rss", ("pid", "process"))
@@ -263,6 +264,59 @@ def test_a_socket_that_loses_its_series_while_idle_goes_into_other_whole():
             else:
                 snap.group_rows((SOCKET_SENT, SOCKET_RECEIVED)).extend(rows)
             assert budget.apply(snap).values(SOCKET_SENT)[("other", "other", "tcp")] == other, (as_columns, sent)
+
+
+def test_a_budget_given_connections_as_columns_with_their_rtt_beside_gives_what_one_given_rows_gives():
+    """Connections come, count on, get their own series, lose them and end, half of them with an
+    RTT: one budget is given their counters as Columns (in no order) and their RTT as rows, the
+    other all as rows. Both keep the same connections, show the same RTT and sum the same
+    `other`. Every connection counts at every step, each by its own amount."""
+    rng = random.Random(13)
+    by_columns, by_rows = Budget({"connection": 5}), Budget({"connection": 5})
+    counts: dict[int, list[int]] = {}  # id -> its four counts
+    for step in range(150):
+        for id_ in [i for i in counts if rng.random() < 0.08]:
+            del counts[id_]
+        for _ in range(rng.randint(0, 4) if step else 30):
+            counts[rng.randint(1, 10**9)] = [0, 0, 0, 0]
+        for c in counts.values():
+            c[0] += rng.randint(1, 10**6 if rng.random() < 0.97 else 10**9)
+            c[1] += rng.randint(0, 3)
+        ids = list(counts)
+        rng.shuffle(ids)
+
+        def labels(at: list[int]) -> list[tuple]:
+            return [(f"10.0.0.1:{ids[i]}", "10.0.0.2:80", "1") for i in at]
+        rtt = [((local, remote), rng.random()) for local, remote, _ in labels(list(range(len(ids))))
+               if rng.random() < 0.5]
+        columns, rows = Snapshot(), Snapshot()
+        columns.groups[tcp.CONN_GROUP] = Columns(np.array(ids, np.int64), np.array([counts[i] for i in ids], np.int64),
+                                                 np.zeros(len(ids), np.intp), ("",), None, labels)
+        rows.group_rows(tcp.CONN_GROUP).extend(zip(labels(list(range(len(ids)))), (tuple(counts[i]) for i in ids)))
+        for snap in (columns, rows):
+            snap.rows(tcp.CONN_RTT).extend(rtt)
+        outs = [{m.name: sorted(r) for m, r in budget.apply(snap).series.items()}
+                for budget, snap in ((by_columns, columns), (by_rows, rows))]
+        assert outs[0] == outs[1], step
+        assert by_columns.kept("connection") == by_rows.kept("connection"), step
+        assert by_columns.folded() == by_rows.folded() and by_columns.folded_total() == by_rows.folded_total()
+    assert by_rows.folded_total()["connection"] > 100
+
+
+def test_the_rtt_of_a_connection_the_columns_lack_shows_while_a_slot_is_free():
+    """A connection older than the agent has an RTT and no entry (it never moved under the
+    probes): its RTT is shown in a slot the columns leave free, the first by its addresses."""
+    budget = Budget({"connection": 2})
+    rtt = {("a:1", "b:1"): 0.1, ("e:1", "f:1"): 0.3, ("c:1", "d:1"): 0.2}
+    for connections, shown in (([("a:1", "b:1")], {("a:1", "b:1"), ("c:1", "d:1")}),
+                               ([("a:1", "b:1"), ("x:1", "y:1")], {("a:1", "b:1")})):  # no slot free
+        snap = Snapshot()
+        snap.groups[tcp.CONN_GROUP] = Columns(
+            np.arange(1, len(connections) + 1, dtype=np.int64), np.ones((len(connections), 4), np.int64),
+            np.zeros(len(connections), np.intp), ("",), None, lambda at: [(*connections[i], "1") for i in at])
+        snap.rows(tcp.CONN_RTT).extend(rtt.items())
+        assert budget.apply(snap).values(tcp.CONN_RTT) == {k: rtt[k] for k in shown}
+        assert budget.kept("connection") == {*connections} | shown
 
 
 def test_the_budget_counts_its_entities_by_their_changes_as_a_count_of_all_would():

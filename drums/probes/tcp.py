@@ -9,7 +9,6 @@ from __future__ import annotations
 import socket
 import struct
 import time
-from operator import add
 from sys import intern
 
 import numpy as np
@@ -18,7 +17,7 @@ from drums.errors import KernelError
 from drums.kernel import sockdiag
 from drums.kernel.bpffs import sum_percpu
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, GAUGE, Changes, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, Columns, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
@@ -59,6 +58,69 @@ RTT_INTERVAL = 5.0
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
 EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
+# What names a connection in its head's words: all but its state and the padding at the end.
+_NAME_MASK = np.full(_HEAD_WORDS, ~np.uint64(0), np.uint64)
+_NAME_MASK[_STATE_WORD] = ~np.uint64(0xFFFF << _STATE_SHIFT)
+_NAME_MASK[-1] = np.uint64(0xFFFFFFFF)
+
+
+def connection_ids(heads: np.ndarray) -> np.ndarray:
+    """An int64 per connection from the words of its head: its addresses, ports and network
+    namespace mixed (the rounds of splitmix64), so that the connections a series is named by are
+    one id. Two of ten thousand differ in a few bits; the chance that two names share an id is
+    about 3e-12."""
+    h = np.full(len(heads), 0x9E3779B97F4A7C15, np.uint64)
+    for j in range(_HEAD_WORDS):
+        h ^= heads[:, j] & _NAME_MASK[j]
+        h *= np.uint64(0xBF58476D1CE4E5B9)
+        h ^= h >> np.uint64(27)
+        h *= np.uint64(0x94D049BB133111EB)
+        h ^= h >> np.uint64(31)
+    return h.view(np.int64)
+
+
+def merged(ids: np.ndarray, counts: np.ndarray, closed: np.ndarray, carried: dict[int, np.ndarray]
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict[int, np.ndarray]]:
+    """A connection's series is named by its addresses, which a later connection can reuse while
+    the kernel still holds the earlier one: rows of one id are one series, their counts summed.
+    A closed connection is exported once, with the reset that closed it, then forgotten. What it
+    counted stays in its series while a connection with its addresses is in the next collect (a
+    client that reconnects from its port at once): a series missing from a scrape is a new one to
+    Prometheus anyway, and so no more counts are carried than connections were collected.
+    `carried`: id -> what the connections with it that closed at the last collect had counted.
+    (ids, counts, where each id's row came from or None when nothing was summed, what the next
+    collect carries.)"""
+    if not closed.any() and not carried:
+        return ids, counts, None, {}
+    unique, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    sums = np.zeros((len(unique), counts.shape[1]), np.int64)
+    np.add.at(sums, inverse, counts)
+    kept = {}
+    for id_, at in zip(carried, np.searchsorted(unique, list(carried)).tolist()):
+        if at < len(unique) and unique[at] == id_:
+            sums[at] += carried[id_]
+            kept[id_] = carried[id_]
+    for i in np.flatnonzero(closed).tolist():
+        id_ = int(ids[i])
+        kept[id_] = kept[id_] + counts[i] if id_ in kept else counts[i].copy()
+    return unique, sums, first, kept
+
+
+class _Labels:
+    """The label values of connections, made from the words of their heads when the budget or a
+    reader of the snapshot asks for them (of ten thousand connections, the hundred it keeps)."""
+
+    def __init__(self, heads: np.ndarray):
+        self.heads = heads
+
+    def __call__(self, at: list[int]) -> list[tuple[str, ...]]:
+        out = []
+        for raw in self.heads[at, :_HEAD_WORDS]:
+            netns, family, lport, rport, _state, laddr, raddr = _CONN_HEAD.unpack(raw.tobytes())
+            # Interned: as the sockets probe's labels, one string each
+            out.append((intern(endpoint(family, laddr, lport)), intern(endpoint(family, raddr, rport)),
+                        intern(str(netns))))
+        return out
 
 
 class TcpProbe(BpfProbe):
@@ -80,10 +142,8 @@ class TcpProbe(BpfProbe):
         self.rtt_interval = rtt_interval
         self._rtt: list = []
         self._rtt_at = float("-inf")
-        self._carried: dict[tuple, tuple] = {}  # labels -> what closed connections with them counted
-        self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)  # rows: (labels, counts)
-        self._collects = 0
-        self._told = False  # whether the last collect's rows are the entries' own (no sums)
+        self._carried: dict[int, np.ndarray] = {}  # connection id -> what closed connections with it counted
+        self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)
         self._wanted: set[tuple[str, str]] | None = None
 
     def want_rtt(self, connections: set[tuple[str, str]]) -> None:
@@ -102,30 +162,18 @@ class TcpProbe(BpfProbe):
         })
 
     def collect(self, snap: Snapshot) -> None:
-        """Rows are made again only for the connections whose entries changed since the last
-        collect: of ten thousand, most did nothing."""
-        self._collects += 1  # first: a collect that fails is one the next cannot be told against
+        """The connections are handed on as arrays (Columns): of ten thousand, the budget asks the
+        labels of the hundred it keeps, and the rest hold no Python object each."""
         m = self.read_marked("tcp_conns", self._entries)
         words = m.words
-        remade = np.flatnonzero(~m.same).tolist()
-        gone = [row[0] for row in m.gone.tolist() + m.rows[remade].tolist() if row]
-        for i in remade:
-            counts = tuple(words[i, _HEAD_WORDS:_COUNT_WORDS].tolist())
-            if m.same_head[i]:
-                m.rows[i] = (m.rows[i][0], counts)  # the same connection, counted further
-                continue
-            netns, family, lport, rport, _state, laddr, raddr = _CONN_HEAD.unpack(words[i, :_HEAD_WORDS].tobytes())
-            m.rows[i] = ((intern(endpoint(family, laddr, lport)), intern(endpoint(family, raddr, rport)),
-                          intern(str(netns))), counts)  # as the sockets probe's labels: one string each
         closed = (words[:, _STATE_WORD] >> _STATE_SHIFT & 0xFFFF) == TCP_CLOSE
-        rows = m.rows.tolist()
-        merged = closed.any() or self._carried
-        if merged:
-            rows = self._merged(rows, closed)
-        elif self._told:  # as changes too, unless this collect or the last summed rows
-            snap.changes[CONN_GROUP] = Changes(self._collects - 1, self._collects, m.rows[remade].tolist(), gone)
-        self._told = not merged
-        snap.group_rows(CONN_GROUP).extend(rows)
+        ids, counts, first, self._carried = merged(
+            connection_ids(words[:, :_HEAD_WORDS]), words[:, _HEAD_WORDS:_COUNT_WORDS].view(np.int64), closed,
+            self._carried)
+        # The entries' own arrays as a rule (no connection closed, none summed): the next collect
+        # writes over them in place, so what a reader keeps of the columns it copies.
+        heads = words if first is None else words[first]
+        snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None, _Labels(heads))
         if closed.any():
             self.opened["tcp_conns"].delete_unchanged(  # one that changed instead comes back marked
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])
@@ -149,36 +197,6 @@ class TcpProbe(BpfProbe):
         for labels, rtt in self._rtt:
             snap.add(CONN_RTT, labels, rtt)
         self.read_dropped()
-
-    def _merged(self, rows: list, closed) -> list:
-        """A connection's series is named by its addresses, which a later connection can reuse
-        while the kernel still holds the earlier one: the two are one series, their counts summed.
-        A closed connection is exported once, with the reset that closed it, then forgotten. What
-        it counted stays in its series while a connection with its addresses is in the next
-        collect (a client that reconnects from its port at once): a series missing from a scrape
-        is a new one to Prometheus anyway, and so no more counts are carried than connections
-        were collected. Only rows named like a closed connection, now or at the last collect, can
-        be summed with another."""
-        ended = [rows[i] for i in np.flatnonzero(closed).tolist()]
-        carried, self._carried = self._carried, {}
-        shared = {labels for labels, _ in ended} | carried.keys()
-        out, summed = [], {}
-        for row in rows:
-            labels = row[0]
-            if labels not in shared:
-                out.append(row)
-            else:
-                summed[labels] = tuple(map(add, summed[labels], row[1])) if labels in summed else row[1]
-        for labels, counts in summed.items():
-            past = carried.get(labels)
-            if past:
-                self._carried[labels] = past
-                counts = tuple(map(add, counts, past))
-            out.append((labels, counts))
-        for labels, counts in ended:
-            past = self._carried.get(labels)
-            self._carried[labels] = tuple(map(add, counts, past)) if past else counts
-        return out
 
     def transitions(self) -> int:
         """TCP state changes on the host (every network namespace's) since the programs were loaded:

@@ -14,9 +14,13 @@ import time
 import warnings
 from collections import Counter
 
+import numpy as np
 import pytest
 
-from drums.probes.tcp import CONN_GROUP
+from drums.budget import Budget
+from drums.metrics import Columns
+from drums.probes import tcp
+from drums.probes.tcp import CONN_GROUP, merged
 from tests.conftest import connected_pairs, eventually, series, wait_until
 
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
@@ -201,39 +205,63 @@ def test_one_connection_walks_the_state_machine(tcp_probe, collect):
             "close_wait": 1, "last_ack": 1, "close": 2})
 
 
-def test_a_collect_makes_rows_again_only_for_the_connections_whose_entries_changed(tcp_probe, collect):
+def test_connections_come_as_columns_and_only_those_kept_get_labels(tcp_probe, collect):
+    """The connections reach the budget as arrays, one row each: label values are made for the
+    connections given series of their own (5 here, of 200 and more), and the rest are summed
+    into `other` as arrays. Each end of the 100 connections moved twice (SYN_SENT or SYN_RECV,
+    then ESTABLISHED)."""
+    with connected_pairs(100) as pairs:
+        snap = collect(tcp_probe)
+        ours = {(name(s.getsockname()), name(s.getpeername()), NETNS) for pair in pairs for s in pair}
+    cols = snap.groups[CONN_GROUP]
+    assert isinstance(cols, Columns) and len(set(cols.ids.tolist())) == len(cols.ids) >= 200
+    assert {labels: values for labels, values in cols.rows() if labels in ours} == dict.fromkeys(ours, (0, 2, 0, 0))
+    made, labels = [], cols.labels
+    cols.labels = lambda at: made.extend(at) or labels(at)
+    rows = Budget({"connection": 5}).apply(snap).groups[CONN_GROUP]
+    own = [values for labels, values in rows if labels[0] != "other"]
+    assert len(own) == 5 and len(made) == 5
+    total = cols.values.sum(axis=0).tolist()
+    assert [values for labels, values in rows if labels[0] == "other"] == [
+        tuple(a - sum(v[j] for v in own) for j, a in enumerate(total))]
+
+
+def test_a_connection_made_again_from_the_same_port_adds_to_its_series(tcp_probe, collect):
+    """A client reset and connected again at once from its port: the new connection has the
+    addresses of the old one, whose entry the probe still holds (it is exported once closed).
+    One series per end, the counts of the two connections summed, in the collect that has both
+    and in those after, where the closed one's counts are carried."""
     with tcp_listener() as lst:
-        idle = socket.create_connection(lst.getsockname())
-        idle_peer, _ = lst.accept()
-        busy = socket.create_connection(lst.getsockname())
-        busy_peer, _ = lst.accept()
-        with idle, idle_peer, busy_peer:
-            first, second = (collect(tcp_probe).group_rows(CONN_GROUP) for _ in range(2))
-
-            idle_key, busy_key = ((name(end.getsockname()), name(end.getpeername()), NETNS) for end in (idle, busy))
-
-            def row(rows, key):
-                return next((r for r in rows if r[0] == key), None)
-            assert row(second, idle_key) is row(first, idle_key) is not None  # the very row: nothing made again
-            abort(busy)  # a reset and a close: made again, exported once more, then forgotten
-            third = collect(tcp_probe).group_rows(CONN_GROUP)
-            assert row(third, idle_key) is row(first, idle_key)
-            assert row(third, busy_key)[1] == (0, 3, 1, 0)  # SYN_SENT, ESTABLISHED, CLOSE; one reset sent
-            assert row(collect(tcp_probe).group_rows(CONN_GROUP), busy_key) is None
+        old = socket.socket()
+        old.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        old.bind(("127.0.0.1", 0))
+        old.connect(lst.getsockname())
+        old_peer, _ = lst.accept()
+        client, server = ((name(s.getsockname()), name(s.getpeername()), NETNS) for s in (old, old_peer))
+        abort(old)  # SYN_SENT, ESTABLISHED, CLOSE and a reset; its peer: SYN_RECV, ESTABLISHED, CLOSE
+        again = socket.socket()
+        again.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        again.bind(parse(client[0]))
+        again.connect(lst.getsockname())
+        again_peer, _ = lst.accept()
+        with old_peer, again, again_peer:
+            for _ in range(3):
+                rows = dict(collect(tcp_probe).groups[CONN_GROUP].rows())
+                assert (rows.get(client), rows.get(server)) == ((0, 5, 1, 0), (0, 5, 0, 1))
 
 
 def test_a_collect_looks_up_the_connections_that_changed_and_keeps_the_idle_ones(tcp_probe, collect):
     """bpf/tcp.bpf.c marks each connection it counts into or moves; a collect looks up those, and
     the rows of the idle ones stand as they were. 300 connections sit idle; step after step one is
     reset: its two ends' rows are exported once with the reset and the close, then forgotten, and
-    every other row is the very one of the first collect. Other tests' TCP traffic may tip a
+    every other row is as at the first collect. Other tests' TCP traffic may tip a
     collect into reading the map whole, so steps are taken until enough of them were looked up."""
     with connected_pairs(300) as pairs:
         def ours(rows) -> dict:
             return {labels: row for row in rows if (labels := row[0]) in keys}
         keys = {(name(s.getsockname()), name(s.getpeername()), NETNS) for pair in pairs for s in pair}
         first = {}
-        eventually(lambda: first.update(ours(collect(tcp_probe).group_rows(CONN_GROUP))) or len(first) == 600,
+        eventually(lambda: first.update(ours(collect(tcp_probe).groups[CONN_GROUP].rows())) or len(first) == 600,
                    timeout=5)
         conns, looked_up = tcp_probe._marked["tcp_conns"], 0
         for step in range(60):
@@ -245,18 +273,43 @@ def test_a_collect_looks_up_the_connections_that_changed_and_keeps_the_idle_ones
             rows = {}
 
             def exported() -> bool:  # the peer's reset arrives in the same softirq, as a rule
-                rows.update(ours(collect(tcp_probe).group_rows(CONN_GROUP)))
+                rows.update(ours(collect(tcp_probe).groups[CONN_GROUP].rows()))
                 return all(rows.get(k, (k, None))[1] != first[k][1] for k in ends)
             eventually(exported, timeout=5)
             for key, moved in ends.items():
                 assert rows.pop(key)[1] == tuple(a + b for a, b in zip(first[key][1], moved))
                 del first[key]
             assert rows.keys() == first.keys(), step  # the closed ones of earlier steps are forgotten
-            assert all(row is first[key] for key, row in rows.items())  # nothing made again
+            assert rows == first, step  # and the others as they were
             looked_up += conns.whole_reads == whole
             if looked_up >= 20:
                 break
         assert looked_up >= 20
+
+
+def parse(endpoint: str) -> tuple[str, int]:
+    host, _, port = endpoint.rpartition(":")
+    return host, int(port)
+
+
+def test_rows_of_one_connection_name_are_summed_and_a_closed_ones_counts_carried():
+    """merged(), on its own: ids 5 and 7, of which 5 closes; then 5 comes again (a new
+    connection with its addresses), then goes."""
+    def step(ids, counts, closed, carried):
+        ids, counts, first, carried = merged(np.array(ids, np.int64), np.array(counts, np.int64).reshape(-1, 2),
+                                             np.array(closed, bool), carried)
+        return dict(zip(ids.tolist(), map(tuple, counts.tolist()))), first, carried
+    rows, first, carried = step([7, 5], [[1, 2], [3, 4]], [False, False], {})
+    assert (rows, first, carried) == ({7: (1, 2), 5: (3, 4)}, None, {})  # nothing to sum: the arrays as given
+    rows, first, carried = step([7, 5], [[1, 2], [3, 5]], [False, True], {})
+    assert rows == {7: (1, 2), 5: (3, 5)} and first.tolist() == [1, 0]
+    assert {k: v.tolist() for k, v in carried.items()} == {5: [3, 5]}
+    rows, _, carried = step([7, 5, 5], [[1, 2], [3, 5], [0, 1]], [False, True, False], {})  # both at once
+    assert rows == {7: (1, 2), 5: (3, 6)} and {k: v.tolist() for k, v in carried.items()} == {5: [3, 5]}
+    rows, _, carried = step([7, 5], [[1, 2], [0, 2]], [False, False], carried)  # the closed one gone
+    assert rows == {7: (1, 2), 5: (3, 7)} and {k: v.tolist() for k, v in carried.items()} == {5: [3, 5]}
+    rows, _, carried = step([7], [[1, 3]], [False], carried)  # no 5: its series ends, nothing carried
+    assert rows == {7: (1, 3)} and carried == {}
 
 
 # ---- RTT ----------------------------------------------------------------------------------------
@@ -453,7 +506,8 @@ def test_a_connection_met_late_adds_to_the_host_only_what_it_retransmits_after(t
         assert before >= 100
         labels = (name(sender.getsockname()), name(sender.getpeername()), NETNS)
         entries = tcp_probe._entries
-        (key,) = [k for k, row in zip(entries._keys.tolist(), entries._rows.tolist()) if row[0] == labels]
+        names = tcp._Labels(entries._words)(list(range(len(entries))))
+        (key,) = [k for k, named in zip(entries._keys.tolist(), names) if named == labels]
         tcp_probe.opened["tcp_conns"].delete(struct.pack("<Q", key))
         del tcp_probe._marked["tcp_conns"]  # a deletion the programs did not mark: the next collect reads whole
         assert connection(collect(tcp_probe), "drums_tcp_connection_retransmits_total", sender) is None
