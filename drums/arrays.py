@@ -23,3 +23,12 @@ def distinct(values: np.ndarray) -> list[int]:
     2.4) first asks numpy.ma whether the array is masked, importing it at its first call: 1.2 MB of
     the agent's memory for nothing. Asked for their counts too, it does not."""
     return np.unique(values, return_counts=True)[0].tolist()
+
+
+def distinct_rows(words: np.ndarray) -> np.ndarray:
+    """Where one row of each distinct row of a 2-D integer array is, in the rows' order. Sorted
+    as integer columns: sorting records of bytes (np.unique of a structured array) takes ten
+    times longer."""
+    order = np.lexsort(words.T[::-1])
+    w = words[order]
+    return order[np.concatenate(([True], (w[1:] != w[:-1]).any(axis=1)))] if len(w) else order

@@ -8,6 +8,7 @@ import glob
 import os
 import shutil
 import socket
+import subprocess
 import time
 
 import pytest
@@ -159,6 +160,33 @@ def connected_pairs(count: int):
         for pair in pairs:
             for sock in pair:
                 sock.close()
+
+
+def ip(*args: str) -> None:
+    """Run ip(8), failing the test with its message if it fails."""
+    subprocess.run(("ip", *args), check=True, capture_output=True)
+
+
+@contextlib.contextmanager
+def peer_namespace(index: int):
+    """A network namespace joined to this one by a veth pair: (namespace, its device, our
+    address, its address, our device). Only there can the test lose packets on purpose: loopback never drops them."""
+    tag = f"{os.getpid() % 100000}{index}"
+    ns, ours, theirs = f"drums_test_{tag}", f"drt{tag}a", f"drt{tag}b"
+    local = f"10.213.{os.getpid() % 250}.{4 * index + 1}"
+    remote = f"10.213.{os.getpid() % 250}.{4 * index + 2}"
+    try:
+        ip("netns", "add", ns)
+        ip("link", "add", ours, "type", "veth", "peer", "name", theirs, "netns", ns)
+        ip("addr", "add", f"{local}/30", "dev", ours)
+        ip("link", "set", ours, "up")
+        ip("-n", ns, "addr", "add", f"{remote}/30", "dev", theirs)
+        ip("-n", ns, "link", "set", theirs, "up")
+        yield ns, theirs, local, remote, ours
+    finally:
+        # Deleting the namespace frees its end of the pair only later: delete ours first.
+        subprocess.run(("ip", "link", "del", ours), capture_output=True)
+        subprocess.run(("ip", "netns", "del", ns), capture_output=True)
 
 
 def pytest_sessionstart(session):

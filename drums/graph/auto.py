@@ -10,6 +10,9 @@ import socket
 import time
 from typing import Callable
 
+import numpy as np
+
+from drums.arrays import among, distinct, distinct_rows, within
 from drums.errors import GraphError, KernelError
 from drums.graph.adapter import Adapter
 from drums.graph.model import Connection, GraphState, Host, Node, Process
@@ -19,15 +22,39 @@ from drums.proctable import ProcessTable
 
 ESTABLISHED, LISTEN = 1, 10
 OWNERS_REREAD = 60.0
+# What names the edge of a connection's end: its process, the address it talks to, and the port
+# of the service (its peer's, or its own where it accepted the connection).
+_END = np.dtype({"names": ["pid", "address", "family", "port", "accepting"],
+                 "formats": ["<i8", "V16", "u1", "<u2", "?"], "offsets": [0, 8, 24, 26, 28], "itemsize": 32})
+_ADDRESS = np.dtype({"names": ["src", "family"], "formats": ["V16", "u1"], "offsets": [0, 16], "itemsize": 24})
 
 
 def _endpoint(address: str, port: int) -> str:
     return f"[{address}]:{port}" if ":" in address else f"{address}:{port}"
 
 
-def _socket_owners(table: ProcessTable) -> dict[int, int]:
-    """Socket inode -> PID, from every process's open files."""
-    return {inode: pid for pid in table.pids() for inode in table.socket_inodes(pid)}
+def _socket_owners(table: ProcessTable) -> tuple[np.ndarray, np.ndarray]:
+    """Socket inodes, ascending, and the PID holding each (one, where several do), from every
+    process's open files."""
+    inodes, pids = [], []
+    for pid in table.pids():
+        held = table.socket_inodes(pid)
+        inodes += held
+        pids += [pid] * len(held)
+    inodes, pids = np.array(inodes, np.int64), np.array(pids, np.int64)
+    order = np.argsort(inodes, kind="stable")
+    inodes, pids = inodes[order], pids[order]
+    first = np.concatenate(([True], inodes[1:] != inodes[:-1])) if len(inodes) else np.zeros(0, bool)
+    return inodes[first], pids[first]
+
+
+def _words(records: np.ndarray) -> np.ndarray:
+    """Records as rows of 8-byte words, to be compared and sorted as integers."""
+    return np.ascontiguousarray(records).view(np.uint64).reshape(len(records), records.itemsize // 8)
+
+
+def _address(family: int, raw: bytes) -> str:
+    return socket.inet_ntop(family, raw[:4] if family == socket.AF_INET else raw)
 
 
 class AutoAdapter(Adapter):
@@ -37,32 +64,37 @@ class AutoAdapter(Adapter):
     def __init__(self, proc: str = "/proc", tcp_changes: Callable[[], int | None] | None = None):
         """`tcp_changes`: a count that moves whenever a TCP socket of the host changes state (the
         tcp probe's; None when it cannot say). While it holds still, the connections and listeners
-        are those of the last dump: a poll dumps them again (10,000 sockets: 30 ms) only when it
+        are those of the last dump: a poll dumps them again (10,000 sockets: 40 ms) only when it
         moved, when a process of the graph ended, or at least every OWNERS_REREAD seconds."""
         self.scan = ProcScan(proc)
         self.tcp_changes = tcp_changes
         self._dumped: tuple[int | None, float, GraphState] | None = None  # (changes, when, state)
-        self._owners: dict[int, int] = {}  # socket inode -> PID, from the last reading of open files
-        self._unowned: set[int] = set()  # inodes no process held at that reading
+        # Socket inodes, ascending, and the PID holding each, from the last reading of open files;
+        # and the inodes no process held at that reading.
+        self._owners = (np.empty(0, np.int64), np.empty(0, np.int64))
+        self._unowned = np.empty(0, np.int64)
         self._read_at = float("-inf")
-        self._known: dict = {}  # socket cookie -> connection, of the last dump
 
-    def _owners_of(self, conns: list) -> dict[int, int]:
-        """Socket inode -> PID for these connections. Every process's open files are read when a
-        connection's socket is new since the last reading, and at least every OWNERS_REREAD
-        seconds (a socket handed to another process keeps its inode): on a host whose
-        connections stay, rarely."""
-        owners = {inode: pid for inode, pid in self._owners.items() if self.scan.table.alive(pid)}
-        inodes = {c.inode for c in conns if c.inode}
+    def _owners_of(self, inodes: np.ndarray) -> np.ndarray:
+        """The PID holding each of these socket inodes (-1: none known). Every process's open
+        files are read when a socket is new since the last reading, and at least every
+        OWNERS_REREAD seconds (a socket handed to another process keeps its inode): on a host
+        whose connections stay, rarely."""
+        held, pids = self._owners
+        alive = [pid for pid in distinct(pids) if self.scan.table.alive(pid)]
+        live = among(pids, alive)
+        held, pids = held[live], pids[live]
+        wanted = np.unique(inodes[inodes != 0], return_counts=True)[0]  # with counts: see arrays.distinct
         now = time.monotonic()
-        if inodes - owners.keys() - self._unowned or now - self._read_at >= OWNERS_REREAD:
-            owners = _socket_owners(self.scan.table)
-            self._unowned = inodes - owners.keys()
+        if (~within(wanted, held) & ~within(wanted, self._unowned)).any() or now - self._read_at >= OWNERS_REREAD:
+            held, pids = _socket_owners(self.scan.table)
+            self._unowned = wanted[~within(wanted, held)]
             self._read_at = now
         else:
-            self._unowned &= inodes
-        self._owners = owners
-        return owners
+            self._unowned = self._unowned[within(self._unowned, wanted)]
+        self._owners = held, pids
+        at = np.minimum(np.searchsorted(held, inodes), max(len(held) - 1, 0))
+        return np.where(within(inodes, held), pids[at] if len(held) else -1, -1)
 
     def _changes(self) -> int | None:
         try:
@@ -84,48 +116,56 @@ class AutoAdapter(Adapter):
         return state
 
     def _dump(self) -> GraphState:
+        """The graph of one dump. Ten thousand connections between a few processes make a few
+        edges: each end is reduced to what names its edge (a client end: its process and the
+        address and port it connects to; an accepting end: its process, port and peer's address),
+        and only the distinct ones are looked at one by one."""
         try:
-            conns = sockdiag.dump_tcp((1 << ESTABLISHED) | (1 << LISTEN), info=False, known=self._known)
+            table = sockdiag.dump_tcp_table((1 << ESTABLISHED) | (1 << LISTEN))
         except KernelError as e:
             raise GraphError(str(e)) from None
-        owners = self._owners_of(conns)
+        addresses = np.zeros(len(table), _ADDRESS)  # this host's, as its sockets' local ones say
+        addresses["src"], addresses["family"] = table["src"], table["family"]
+        addresses = addresses[distinct_rows(_words(addresses))]
+        local = {_address(f, bytes(a)) for f, a in zip(addresses["family"].tolist(), addresses["src"].tolist())}
+        local |= {"127.0.0.1", "::1", "0.0.0.0", "::"}
+        pid = self._owners_of(table["inode"].astype(np.int64))
+        owned = pid >= 0
+        table, pid = table[owned], pid[owned]
         host = socket.gethostname()
-        listeners = {}  # port -> pid (any address)
-        for c in conns:
-            if c.state == LISTEN and c.inode in owners:
-                listeners.setdefault(c.local_port, owners[c.inode])
-        local = {c.local_address for c in conns} | {"127.0.0.1", "::1", "0.0.0.0", "::"}
-        names: dict[int, str] = {}
-
-        def node_of(pid: int) -> str:
-            if pid not in names:
-                names[pid] = f"/{self.scan.name(pid) or 'process'}/{pid}"
-            return names[pid]
-
-        state = GraphState(hosts=[Host(host)])
+        listeners: dict[int, int] = {}  # port -> pid (any address)
+        listening = table["state"] == LISTEN
+        for port, p in zip(table["sport"][listening].tolist(), pid[listening].tolist()):
+            listeners.setdefault(port, p)
+        ends = np.zeros(len(table), _END)  # zeros: the padding compares equal
+        ends["pid"], ends["family"], ends["address"] = pid, table["family"], table["dst"]
+        established = table["state"] == ESTABLISHED
+        listener = np.full(1 << 16, -1, np.int64)
+        listener[list(listeners)] = list(listeners.values())
+        accepting = established & (listener[table["sport"]] == pid)
+        ends["port"] = np.where(accepting, table["sport"], table["dport"])
+        ends["accepting"] = accepting
+        names = {p: f"/{self.scan.name(p) or 'process'}/{p}" for p in distinct(pid)}
         edges, remote_nodes = set(), set()
-        for c in conns:
-            pid = owners.get(c.inode)
-            if pid is None:
-                continue
-            node_of(pid)
-            if c.state != ESTABLISHED:
-                continue
-            server = listeners.get(c.local_port)
-            if server == pid:  # the accepting end: its client is on another host, or seen as it connects
-                if c.remote_address not in local:
-                    peer = f"/remote/{c.remote_address}"
+        ends = ends[established]
+        for end in ends[distinct_rows(_words(ends))].tolist():
+            p, raw, family, port, accepts = end
+            address = _address(family, bytes(raw))
+            if accepts:  # its client is on another host, or seen as it connects
+                if address not in local:
+                    peer = f"/remote/{address}"
                     remote_nodes.add(peer)
-                    edges.add((peer, node_of(pid), f"tcp:{c.local_port}"))
+                    edges.add((peer, names[p], f"tcp:{port}"))
                 continue
-            if c.remote_address in local and c.remote_port in listeners:
-                target = node_of(listeners[c.remote_port])
+            if address in local and port in listeners:
+                target = names[listeners[port]]
             else:
-                target = f"/remote/{_endpoint(c.remote_address, c.remote_port)}"
+                target = f"/remote/{_endpoint(address, port)}"
                 remote_nodes.add(target)
-            edges.add((node_of(pid), target, f"tcp:{c.remote_port}"))
-        state.processes = [Process(host, pid, self.scan.name(pid)) for pid in sorted(names)]
-        state.nodes = [Node(name, host, pid, "process") for pid, name in sorted(names.items())]
+            edges.add((names[p], target, f"tcp:{port}"))
+        state = GraphState(hosts=[Host(host)])
+        state.processes = [Process(host, p, self.scan.name(p)) for p in sorted(names)]
+        state.nodes = [Node(name, host, p, "process") for p, name in sorted(names.items())]
         state.nodes += [Node(name, "", None, "remote") for name in sorted(remote_nodes)]
         state.connections = [Connection(topic, u, v, "tcp") for (u, v, topic) in sorted(edges)]
         return state

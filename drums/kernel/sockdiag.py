@@ -11,6 +11,8 @@ import struct
 import sys
 from dataclasses import dataclass
 
+import numpy as np
+
 from drums.errors import KernelError
 from drums.netfmt import V4_MAPPED
 
@@ -44,8 +46,10 @@ _REQUEST = struct.Struct("=BBBxI48x")
 # struct inet_diag_msg (include/uapi/linux/inet_diag.h): ports and addresses are in network order,
 # the cookie is two host-order u32 (low half first), and timer, retrans, if, expires and queues are skipped.
 _DIAG_MSG = struct.Struct("=BBxx2s2s16s16s4xII12xII")
-# The socket's cookie as one number: unique among the kernel's sockets and never reused while it runs.
-_COOKIE = struct.Struct("=44xQ")
+# The same as a numpy record, for a dump read in bulk (ports and addresses in network order).
+DIAG_RECORD = np.dtype({"names": ["family", "state", "sport", "dport", "src", "dst", "inode"],
+                        "formats": ["u1", "u1", ">u2", ">u2", "V16", "V16", "=u4"],
+                        "offsets": [0, 1, 4, 6, 8, 24, 68], "itemsize": _DIAG_MSG.size})
 # The same request naming one socket: its ports, addresses (16 bytes each), interface and cookie.
 _REQUEST_ONE = struct.Struct("=BBBxI2s2s16s16sI8s")
 _NO_COOKIE = b"\xff" * 8  # INET_DIAG_NOCOOKIE in both halves: any socket with these endpoints
@@ -106,27 +110,32 @@ def own_netns() -> str:
         raise KernelError(f"cannot read /proc/self/ns/net: {e.strerror}") from None
 
 
-def dump_tcp(states: int = ALL_STATES, info: bool = True, known: dict | None = None) -> list[TcpConnection]:
-    """Every IPv4 and IPv6 TCP socket of this network namespace whose state bit is set in `states`;
-    without `info`, their tcp_info fields are 0 (and the kernel sends a fifth of the bytes).
-    `known` (without `info`): the caller's cookie -> connection of its last dump. Without tcp_info,
-    what a connection holds (state, endpoints, owner, inode) is fixed for its socket's life in the
-    states the agent dumps (ESTABLISHED and LISTEN): a socket seen before is not parsed again, and
-    the cache keeps no message (10,000 sockets: 1.4 MB of them). `known` is left holding this dump's."""
-    if info and known is not None:
-        raise ValueError("a dump with tcp_info parses every message: its counters move")
+def _diag_socket() -> socket.socket:
     try:
-        sock = socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
+        return socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
     except OSError as e:
         raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
-    parsed = None if known is None else {}
-    with sock:
-        conns = (_dump(sock, socket.AF_INET, states, info, known, parsed)
-                 + _dump(sock, socket.AF_INET6, states, info, known, parsed))
-    if known is not None:
-        known.clear()
-        known.update(parsed)
-    return conns
+
+
+def dump_tcp(states: int = ALL_STATES, info: bool = True) -> list[TcpConnection]:
+    """Every IPv4 and IPv6 TCP socket of this network namespace whose state bit is set in `states`;
+    without `info`, their tcp_info fields are 0 (and the kernel sends a fifth of the bytes)."""
+    with _diag_socket() as sock:
+        return [_connection(payload) for family in (socket.AF_INET, socket.AF_INET6)
+                for payload in _dump(sock, family, states, info)]
+
+
+def dump_tcp_table(states: int = ALL_STATES) -> np.ndarray:
+    """The same sockets without tcp_info, as an array of DIAG_RECORD: ten thousand in a few ms,
+    and no Python object each."""
+    with _diag_socket() as sock:
+        payloads = [p for family in (socket.AF_INET, socket.AF_INET6) for p in _dump(sock, family, states, False)]
+    if any(len(p) < DIAG_RECORD.itemsize for p in payloads):
+        raise KernelError("truncated inet_diag_msg in a sock_diag reply")
+    table = np.frombuffer(b"".join(p[:DIAG_RECORD.itemsize] for p in payloads), DIAG_RECORD)
+    if not ((table["family"] == socket.AF_INET) | (table["family"] == socket.AF_INET6)).all():
+        raise KernelError("unexpected address family in a sock_diag reply")
+    return table
 
 
 def lookup_tcp(connections: list[tuple[tuple[int, bytes, int], tuple[int, bytes, int]]]
@@ -165,25 +174,25 @@ def _lookup(sock: socket.socket, family: int, src: bytes, sport: int, dst: bytes
     if len(data) >= _NLMSGHDR.size + _ERRNO.size and _NLMSGHDR.unpack_from(data)[1] == NLMSG_ERROR \
             and -_ERRNO.unpack_from(data, _NLMSGHDR.size)[0] == errno.ENOENT:
         return None
-    connections, _ = _parse(data)
-    return connections[0] if connections else None
+    payloads, _ = _payloads(data)
+    return _connection(payloads[0]) if payloads else None
 
 
-def _dump(sock: socket.socket, family: int, states: int, info: bool, known: dict | None,
-          parsed: dict | None) -> list[TcpConnection]:
+def _dump(sock: socket.socket, family: int, states: int, info: bool) -> list[bytes]:
+    """The payloads of a dump's messages, one a socket."""
     body = _REQUEST.pack(family, socket.IPPROTO_TCP, 1 << (INET_DIAG_INFO - 1) if info else 0, states)
     header = _NLMSGHDR.pack(_NLMSGHDR.size + len(body), SOCK_DIAG_BY_FAMILY, NLM_F_REQUEST | NLM_F_DUMP, 1, 0)
     try:
         sock.send(header + body)
-        connections = []
+        payloads = []
         while True:
             data, _, flags, _ = sock.recvmsg(_RECV_SIZE)
             if flags & socket.MSG_TRUNC:
                 raise KernelError(f"a sock_diag reply did not fit in {_RECV_SIZE} bytes")
-            batch, done = _parse(data, known, parsed)
-            connections += batch
+            batch, done = _payloads(data)
+            payloads += batch
             if done:
-                return connections
+                return payloads
     except OSError as e:
         raise KernelError(f"reading TCP sockets over NETLINK_SOCK_DIAG failed: {e.strerror}") from None
 
@@ -194,13 +203,13 @@ def parse_messages(data: bytes) -> list[TcpConnection]:
     Malformed or truncated input raises KernelError rather than returning part of a dump: a
     connection missing from a dump would look closed, and its counters would be folded away.
     """
-    return _parse(data)[0]
+    return [_connection(payload) for payload in _payloads(data)[0]]
 
 
-def _parse(data: bytes, known: dict | None = None, parsed: dict | None = None) -> tuple[list[TcpConnection], bool]:
-    """The connections in `data`, and whether the dump ended in it (NLMSG_DONE). A socket whose
-    cookie is in `known` is its connection there; every connection goes into `parsed` by cookie."""
-    connections = []
+def _payloads(data: bytes) -> tuple[list[bytes], bool]:
+    """The sock_diag messages' payloads in `data`, one a socket, and whether the dump ended in it
+    (NLMSG_DONE)."""
+    payloads = []
     offset = 0
     while offset < len(data):
         if len(data) - offset < _NLMSGHDR.size:
@@ -215,17 +224,11 @@ def _parse(data: bytes, known: dict | None = None, parsed: dict | None = None) -
             if err:
                 raise KernelError(f"the kernel refused the sock_diag request: {_strerror(err)}")
             if kind == NLMSG_DONE:
-                return connections, True
+                return payloads, True
         elif kind == SOCK_DIAG_BY_FAMILY:
-            key = _COOKIE.unpack_from(payload)[0] if parsed is not None and len(payload) >= _DIAG_MSG.size else None
-            connection = known.get(key) if known else None
-            if connection is None:
-                connection = _connection(payload)
-            if key is not None:
-                parsed[key] = connection
-            connections.append(connection)
+            payloads.append(payload)
         offset += _align(length)
-    return connections, False
+    return payloads, False
 
 
 def _connection(payload: bytes) -> TcpConnection:

@@ -19,7 +19,7 @@ from drums.graph.adapter import ChildAdapter, Follower
 from drums.graph.auto import AutoAdapter
 from drums.graph.model import Graph, Host
 from drums.graph.static import StaticAdapter, parse
-from tests.conftest import wait_until
+from tests.conftest import peer_namespace, wait_until
 from tests.graph.test_draw import drawn_graph, texts
 
 SLEEPER = "import time, sys; time.sleep(60)"
@@ -138,6 +138,58 @@ def test_auto_graph_has_an_edge_from_client_to_server(procs):
         (c.topic, c.publisher, c.subscriber) for c in graph.connections()}
     assert names[server.pid] == f"/python3/{server.pid}" or names[server.pid].endswith(f"/{server.pid}")
     assert {names[client.pid], names[server.pid], f"tcp:{port}"} <= texts(drawn_graph(graph))  # Graphviz draws it
+
+
+def test_auto_graph_names_a_peer_on_another_host_by_its_address(procs):
+    """A peer namespace stands for another host, whose sockets the dump does not see. Our client of
+    a server there: an edge to that server's address and port. Our server's client from there: an
+    edge from that client's address, on our server's port. And an IPv6 connection between two
+    processes here. Three clients each, so that the reduced ends are each one edge."""
+    with peer_namespace(7) as (ns, _, local, remote, _):
+        far = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c", textwrap.dedent(f"""
+            import socket, time
+            s = socket.socket(); s.bind(("{remote}", 0)); s.listen(); print(s.getsockname()[1], flush=True)
+            held = [s.accept() for _ in range(3)]; time.sleep(60)
+        """)), stdout=subprocess.PIPE, text=True)
+        far_client = None
+        try:
+            far_port = int(far.stdout.readline())
+            client = procs(f"import socket, time\nheld = [socket.create_connection(('{remote}', {far_port})) "
+                           "for _ in range(3)]\nprint('ok', flush=True); time.sleep(60)")
+            server = procs(textwrap.dedent(f"""
+                import socket, time
+                s = socket.socket(); s.bind(("{local}", 0)); s.listen(); print(s.getsockname()[1], flush=True)
+                held = [s.accept() for _ in range(3)]; print("ok", flush=True); time.sleep(60)
+            """))
+            port = int(server.stdout.readline())
+            far_client = subprocess.Popen(("ip", "netns", "exec", ns, sys.executable, "-c",
+                                           f"import socket, time\nheld = [socket.create_connection(('{local}', "
+                                           f"{port})) for _ in range(3)]\ntime.sleep(60)"))
+            six = procs(textwrap.dedent("""
+                import socket, time
+                s = socket.create_server(("::1", 0), family=socket.AF_INET6); print(s.getsockname()[1], flush=True)
+                held = [s.accept() for _ in range(3)]; time.sleep(60)
+            """))
+            six_port = int(six.stdout.readline())
+            six_client = procs(f"import socket, time\nheld = [socket.create_connection(('::1', {six_port})) "
+                               "for _ in range(3)]\nprint('ok', flush=True); time.sleep(60)")
+            for p in (client, server, six_client):
+                assert p.stdout.readline() == "ok\n"
+            state = AutoAdapter().poll()
+            names = {n.pid: n.name for n in state.nodes}
+            edges = {(c.publisher, c.subscriber, c.topic) for c in state.connections}
+            assert {(names[client.pid], f"/remote/{remote}:{far_port}", f"tcp:{far_port}"),
+                    (f"/remote/{remote}", names[server.pid], f"tcp:{port}"),
+                    (names[six_client.pid], names[six.pid], f"tcp:{six_port}")} <= edges
+            ours = {names[p.pid] for p in (client, server, six, six_client)}
+            assert len([e for e in edges if {e[0], e[1]} & ours]) == 3  # one edge each, whatever the clients
+            assert {n.name: n.pid for n in state.nodes if n.name.startswith(f"/remote/{remote}")} == {
+                f"/remote/{remote}:{far_port}": None, f"/remote/{remote}": None}
+        finally:
+            for p in (far, far_client):
+                if p is not None:
+                    p.kill()
+                    p.wait()
 
 
 # Accepts a connection for each line of its stdin, from a client it makes itself: a new edge.

@@ -10,7 +10,7 @@ import time
 import pytest
 
 from drums.errors import KernelError
-from drums.kernel.sockdiag import (ALL_STATES, NETLINK_SOCK_DIAG, TCP_STATES, TcpConnection, dump_tcp,
+from drums.kernel.sockdiag import (ALL_STATES, NETLINK_SOCK_DIAG, TCP_STATES, TcpConnection, dump_tcp, dump_tcp_table,
                                    parse_messages)
 
 ESTABLISHED, LISTEN = 1, 10
@@ -206,31 +206,25 @@ def test_a_dump_longer_than_one_read_is_complete():
             s.close()
 
 
-def test_a_dump_with_what_the_last_one_parsed_parses_only_sockets_new_since():
-    srv = socket.create_server(("127.0.0.1", 0))
-    idle = socket.create_connection(srv.getsockname())
-    accepted, _ = srv.accept()
-    port = srv.getsockname()[1]
+def test_a_dump_as_a_table_holds_what_a_dump_of_connections_does():
+    """The graph's dump, read in bulk into an array: the same sockets (IPv4 and IPv6, listening and
+    connected), with the same states, ports, addresses and inodes, as the dump parsed one by one."""
+    servers = [socket.create_server(("127.0.0.1", 0)), socket.create_server(("::1", 0), family=socket.AF_INET6)]
+    held = []
     try:
+        for srv in servers:
+            held += [socket.create_connection(srv.getsockname()[:2]) for _ in range(3)]
+            held += [srv.accept()[0] for _ in range(3)]
+        ports = {srv.getsockname()[1] for srv in servers}
         states = (1 << ESTABLISHED) | (1 << LISTEN)
-        known: dict = {}
-        first = [c for c in dump_tcp(states, info=False, known=known) if port in (c.local_port, c.remote_port)]
-        assert len(first) == 3 and len(known) >= 3
-        late = socket.create_connection(srv.getsockname())  # a new socket: parsed, the others not
-        second = [c for c in dump_tcp(states, info=False, known=known) if port in (c.local_port, c.remote_port)]
-        plain = [c for c in dump_tcp(states, info=False) if port in (c.local_port, c.remote_port)]
-        assert sorted(map(repr, second)) == sorted(map(repr, plain))  # the same connections as a dump without
-        assert len(second) == 5
-        # Not parsed again: the idle pair, and the listener, though its message changed (its accept
-        # queue grew); the cache holds this dump's sockets, by cookie.
-        assert {id(c) for c in first} <= {id(c) for c in second}
-        assert all(known[c.cookie] is c for c in second)
-        # Four connected sockets on 127.0.0.1 name it with one string, whichever dump parsed them.
-        assert len({id(a) for c in second if c.state == ESTABLISHED for a in (c.local_address, c.remote_address)}) == 1
-        late.close()
-        with pytest.raises(ValueError):  # tcp_info moves: such a dump parses every message
-            dump_tcp(states, known=known)
+        table = dump_tcp_table(states)
+        parsed = {(c.family, c.state, c.local_port, c.remote_port, c.local_address, c.remote_address, c.inode)
+                  for c in dump_tcp(states, info=False)}
+        def text(family, raw) -> str:
+            return socket.inet_ntop(family, bytes(raw)[:4 if family == socket.AF_INET else 16])
+        read = {(f, st, sp, dp, text(f, src), text(f, dst), ino) for f, st, sp, dp, src, dst, ino in table.tolist()}
+        ours = {row for row in parsed if {row[2], row[3]} & ports}
+        assert len(ours) == 14 and ours == {row for row in read if {row[2], row[3]} & ports}
     finally:
-        idle.close()
-        accepted.close()
-        srv.close()
+        for s in held + servers:
+            s.close()

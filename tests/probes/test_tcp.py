@@ -21,7 +21,7 @@ from drums.budget import Budget
 from drums.metrics import Columns
 from drums.probes import tcp
 from drums.probes.tcp import CONN_GROUP, merged
-from tests.conftest import connected_pairs, eventually, series, wait_until
+from tests.conftest import connected_pairs, eventually, ip, peer_namespace, series, wait_until
 
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
 LOOPBACK = {socket.AF_INET: "127.0.0.1", socket.AF_INET6: "::1"}
@@ -352,32 +352,6 @@ conn, _ = lst.accept()
 print(len(conn.recv(100)), flush=True)
 sys.stdin.read()
 """
-
-
-def ip(*args: str) -> None:
-    subprocess.run(("ip", *args), check=True, capture_output=True)
-
-
-@contextlib.contextmanager
-def peer_namespace(index: int):
-    """A network namespace joined to this one by a veth pair: (namespace, its device, our
-    address, its address, our device). Only there can the test lose packets on purpose: loopback never drops them."""
-    tag = f"{os.getpid() % 100000}{index}"
-    ns, ours, theirs = f"drums_test_{tag}", f"drt{tag}a", f"drt{tag}b"
-    local = f"10.213.{os.getpid() % 250}.{4 * index + 1}"
-    remote = f"10.213.{os.getpid() % 250}.{4 * index + 2}"
-    try:
-        ip("netns", "add", ns)
-        ip("link", "add", ours, "type", "veth", "peer", "name", theirs, "netns", ns)
-        ip("addr", "add", f"{local}/30", "dev", ours)
-        ip("link", "set", ours, "up")
-        ip("-n", ns, "addr", "add", f"{remote}/30", "dev", theirs)
-        ip("-n", ns, "link", "set", theirs, "up")
-        yield ns, theirs, local, remote, ours
-    finally:
-        # Deleting the namespace frees its end of the pair only later: delete ours first.
-        subprocess.run(("ip", "link", "del", ours), capture_output=True)
-        subprocess.run(("ip", "netns", "del", ns), capture_output=True)
 
 
 @contextlib.contextmanager
