@@ -233,11 +233,12 @@ class Child:
         self.proc.stdin.flush()
 
     def end(self) -> None:
-        """Close its stdin, which ends it, and reap it."""
+        """Close its stdin, which ends it, and reap it (a child that spins without reading its stdin
+        is killed after a second)."""
         if self.proc.poll() is None:
             self.proc.stdin.close()
             try:
-                self.proc.wait(timeout=5)
+                self.proc.wait(timeout=1)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
