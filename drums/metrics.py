@@ -92,6 +92,9 @@ class Columns:
     dim_names: tuple[str, ...]
     pids: np.ndarray | None  # (n,) int64: the process the row belongs to, for the agent's selection; None: of none
     labels: Callable[[list[int]], list[tuple[str, ...]]]  # the label values of the rows at these indices
+    # (n,) int64: each row's local port << 16 | remote port, where rows are sockets or connections,
+    # so that a reader can find the few on some ports without the labels of all
+    ports: np.ndarray | None = None
 
     def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
         """(labels, values) rows, as a group's rows are: all, or those at these indices."""
@@ -101,8 +104,19 @@ class Columns:
     def of_processes(self, pids: set[int]) -> "Columns":
         """The rows of these processes (none, for rows that belong to no process)."""
         where = np.flatnonzero(among(self.pids, pids)) if self.pids is not None else np.empty(0, np.intp)
+        return self.subset(where)
+
+    def on_ports(self, ports: set[tuple[int, int]]) -> "Columns":
+        """The rows on these (local, remote) ports; all of them where the rows have no ports."""
+        if self.ports is None:
+            return self
+        return self.subset(np.flatnonzero(among(self.ports, {local << 16 | remote for local, remote in ports})))
+
+    def subset(self, where: np.ndarray) -> "Columns":
+        """The rows at these indices."""
         return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names,
-                       None if self.pids is None else self.pids[where], lambda at: self.labels(where[at].tolist()))
+                       None if self.pids is None else self.pids[where], lambda at: self.labels(where[at].tolist()),
+                       None if self.ports is None else self.ports[where])
 
 
 def _rows(rows: "list | Columns") -> list:
@@ -139,13 +153,17 @@ class Snapshot:
         """The rows added one metric at a time, groups left out."""
         return self._series
 
-    def of(self, metric: Metric) -> list[tuple[tuple[str, ...], object]]:
-        """The metric's rows, without spreading out the groups of other metrics (as `series` does)."""
+    def of(self, metric: Metric, ports: set[tuple[int, int]] | None = None) -> list[tuple[tuple[str, ...], object]]:
+        """The metric's rows, without spreading out the groups of other metrics (as `series` does).
+        `ports`: the rows on these (local, remote) ports, and maybe others (rows given as Columns
+        with ports are made only for those: of ten thousand sockets, the few of a graph's edges)."""
         if metric in self._series:
             return self._series[metric]
         for metrics, rows in self.groups.items():
             if metric in metrics:
                 i = metrics.index(metric)
+                if isinstance(rows, Columns) and ports is not None:
+                    rows = rows.on_ports(ports)
                 return [(labels, values[i]) for labels, values in _rows(rows)]
         return []
 

@@ -319,6 +319,24 @@ def test_the_rtt_of_a_connection_the_columns_lack_shows_while_a_slot_is_free():
         assert budget.kept("connection") == {*connections} | shown
 
 
+def test_the_edges_of_a_graph_ask_the_labels_of_the_sockets_on_their_ports_only():
+    """A ROS 1 edge names its socket's endpoints: of a thousand connections given as Columns, the
+    join makes the labels of those on the edge's ports only (both ends), and finds its own."""
+    from drums.graph.join import EDGE_RETRANSMITS, _socket_edges
+    from drums.graph.model import Connection
+    n = 1000
+    labels = [(f"10.0.0.1:{40000 + i}", f"10.0.0.2:{(5000 + i) % 6000}", "1") for i in range(n)]
+    made = []
+    snap = Snapshot()
+    snap.groups[tcp.CONN_GROUP] = Columns(
+        np.arange(n, dtype=np.int64), np.array([[i, 0, 0, 0] for i in range(n)], np.int64), np.zeros(n, np.intp),
+        ("",), None, lambda at: made.extend(at) or [labels[i] for i in at],
+        np.array([(40000 + i) << 16 | (5000 + i) % 6000 for i in range(n)], np.int64))
+    out = Snapshot()
+    _socket_edges([Connection("/t", "/a", "/b", "tcpros", labels[7][0], labels[7][1])], snap, out)
+    assert out.values(EDGE_RETRANSMITS) == {("/t", "/a", "/b"): 7} and made == [7]
+
+
 def test_the_budget_counts_its_entities_by_their_changes_as_a_count_of_all_would():
     """Processes come, go, are renamed (their rows change labels, the process stays) and hold rows
     in some metrics only: what the budget keeps, folds and has ever folded is what counting every

@@ -200,19 +200,27 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
     _socket_edges(connections, raw, out)
 
 
+def _port(endpoint: str) -> int:
+    """The port of an address:port, 0 if it has none."""
+    port = endpoint.rpartition(":")[2]
+    return int(port) if port.isdigit() else 0
+
+
 def _socket_edges(connections: list[Connection], raw: Snapshot, out: Snapshot) -> None:
     """Edges with a socket of their own: `local` is the publisher's end, `remote` the subscriber's."""
     edges = {(c.local, c.remote): (c.topic, c.publisher, c.subscriber) for c in connections if c.local and c.remote}
     if not edges:
         return
+    ports = {(_port(local), _port(remote)) for local, remote in edges}  # the sockets of the edges' ends are on
+    ports |= {(remote, local) for local, remote in ports}  # these: the few rows whose labels are made
     for metric, source, reverse in ((EDGE_SENT_BYTES, sockets.SOCKET["sent_bytes"], False),
                                     (EDGE_RECEIVED_BYTES, sockets.SOCKET["received_bytes"], True)):
-        for (_, _, _, local, remote, _, _), value in raw.of(source):
+        for (_, _, _, local, remote, _, _), value in raw.of(source, ports):
             edge = edges.get((remote, local) if reverse else (local, remote))
             if edge is not None:
                 out.add(metric, edge, value)
     for metric, source in ((EDGE_RETRANSMITS, tcp.CONN_RETRANSMITS), (EDGE_RTT, tcp.CONN_RTT)):
-        for labels, value in raw.of(source):
+        for labels, value in raw.of(source, ports):
             edge = edges.get((labels[0], labels[1]))
             if edge is not None:
                 out.add(metric, edge, value)

@@ -103,6 +103,11 @@ def _add(totals: dict, key: tuple, counts) -> None:
         totals[key] = list(counts) if was is None else [a + b for a, b in zip(was, counts)]
 
 
+def _ports(words: np.ndarray) -> np.ndarray:
+    """Each socket's local port << 16 | remote port, from its value as 8-byte words."""
+    return ((words[:, 2] >> 48) << 16 | (words[:, 3] & 0xFFFF)).astype(np.int64)
+
+
 def _owner(words: list[int]) -> tuple[int, int, int]:
     """(pid, start, class) of a socket's entry, from its value as 8-byte words."""
     return words[1] & 0xFFFFFFFF, words[_WORD_START], (words[3] >> 16) & 0xFFFF
@@ -228,7 +233,8 @@ class SocketsProbe(BpfProbe):
         ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
         snap.groups[SOCKET_GROUP] = Columns(
             np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
-            klass[live].astype(np.intp), PROTOCOLS, pids[live], _Labels(w, names, self.proc_net_unix))
+            klass[live].astype(np.intp), PROTOCOLS, pids[live], _Labels(w, names, self.proc_net_unix),
+            _ports(w))
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:

@@ -173,7 +173,8 @@ class TcpProbe(BpfProbe):
         # The entries' own arrays as a rule (no connection closed, none summed): the next collect
         # writes over them in place, so what a reader keeps of the columns it copies.
         heads = words if first is None else words[first]
-        snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None, _Labels(heads))
+        snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None, _Labels(heads),
+                                          ((heads[:, 0] >> 48) << 16 | (heads[:, 1] & 0xFFFF)).astype(np.int64))
         if closed.any():
             self.opened["tcp_conns"].delete_unchanged(  # one that changed instead comes back marked
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])

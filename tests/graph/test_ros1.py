@@ -178,6 +178,7 @@ def test_each_edge_carries_the_bytes_of_its_socket(wire, proctable, sockets_prob
     truth = {(e["topic"], pub, e["subscriber"]): e["bytes"] for pub, e in flows(nodes)}
     assert sent == truth and received == truth
     assert set(rtt) == set(truth) and all(0 < v < 0.1 for v in rtt.values())
+    assert snap.values(join.EDGE_RETRANSMITS) == dict.fromkeys(truth, 0)  # loopback loses nothing
     # `drums graph` exports carry the same numbers on the edges.
     exported = json.loads(render(graph.snapshot(), "json", graph_metrics(snap)))
     on_edges = {(e["topic"], e["publisher"], e["subscriber"]): (e["sent_bytes_total"], e["received_bytes_total"],
