@@ -19,9 +19,9 @@ LAT = Metric("drums_process_runqueue_latency_seconds", HISTOGRAM, "lat", ("pid",
 
 
 def test_a_renderer_that_remembers_the_last_scrape_writes_what_a_fresh_one_writes():
-    """Scrape after scrape, families come, go and change one value; a family whose rows are equal
-    to the last scrape's is taken as it was written (an equal number too: 2 where 2.0 came), and a
-    snapshot added to after it was rendered is written anew."""
+    """Scrape after scrape, families come, go, change one value and come in another order; a family
+    whose rows are equal to the last scrape's is taken as it was written (an equal number too: 2
+    where 2.0 came), and a snapshot added to after it was rendered is written anew."""
     def snapshot(cpu: dict, lat: Histogram | None) -> Snapshot:
         snap = Snapshot()
         snap.group_rows((CPU, MEM)).extend(((pid, "p"), (value, 100)) for pid, value in cpu.items())
@@ -43,6 +43,7 @@ def test_a_renderer_that_remembers_the_last_scrape_writes_what_a_fresh_one_write
                snapshot({"1": 1.5, "2": 2}, Histogram([2, 3], 0.0125, 4)),
                snapshot({"1": 1.5, "2": 2.0}, Histogram([2, 3], 0.0125, 4)),  # equal, but written 2.0
                snapshot({"1": 1.5, "2": 2.25}, Histogram([2, 3], 0.0125, 4)),
+               snapshot({"2": 2.25, "1": 1.5}, Histogram([2, 3], 0.0125, 4)),  # the same rows, in another order
                snapshot({"2": 2.25}, Histogram([2, 4], 0.02, 5)),
                sent("3", "tcp", 10), sent("3", "tcp", 10), sent("3", "udp", 10)]
     for snap in scrapes:

@@ -6,6 +6,9 @@ the two); tests parse our output with prometheus_client's own parser to keep it 
 """
 from __future__ import annotations
 
+from itertools import compress
+from operator import ne
+
 from drums.metrics import HISTOGRAM, INFO, Metric, Snapshot
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -41,32 +44,29 @@ def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") ->
 class Renderer:
     """Renders snapshots, remembering each family's rows and text: from one scrape to the next most
     families are the same (their rows compare equal, at C speed), and their text is taken as it
-    was. In a family that changed, each series' text (a line, or a histogram's buckets, sum and
-    count) is remembered with its value, and only that of series whose value changed is written
-    again. What a render did not use is forgotten."""
+    was. In a family that changed, each row's text (a line, or a histogram's buckets, sum and
+    count) is remembered with it: where the rows stand as they stood (as a rule), the rows are
+    compared with the last ones in place, at C speed, and only the text of those that differ is
+    written again. What a render did not use is forgotten."""
 
     def __init__(self):
-        self._families: dict[Metric, tuple[list, str]] = {}  # metric -> (its rows, their text)
-        self._lines: dict[Metric, dict[tuple, tuple]] = {}  # metric -> labels -> (value, line)
+        self._families: dict[Metric, tuple[list, list[str], str]] = {}  # metric -> (its rows, their texts, all)
 
     def __call__(self, snap: Snapshot) -> bytes:
-        families, lines = self._families, self._lines
-        kept_families, kept_lines = {}, {}
+        families, kept = self._families, {}
         out: list[str] = []
         for metric in sorted(snap.series, key=lambda m: m.name):
             rows = snap.series[metric]
             if not rows:
                 continue
             last = families.get(metric)
-            if last is not None and last[0] == rows:
-                text = last[1]
-                kept_lines[metric] = lines.get(metric, {})
-            else:
-                text = _family(metric, rows, lines.get(metric, {}), kept_lines.setdefault(metric, {}))
-            kept_families[metric] = (rows.copy(), text)  # a copy: a snapshot may be added to after
-            out.append(text)
+            if last is None or last[0] != rows:
+                texts = _texts(metric, rows, last)  # rows copied: a snapshot may be added to after
+                last = (rows.copy(), texts, _header(metric) + "".join(texts))
+            kept[metric] = last
+            out.append(last[2])
         # Two renders at once: the last one's is kept, both are right.
-        self._families, self._lines = kept_families, kept_lines
+        self._families = kept
         return "".join(out).encode()
 
 
@@ -75,23 +75,35 @@ def render(snap: Snapshot) -> bytes:
     return Renderer()(snap)
 
 
-def _family(metric: Metric, rows, known: dict, kept: dict) -> str:
+def _header(metric: Metric) -> str:
     kind = "gauge" if metric.kind == INFO else metric.kind
-    lines = [f"# HELP {metric.name} {metric.help}\n# TYPE {metric.name} {kind}\n"]
-    name, names = metric.name, metric.labels
-    if metric.kind == HISTOGRAM:
-        bounds = ['le="' + _number(b) + '"' for b in metric.buckets]
-    for values, v in rows:
-        last = known.get(values)
-        if last is None or last[0] != v:  # (a value equal to the last, 2.0 after 2, is written as it was)
-            if metric.kind == HISTOGRAM:
-                last = (v, _histogram(name, names, values, v, bounds))
-            else:
-                line = last[1][:last[1].rindex(" ") + 1] if last else f"{name}{_labels(names, values)} "
-                last = (v, f"{line}{_number(v)}\n")
-        kept[values] = last
-        lines.append(last[1])
-    return "".join(lines)
+    return f"# HELP {metric.name} {metric.help}\n# TYPE {metric.name} {kind}\n"
+
+
+def _texts(metric: Metric, rows: list, last: tuple | None) -> list[str]:
+    """The text of each row: the last render's where the row is the same (2 where 2.0 came: it is
+    written as it was), else written again, with the label part of the last render's row of the
+    same labels."""
+    bounds = ['le="' + _number(b) + '"' for b in metric.buckets] if metric.kind == HISTOGRAM else None
+    if last is not None and len(last[0]) == len(rows):  # the rows in place: compared one to one
+        before, texts = last[0], last[1].copy()
+        for i in compress(range(len(rows)), map(ne, rows, before)):
+            texts[i] = _text(metric, rows[i], before[i], last[1][i], bounds)
+        return texts
+    known = {row[0]: (row, text) for row, text in zip(*last[:2])} if last is not None else {}
+    return [_text(metric, row, *known.get(row[0], (None, "")), bounds) for row in rows]
+
+
+def _text(metric: Metric, row: tuple, before: tuple | None, text: str, bounds: list[str] | None) -> str:
+    """One row's text; `before`: the last render's row with its `text`, if one had these labels."""
+    values, v = row
+    same_labels = before is not None and before[0] == values
+    if same_labels and before[1] == v:
+        return text
+    if bounds is not None:
+        return _histogram(metric.name, metric.labels, values, v, bounds)
+    line = text[:text.rindex(" ") + 1] if same_labels else f"{metric.name}{_labels(metric.labels, values)} "
+    return f"{line}{_number(v)}\n"
 
 
 def _histogram(name: str, names: tuple[str, ...], values: tuple[str, ...], h, bounds: list[str]) -> str:
