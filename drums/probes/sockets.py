@@ -128,26 +128,38 @@ def _owned(tgid: np.ndarray, start: np.ndarray, klass: np.ndarray, counts: np.nd
 class _Labels:
     """The label values of sockets, made from their entries' words when the budget or a reader
     of the snapshot asks for them (of ten thousand sockets, the hundred with series of their own).
-    A reader that asks after the probe's next collect may find an entry given to another socket
-    meanwhile, of a process this collect did not name: its name is then empty."""
+    What the last collect's asked for are taken again where the socket's words that name it and
+    its process's name are the same. A reader that asks after the probe's next collect may find
+    an entry given to another socket meanwhile, of a process this collect did not name: its name
+    is then empty."""
 
-    def __init__(self, words: np.ndarray, names: dict[int, str], proc_net_unix: str):
+    def __init__(self, words: np.ndarray, names: dict[int, str], proc_net_unix: str, known: dict[bytes, tuple]):
         self.words, self.names, self.proc_net_unix = words, names, proc_net_unix
+        # Identity words -> (process name, labels): the last collect's, and this one's.
+        self.known, self.made = known, {}
         self._paths: dict[int, str] | None = None  # unix sockets' bound paths, read at the first asked for
 
     def __call__(self, at: list[int]) -> list[tuple[str, ...]]:
         out = []
         for raw in self.words[at, :_WORDS_IDENTITY]:
-            ino, pid, netns, protocol, local, remote = _identity(raw.tobytes())
-            if protocol == "unix":
-                if self._paths is None:
-                    self._paths = unix_paths(self.proc_net_unix)
-                local = self._paths.get(ino, "")
-            # Interned: the label values many sockets share (their process's pid, their namespace),
-            # and the addresses the tcp probe's rows name too, are one string each.
-            out.append((intern(str(pid)), self.names.get(pid, ""), protocol, intern(local), intern(remote),
-                        intern(str(netns)), str(ino)))
+            key = raw.tobytes()
+            name = self.names.get(int(raw[1]) & 0xFFFFFFFF, "")
+            made = self.made.get(key) or self.known.get(key)
+            if made is None or made[0] != name:
+                made = name, self._make(key, name)
+            self.made[key] = made
+            out.append(made[1])
         return out
+
+    def _make(self, key: bytes, name: str) -> tuple[str, ...]:
+        ino, pid, netns, protocol, local, remote = _identity(key)
+        if protocol == "unix":
+            if self._paths is None:
+                self._paths = unix_paths(self.proc_net_unix)
+            local = self._paths.get(ino, "")
+        # Interned: the label values many sockets share (their process's pid, their namespace),
+        # and the addresses the tcp probe's rows name too, are one string each.
+        return (intern(str(pid)), name, protocol, intern(local), intern(remote), intern(str(netns)), str(ino))
 
 
 class SocketsProbe(BpfProbe):
@@ -185,6 +197,7 @@ class SocketsProbe(BpfProbe):
         self._forgotten: dict[tuple[int, int, int], list[int]] = {}
         self._live_totals: dict = {}  # _owned() of the live entries, as of the last collect
         self._entries_summed = False  # whether _live_totals is that of the entries the last collect kept
+        self._labelled: dict[bytes, tuple] = {}  # the labels the last collect's sockets were asked for
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -231,10 +244,11 @@ class SocketsProbe(BpfProbe):
         # Each socket by its inode; one without (it had no struct socket when first counted) by its
         # entry's key, a kernel address, which as an int64 is below 0 and so no inode.
         ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
+        labels = _Labels(w, names, self.proc_net_unix, self._labelled)
         snap.groups[SOCKET_GROUP] = Columns(
             np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
-            klass[live].astype(np.intp), PROTOCOLS, pids[live], _Labels(w, names, self.proc_net_unix),
-            _ports(w))
+            klass[live].astype(np.intp), PROTOCOLS, pids[live], labels, _ports(w))
+        self._labelled = labels.made
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:

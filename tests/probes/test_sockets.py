@@ -3,6 +3,7 @@ bpf/sockets.bpf.c and checked against the byte and call counts the processes mad
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import errno
 import json
 import os
@@ -13,6 +14,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from drums.budget import Budget
@@ -800,3 +802,33 @@ def test_sockets_come_as_columns_and_only_those_kept_get_labels(sockets_probe, c
         kept = [values for labels, values in own if labels[2] == protocol]
         folded = int((cols.dims == i).sum()) - len(kept)  # sockets of the protocol in `other`: it has a row if any
         assert others == [tuple(a - sum(v[j] for v in kept) for j, a in enumerate(total))] * (folded > 0), protocol
+
+
+def test_labels_asked_for_again_are_the_last_collects_until_the_process_is_renamed(sockets_probe, collect,
+                                                                                   proctable):
+    """The labels of a socket asked for at two collects in a row are made once (the very tuple the
+    second time); when its process is renamed, they are made again with the new name."""
+    libc = ctypes.CDLL(None)
+    was = open("/proc/self/comm").read().rstrip("\n")
+    a, b = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    with a, b:
+        a.bind(("127.0.0.1", 0))
+        b.connect(a.getsockname())
+        inode = os.fstat(b.fileno()).st_ino
+
+        def labels() -> tuple:
+            b.send(b"x")
+            a.recv(1)
+            cols = collect(sockets_probe).groups[sockets.SOCKET_GROUP]
+            (at,) = np.flatnonzero(cols.ids == inode).tolist()
+            return cols.labels([at])[0]
+        first = labels()
+        assert first[1] == was and labels() is first
+        try:
+            libc.prctl(15, b"drums-renamed", 0, 0, 0)  # PR_SET_NAME
+            proctable.refresh(renamed={os.getpid()})
+            renamed = labels()
+        finally:
+            libc.prctl(15, was.encode(), 0, 0, 0)
+            proctable.refresh(renamed={os.getpid()})
+    assert renamed[1] == "drums-renamed" and renamed[:1] + renamed[2:] == first[:1] + first[2:]

@@ -226,6 +226,17 @@ def test_connections_come_as_columns_and_only_those_kept_get_labels(tcp_probe, c
         tuple(a - sum(v[j] for v in own) for j, a in enumerate(total))]
 
 
+def test_labels_asked_for_again_are_the_last_collects(tcp_probe, collect):
+    """A connection's labels asked for at two collects in a row are made once: the very tuple."""
+    with connected_pairs(1) as [(client, _)]:
+        key = (name(client.getsockname()), name(client.getpeername()), NETNS)
+
+        def labels() -> tuple:
+            cols = collect(tcp_probe).groups[CONN_GROUP]
+            return next(made for made in cols.labels(list(range(len(cols.ids)))) if made == key)
+        assert labels() is labels()
+
+
 def test_a_connection_made_again_from_the_same_port_adds_to_its_series(tcp_probe, collect):
     """A client reset and connected again at once from its port: the new connection has the
     addresses of the old one, whose entry the probe still holds (it is exported once closed).
@@ -480,7 +491,7 @@ def test_a_connection_met_late_adds_to_the_host_only_what_it_retransmits_after(t
         assert before >= 100
         labels = (name(sender.getsockname()), name(sender.getpeername()), NETNS)
         entries = tcp_probe._entries
-        names = tcp._Labels(entries._words)(list(range(len(entries))))
+        names = tcp._Labels(entries._words, {})(list(range(len(entries))))
         (key,) = [k for k, named in zip(entries._keys.tolist(), names) if named == labels]
         tcp_probe.opened["tcp_conns"].delete(struct.pack("<Q", key))
         del tcp_probe._marked["tcp_conns"]  # a deletion the programs did not mark: the next collect reads whole
