@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import gc
 import logging
 import os
@@ -294,6 +295,7 @@ def run_agent(args) -> int:
     done = threading.Event()  # set by SIGINT or SIGTERM, even while the probes are still loading
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
+    faulthandler.register(signal.SIGUSR2, all_threads=True)  # kill -USR2: what each thread is doing, to the log
     token = _token(args.address, args.token_file)
     host = socket.gethostname()
     latency = next((p for p in probes if p.name == "latency"), None)
@@ -344,7 +346,11 @@ def run_agent(args) -> int:
         attached = ", ".join(f"{p.name} ({p.status.attach_type})" for p in agent.probes if p.status.attached)
         log.info("serving http://%s:%d/metrics after %.2f s; probes: %s; graph: %s", args.address, server.port,
                  time.perf_counter() - start, attached or "none", adapter_name)
-        done.wait()
+        # Woken each second: the kernel may hand SIGTERM to another thread, and Python runs the
+        # handler only when the main thread runs again. An untimed wait then slept through it (an
+        # agent that ignored SIGTERM until killed, seen once under load, its main thread here).
+        while not done.wait(timeout=1):
+            pass
     finally:
         if diagnostics:
             diagnostics.stop()

@@ -2,6 +2,7 @@
 import contextlib
 import os
 import random
+import signal
 import socket
 import subprocess
 import sys
@@ -60,7 +61,15 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
         yield url
     finally:  # a failed test stops its agent too
         proc.terminate()
-    assert proc.wait(timeout=10) == 0
+    try:
+        code = proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR2)  # its threads' stacks, into its log
+        time.sleep(1)
+        proc.kill()
+        pytest.fail("the agent did not stop within 10 s of SIGTERM; the end of its log, with what each of its "
+                    f"threads was doing:\n{proc.communicate()[0][-8000:]}")
+    assert code == 0
     log = proc.stdout.read()
     if logs is not None:
         logs.append(log)

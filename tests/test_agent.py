@@ -1,8 +1,11 @@
 """The agent as users run it: `drums agent` in its own process, scraped over HTTP."""
+import ctypes
 import gzip
 import json
 import os
+import re
 import shutil
+import signal
 import socket
 import struct
 import subprocess
@@ -137,6 +140,47 @@ def test_bad_input_is_one_line_and_exit_2(argv, message):
     assert out.stdout == ""
     lines = out.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("drums: ") and message in lines[0], out.stderr
+
+
+def test_sigterm_that_the_kernel_hands_to_another_thread_stops_the_agent():
+    """The kernel may deliver a SIGTERM for the process to any of its threads; Python runs the
+    handler in the main thread, which must wake to do so (an agent waiting untimed slept through
+    it until killed). Sent to each other thread in turn, with tgkill, it stops the agent."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "drums", "agent", "--port", str(port), "--stream-port", "0",
+                             "--probe", "host", "--graph", "auto"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                scrape(f"http://127.0.0.1:{port}/metrics")
+                break
+            except OSError:
+                assert proc.poll() is None and time.monotonic() < deadline, "the agent did not serve"
+                time.sleep(0.1)
+        others = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task") if int(t) != proc.pid]
+        assert others
+        tgkill = {"x86_64": 234, "aarch64": 131}[os.uname().machine]  # the syscall's number
+        assert ctypes.CDLL(None, use_errno=True).syscall(tgkill, proc.pid, others[-1], signal.SIGTERM) == 0
+        assert proc.wait(timeout=10) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_sigusr2_writes_what_each_thread_does_to_the_log_and_the_agent_goes_on():
+    """`kill -USR2` on a stuck agent says where each of its threads is, and stops nothing."""
+    logs: list[str] = []
+    with running_agent("--probe", "host", "--graph", "auto", bpf=False, logs=logs) as url:
+        port = urllib.parse.urlsplit(url).port
+        (agent,) = [p for p in psutil.process_iter(["cmdline"])
+                    if "agent" in (p.info["cmdline"] or []) and str(port) in (p.info["cmdline"] or [])]
+        agent.send_signal(signal.SIGUSR2)
+        time.sleep(0.5)
+        assert scrape(url) and agent.is_running()
+    threads = re.findall(r"^(?:Current thread|Thread) 0x[0-9a-f]+", logs[0], re.M)
+    assert len(threads) >= 3 and 'File "' in logs[0], logs[0][-2000:]
 
 
 @pytest.mark.parametrize("taken, said", [("--port", "cannot listen on"),
