@@ -41,6 +41,11 @@ KINDS = {
 }
 
 
+def _entity_getter(labels: tuple[str, ...], kind: str) -> Callable[[tuple], object]:
+    """What gives, from a row's label values, the entity of `kind` it is of."""
+    return itemgetter(*[labels.index(label) for label in KINDS[kind][0]])
+
+
 def kind_of(metric: Metric) -> str | None:
     for kind, (ident, _) in KINDS.items():
         if all(label in metric.labels for label in ident):
@@ -69,11 +74,11 @@ class _Group:
 
     def __init__(self, metrics: tuple[Metric, ...], kind: str, single: bool):
         """`single`: the rows of one metric added alone, which carry a value, not a tuple of them."""
-        ident, rank_names = KINDS[kind]
+        rank_names = KINDS[kind][1]
         self.single = single
         labels = metrics[0].labels
         self.metrics = metrics
-        self.entity_of = itemgetter(*[labels.index(label) for label in ident])
+        self.entity_of = _entity_getter(labels, kind)
         self.dims = [i for i, label in enumerate(labels) if label in DIMENSIONS]
         self.additive = all(m.additive for m in metrics)
         self.counters = all(m.kind in (COUNTER, HISTOGRAM) for m in metrics)
@@ -212,7 +217,7 @@ class _Columnar:
         self.folded = np.empty((0, len(metrics)), np.int64)  # and as last summed into `other`, where
         self.infold = np.empty(0, bool)  # it is in `other`
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
-        self.entity_of = itemgetter(*[labels.index(label) for label in KINDS[kind][0]])
+        self.entity_of = _entity_getter(labels, kind)
         # The entities kept, by their labels as a kind given as rows names them (ids are the probe's),
         # and those that only the groups beside the columns have, shown too.
         self.named: set = set()
@@ -404,15 +409,15 @@ class Budget:
         Columns: those of the entities kept, and of entities the columns do not have (a connection
         older than the agent, which never moved under its probes) as far as slots are free, the
         first by their labels."""
-        c, ident = st.columnar, KINDS[kind][0]
-        named = {metrics: (itemgetter(*[metrics[0].labels.index(label) for label in ident]), rows, single)
+        c = st.columnar
+        named = {metrics: (_entity_getter(metrics[0].labels, kind), rows, single)
                  for metrics, (rows, single) in groups.items()}
-        others = {entity_of(row[0]) for entity_of, rows, _ in named.values() for row in rows} - c.named
+        others = {of(row[0]) for of, rows, _ in named.values() for row in rows} - c.named
         c.extra = set(sorted(others)[:max(st.limit - len(st.kept), 0)])
         shown = c.named | c.extra
-        for metrics, (entity_of, rows, single) in named.items():
+        for metrics, (of, rows, single) in named.items():
             (out.rows(metrics[0]) if single else out.group_rows(metrics)).extend(
-                row for row in rows if entity_of(row[0]) in shown)
+                row for row in rows if of(row[0]) in shown)
 
     @staticmethod
     def _count_entities(st: _KindState, groups: list) -> tuple[set, set]:

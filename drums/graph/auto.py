@@ -42,9 +42,7 @@ def _socket_owners(table: ProcessTable) -> tuple[np.ndarray, np.ndarray]:
         inodes += held
         pids += [pid] * len(held)
     inodes, pids = np.array(inodes, np.int64), np.array(pids, np.int64)
-    order = np.argsort(inodes, kind="stable")
-    inodes, pids = inodes[order], pids[order]
-    first = np.concatenate(([True], inodes[1:] != inodes[:-1])) if len(inodes) else np.zeros(0, bool)
+    first = distinct_rows(inodes[:, None])  # ascending; of one inode, the first holder listed
     return inodes[first], pids[first]
 
 
@@ -93,8 +91,10 @@ class AutoAdapter(Adapter):
         else:
             self._unowned = self._unowned[within(self._unowned, wanted)]
         self._owners = held, pids
-        at = np.minimum(np.searchsorted(held, inodes), max(len(held) - 1, 0))
-        return np.where(within(inodes, held), pids[at] if len(held) else -1, -1)
+        if not len(held):
+            return np.full(len(inodes), -1, np.int64)
+        at = np.minimum(np.searchsorted(held, inodes), len(held) - 1)
+        return np.where(held[at] == inodes, pids[at], -1)
 
     def _changes(self) -> int | None:
         try:

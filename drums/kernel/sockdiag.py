@@ -144,12 +144,8 @@ def lookup_tcp(connections: list[tuple[tuple[int, bytes, int], tuple[int, bytes,
     a (family, address, port) as netfmt.parse_endpoint gives it, with its tcp_info; None for one
     that is gone. One request each: for a few hundred connections, cheaper than a dump of
     ten thousand. An IPv4 endpoint is looked for on an IPv6 socket too (as a mapped address)."""
-    try:
-        sock = socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
-    except OSError as e:
-        raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
     found = []
-    with sock:
+    with _diag_socket() as sock:
         for (family, local, lport), (_, remote, rport) in connections:
             tries = [(family, local, remote)]
             if family == socket.AF_INET:
