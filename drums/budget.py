@@ -9,9 +9,9 @@ leaves it (its entity ended, or got its own series) leaves what it added.
 The budget remembers each row between collects and does per-row work only for rows that changed:
 on an idle host with ten thousand processes' rows a collect is a few dict and set operations. A
 probe that tells its rows as changes to those of its last collect (Snapshot.changes) spares it even
-comparing them. A group given as Columns (the sockets, the TCP connections) is ranked and summed as
-arrays, and label values are asked for only for the rows kept: ten thousand sockets hold no Python
-object each.
+comparing them. Groups given as Columns (the sockets, the TCP connections, the threads) are ranked
+and summed as arrays, and label values are asked for only for the rows kept: ten thousand sockets
+hold no Python object each.
 """
 from __future__ import annotations
 
@@ -23,8 +23,8 @@ from operator import itemgetter
 
 import numpy as np
 
-from drums.arrays import within
-from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
+from drums.arrays import distinct, within
+from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, shown
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
 DIMENSIONS = {"protocol", "kind"}
@@ -198,16 +198,17 @@ class _Group:
 
 
 class _Columnar:
-    """What the budget remembers of a group given as Columns: its entities in the order the last
+    """What the budget remembers of a group given as Columns: its rows in the order the last
     Columns gave them (a probe hands its sockets on in the same order while none come or go), the
-    same ascending for lookups, and each entity's values and what it has summed into `other`. Its
-    series are all counters (sockets' bytes and calls, connections' retransmits and resets)."""
+    same ascending for lookups, and each row's values and what it has summed into `other`. Its
+    series are all counters (sockets' bytes and calls, connections' retransmits and resets, threads'
+    CPU time and switches)."""
 
-    def __init__(self, metrics: tuple[Metric, ...], kind: str, dim_names: tuple[str, ...]):
+    def __init__(self, metrics: tuple[Metric, ...], kind: str, cols: Columns):
         if not all(m.kind == COUNTER for m in metrics):
             raise ValueError(f"{metrics[0].name}: columns are of counters only")
         labels = metrics[0].labels
-        self.metrics, self.dim_names = metrics, dim_names
+        self.metrics, self.dim_names, self.units = metrics, cols.dim_names, cols.units
         self.rank = [i for i, m in enumerate(metrics) if m.name in KINDS[kind][1]]
         self.dim = next((i for i, label in enumerate(labels) if label in DIMENSIONS), None)
         self.ids = np.empty(0, np.int64)
@@ -218,18 +219,15 @@ class _Columnar:
         self.infold = np.empty(0, bool)  # it is in `other`
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
         self.entity_of = _entity_getter(labels, kind)
-        # The entities kept, by their labels as a kind given as rows names them (ids are the probe's),
-        # and those that only the groups beside the columns have, shown too.
-        self.named: set = set()
-        self.extra: set = set()
 
-    def at(self, ids: np.ndarray) -> np.ndarray:
-        """Where these entities (all of them held) are in `ids`."""
-        return self.order[np.searchsorted(self.sorted, ids)]
+    def none(self) -> Columns:
+        """The group's Columns of a collect that gave it no rows."""
+        return Columns(self.ids[:0], self.last[:0], np.empty(0, np.intp), self.dim_names, self.ids[:0],
+                       lambda at: [], units=self.units)
 
     def follow(self, ids: np.ndarray) -> np.ndarray:
-        """Take the entities of a collect whose entities are not those of the last (some came, some
-        went, or they came in another order): the arrays follow them. Which are new."""
+        """Take the rows of a collect whose rows are not those of the last (some came, some went, or
+        they came in another order): the arrays follow them. Which are new."""
         order = np.argsort(ids)
         ascending = ids[order]
         new = np.ones(len(ids), bool)
@@ -263,7 +261,13 @@ class _KindState:
     totals: dict = field(default_factory=dict)  # (metrics, labels of other) -> values
     members: dict = field(default_factory=dict)  # the same key -> rows summed into it now (for gauges)
     folded_total: int = 0  # entities that went into `other`, ever
-    columnar: _Columnar | None = None  # the kind's one group, where it comes as Columns
+    # Where the kind comes as Columns: its groups, its entities (ascending) at the last collect, and
+    # those kept by their labels as a kind given as rows names them (ids are the probe's), and
+    # those that only the groups beside the columns have, shown too.
+    columnar: dict = field(default_factory=dict)  # metrics -> _Columnar
+    ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    named: set = field(default_factory=set)
+    extra: set = field(default_factory=set)
 
 
 class Budget:
@@ -276,14 +280,14 @@ class Budget:
 
     def folded(self) -> dict[str, int]:
         """Entities of each kind whose series are currently summed into `other`."""
-        return {kind: (len(st.columnar.ids) if st.columnar else len(st.entities)) - len(st.kept)
+        return {kind: (len(st.ids) if st.columnar else len(st.entities)) - len(st.kept)
                 for kind, st in self.kinds.items()}
 
     def kept(self, kind: str) -> set:
         """Entities of a kind that had their own series at the last collect: a label value for
         kinds named by one label (a pid, an inode), a tuple of values for the others."""
         st = self.kinds[kind]
-        return st.columnar.named | st.columnar.extra if st.columnar else set(st.kept)
+        return st.named | st.extra if st.columnar else set(st.kept)
 
     def limit(self, kind: str) -> int:
         return self.kinds[kind].limit
@@ -308,14 +312,13 @@ class Budget:
         return out
 
     def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, out: Snapshot) -> None:
-        columns = [(metrics, rows) for metrics, (rows, _) in groups.items() if isinstance(rows, Columns)]
-        if columns or st.columnar is not None:  # none now: every entity gone
-            beside = {metrics: group for metrics, group in groups.items() if not isinstance(group[0], Columns)}
-            if len(columns) > 1 or any(m.additive for metrics in beside for m in metrics):
-                raise ValueError(f"{kind}: a group given as columns must be its kind's only one, but for gauges "
-                                 "that do not add up")
-            metrics, cols = columns[0] if columns else (st.columnar.metrics, None)
-            self._apply_columns(st, kind, metrics, cols, out)
+        columns = {metrics: rows for metrics, (rows, _) in groups.items() if isinstance(rows, Columns)}
+        if columns or st.columnar:  # none now: every entity gone
+            beside = {metrics: group for metrics, group in groups.items() if metrics not in columns}
+            if any(m.additive for metrics in beside for m in metrics):
+                raise ValueError(f"{kind}: groups given as columns may have beside them only gauges that do "
+                                 "not add up")
+            self._apply_columns(st, kind, {**dict.fromkeys(st.columnar), **columns}, out)
             self._beside_columns(st, kind, beside, out)
             return
         # Ten thousand sockets pass here at each scrape, few of which did anything since the last:
@@ -351,41 +354,61 @@ class Budget:
             else:
                 out.group_rows(metrics).append((labels, tuple(values)))
 
-    def _apply_columns(self, st: _KindState, kind: str, metrics: tuple[Metric, ...], cols: Columns | None,
+    def _apply_columns(self, st: _KindState, kind: str, given: dict[tuple[Metric, ...], Columns | None],
                        out: Snapshot) -> None:
-        """The rows of a group given as Columns: as _apply_kind does for rows, with the entities'
-        values and their parts of `other` in arrays, per-entity work only for those that changed
-        (found with one comparison of the arrays), and labels made for the rows kept alone."""
-        c = st.columnar = st.columnar or _Columnar(metrics, kind, cols.dim_names)
-        if cols is None:
-            cols = Columns(c.ids[:0], c.last[:0], np.empty(0, np.intp), c.dim_names, c.ids[:0], lambda at: [])
-        new = c.follow(cols.ids) if not np.array_equal(cols.ids, c.ids) else np.zeros(len(cols.ids), bool)
-        vals = cols.values
-        changed = np.flatnonzero((vals != c.last).any(axis=1) | new)
-        # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
-        grew = np.maximum(vals[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
-        whole = grew.sum(axis=0)
-        share = (grew / np.where(whole > 0, whole, 1)).sum(axis=1)
-        activity = dict(zip(cols.ids[changed[share > 0]].tolist(), share[share > 0].tolist()))
+        """The rows of groups given as Columns (None: a group that has no rows now): as _apply_kind
+        does for rows, with the rows' values and their parts of `other` in arrays, per-row work only
+        for those that changed (found with one comparison of the arrays), and labels made for the
+        rows kept alone."""
+        seen = []  # (its _Columnar, the Columns, the rows changed)
+        activity: dict = {}
+        for metrics, cols in given.items():
+            c = st.columnar.get(metrics) or st.columnar.setdefault(metrics, _Columnar(metrics, kind, cols))
+            cols = cols or c.none()
+            new = c.follow(cols.ids) if not np.array_equal(cols.ids, c.ids) else np.zeros(len(cols.ids), bool)
+            changed = np.flatnonzero((cols.values != c.last).any(axis=1) | new)
+            # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
+            grew = np.maximum(cols.values[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
+            whole = grew.sum(axis=0)
+            share = (grew / np.where(whole > 0, whole, 1)).sum(axis=1)
+            for entity, part in zip(cols.of()[changed[share > 0]].tolist(), share[share > 0].tolist()):
+                activity[entity] = activity.get(entity, 0.0) + part
+            seen.append((c, cols, changed))
+        if len(seen) == 1 and seen[0][1].entities is None:
+            everyone = seen[0][0].sorted  # the one group's ids, ascending, are the entities
+        else:
+            everyone = distinct(np.concatenate([cols.of() for _, cols, _ in seen]))
+        fresh = everyone[~within(everyone, st.ids)]
+        st.ids = everyone
 
         def kept() -> np.ndarray:  # the entities with series of their own, ascending
             return np.sort(np.fromiter(st.kept, np.int64, len(st.kept)))
         held = kept()
-        st.kept = set(held[within(held, c.sorted)].tolist())  # entities that ended free their slots
+        st.kept = set(held[within(held, everyone)].tolist())  # entities that ended free their slots
         was_kept = set(st.kept)
 
         def idle(n: int) -> list[int]:  # entities without series of their own, the first n
-            return c.sorted[~within(c.sorted, kept())][:n].tolist()
+            return everyone[~within(everyone, kept())][:n].tolist()
         self._choose(st, idle, activity)
-        own = c.at(kept())
-        rows = cols.rows(own.tolist())
-        out.group_rows(metrics).extend(rows)
-        c.named = {c.entity_of(labels) for labels, _ in rows}
-        # `other`: what each entity not kept counted since it last added to it (all of it if it is
-        # new, just left its own series, or went back); one that gets its own series leaves in it
-        # what it added.
+        held = kept()
+        demoted = np.array(sorted(was_kept - st.kept), np.int64)
+        st.folded_total += int((~within(fresh, held)).sum()) + len(demoted)
+        st.named = set()
+        for c, cols, changed in seen:
+            own = np.flatnonzero(within(cols.of(), held))
+            rows = cols.rows(own.tolist())
+            out.group_rows(c.metrics).extend(rows)
+            st.named.update(c.entity_of(labels) for labels, _ in rows)
+            self._fold_columns(c, cols, changed, own, np.flatnonzero(within(cols.of(), demoted)), out)
+
+    @staticmethod
+    def _fold_columns(c: _Columnar, cols: Columns, changed: np.ndarray, own: np.ndarray, demoted: np.ndarray,
+                      out: Snapshot) -> None:
+        """A group's `other`: what each row not kept counted since it last added to it (all of it
+        if it is new, just left its own series, or went back); one that gets its own series leaves
+        in it what it added."""
+        vals = cols.values
         c.infold[own] = False
-        demoted = c.at(np.array(sorted(was_kept - st.kept), np.int64))
         enters = np.zeros(len(cols.ids), bool)  # (a mask, not setdiff1d and union1d, which import numpy.ma)
         enters[changed] = True
         enters[own] = False
@@ -393,15 +416,16 @@ class Budget:
         entering = np.flatnonzero(enters)
         now, was = vals[entering], np.where(c.infold[entering, None], c.folded[entering], 0)
         steps, into = np.where(now < was, now, now - was), cols.dims[entering]
-        sums = np.zeros((len(c.dim_names), len(metrics)), np.int64)
+        sums = np.zeros((len(c.dim_names), len(c.metrics)), np.int64)
         np.add.at(sums, into, steps)
         for d in np.flatnonzero(np.bincount(into, minlength=len(c.dim_names))).tolist():
             c.totals[d] = c.totals.get(d, 0) + sums[d]
         c.folded[entering], c.infold[entering] = now, True
         c.last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
-        st.folded_total += len(set(cols.ids[new].tolist()) - st.kept) + len(demoted)
-        for d, total in c.totals.items():
-            out.group_rows(metrics).append((c.other_labels(d), tuple(total.tolist())))
+        if c.totals:
+            dims = list(c.totals)
+            out.group_rows(c.metrics).extend(zip(map(c.other_labels, dims),
+                                                 shown(np.array([c.totals[d] for d in dims]), c.units)))
 
     @staticmethod
     def _beside_columns(st: _KindState, kind: str, groups: dict, out: Snapshot) -> None:
@@ -409,15 +433,14 @@ class Budget:
         Columns: those of the entities kept, and of entities the columns do not have (a connection
         older than the agent, which never moved under its probes) as far as slots are free, the
         first by their labels."""
-        c = st.columnar
         named = {metrics: (_entity_getter(metrics[0].labels, kind), rows, single)
                  for metrics, (rows, single) in groups.items()}
-        others = {of(row[0]) for of, rows, _ in named.values() for row in rows} - c.named
-        c.extra = set(sorted(others)[:max(st.limit - len(st.kept), 0)])
-        shown = c.named | c.extra
+        others = {of(row[0]) for of, rows, _ in named.values() for row in rows} - st.named
+        st.extra = set(sorted(others)[:max(st.limit - len(st.kept), 0)])
+        showing = st.named | st.extra
         for metrics, (of, rows, single) in named.items():
             (out.rows(metrics[0]) if single else out.group_rows(metrics)).extend(
-                row for row in rows if of(row[0]) in shown)
+                row for row in rows if of(row[0]) in showing)
 
     @staticmethod
     def _count_entities(st: _KindState, groups: list) -> tuple[set, set]:

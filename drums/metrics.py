@@ -80,11 +80,11 @@ class Changes:
 
 @dataclass
 class Columns:
-    """A group's rows as arrays, one row per entity: for the ten thousand sockets of a host, of
-    which the budget gives a hundred series of their own and sums the rest. Label values are made
-    only for the rows asked for (`rows`); the budget ranks and sums the others as arrays."""
+    """A group's rows as arrays: for the ten thousand sockets of a host, of which the budget gives
+    a hundred series of their own and sums the rest. Label values are made only for the rows asked
+    for (`rows`); the budget ranks and sums the others as arrays."""
 
-    ids: np.ndarray  # (n,) int64: the entity of each row, one row each
+    ids: np.ndarray  # (n,) int64: each row's own id, one each
     # (n, k) int64: the row's counters, in the group's metrics' order. Maybe a view of a probe's
     # arrays, which its next collect writes over: what is kept of them is copied.
     values: np.ndarray
@@ -95,11 +95,19 @@ class Columns:
     # (n,) int64: each row's local port << 16 | remote port, where rows are sockets or connections,
     # so that a reader can find the few on some ports without the labels of all
     ports: np.ndarray | None = None
+    # (n,) int64: the entity each row is of, where an entity has several rows (a thread's voluntary
+    # and involuntary switches); None: each row is an entity of its own, named by its id
+    entities: np.ndarray | None = None
+    units: tuple[int, ...] | None = None  # per metric, the counts in one unit shown (1e9 ns a second); None: 1
 
     def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
         """(labels, values) rows, as a group's rows are: all, or those at these indices."""
         at = list(range(len(self.ids))) if at is None else at
-        return list(zip(self.labels(at), map(tuple, self.values[at].tolist())))
+        return list(zip(self.labels(at), shown(self.values[at], self.units)))
+
+    def of(self) -> np.ndarray:
+        """The entity of each row."""
+        return self.ids if self.entities is None else self.entities
 
     def of_processes(self, pids: set[int]) -> "Columns":
         """The rows of these processes (none, for rows that belong to no process)."""
@@ -114,9 +122,19 @@ class Columns:
 
     def subset(self, where: np.ndarray) -> "Columns":
         """The rows at these indices."""
-        return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names,
-                       None if self.pids is None else self.pids[where], lambda at: self.labels(where[at].tolist()),
-                       None if self.ports is None else self.ports[where])
+        def part(a):
+            return None if a is None else a[where]
+        return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names, part(self.pids),
+                       lambda at: self.labels(where[at].tolist()), part(self.ports), part(self.entities), self.units)
+
+
+def shown(values: np.ndarray, units: tuple[int, ...] | None) -> list[tuple]:
+    """Rows of counts as the metrics show them: in their units (seconds of nanoseconds), as floats
+    where a unit is not 1."""
+    rows = map(tuple, values.tolist())
+    if units is None:
+        return list(rows)
+    return [tuple(v / u if u != 1 else v for v, u in zip(row, units)) for row in rows]
 
 
 def _rows(rows: "list | Columns") -> list:

@@ -3,6 +3,7 @@ import random
 import sys
 
 import numpy as np
+import pytest
 
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -10,7 +11,7 @@ from drums import docs
 from drums.budget import Budget
 from drums.exporters.prometheus import Renderer, render
 from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
-from drums.probes import tcp
+from drums.probes import sched, tcp
 
 CPU = Metric("drums_process_cpu_seconds_total", COUNTER, "cpu", ("pid", "process"))
 MEM = Metric("drums_process_resident_memory_bytes", GAUGE, "rss", ("pid", "process"))
@@ -302,6 +303,53 @@ def test_a_budget_given_connections_as_columns_with_their_rtt_beside_gives_what_
         assert by_columns.kept("connection") == by_rows.kept("connection"), step
         assert by_columns.folded() == by_rows.folded() and by_columns.folded_total() == by_rows.folded_total()
     assert by_rows.folded_total()["connection"] > 100
+
+
+def test_a_budget_given_threads_as_two_groups_of_columns_gives_what_one_given_rows_gives():
+    """Threads come, count on, get their own series, lose them and end: one budget is given them as
+    the sched probe gives them (their times in nanoseconds and their waits as one group of Columns,
+    their switches as another, two rows a thread), the other as rows of seconds. Both keep the
+    same threads and sum the same `other` (to the rounding of a float), of switches by kind."""
+    rng = random.Random(17)
+    by_columns, by_rows = Budget({"thread": 5}), Budget({"thread": 5})
+    counts: dict[int, list[int]] = {}  # pid << 32 | tid -> cpu ns, run-queue ns, waits, voluntary, involuntary
+    for step in range(150):
+        for id_ in [i for i in counts if rng.random() < 0.08]:
+            del counts[id_]
+        for _ in range(rng.randint(0, 4) if step else 30):
+            counts[rng.randint(1, 4000) << 32 | rng.randint(1, 4 * 10**6)] = [0] * 5
+        for c in counts.values():
+            c[0] += rng.randint(1, 10**6 if rng.random() < 0.97 else 10**9)
+            for i in range(1, 5):
+                c[i] += rng.randint(0, 10**4)
+        ids = list(counts)
+        rng.shuffle(ids)
+        values = np.array([counts[i] for i in ids], np.int64).reshape(-1, 5)
+
+        def labels(at: list[int]) -> list[tuple]:
+            return [(str(ids[i] >> 32), str(ids[i] & 0xFFFFFFFF), "worker") for i in at]
+        columns, rows = Snapshot(), Snapshot()
+        every = labels(list(range(len(ids))))
+        entities = np.array(ids, np.int64)
+        columns.groups[sched.THREAD_GROUP] = Columns(entities, values[:, :3], np.zeros(len(ids), np.intp), ("",),
+                                                     entities >> 32, labels, units=(10**9, 10**9, 1))
+        columns.groups[(sched.THREAD_SWITCHES,)] = Columns(  # a row id each, stable while the thread lives
+            (entities[:, None] * 2 + [0, 1]).ravel(), values[:, 3:].reshape(-1, 1), np.tile([0, 1], len(ids)),
+            sched.SWITCH_KINDS, np.repeat(entities >> 32, 2),
+            lambda at: [every[i // 2] + (sched.SWITCH_KINDS[i % 2],) for i in at], entities=np.repeat(entities, 2))
+        for metric, at, unit in ((sched.THREAD_CPU, 0, 10**9), (sched.THREAD_RUNQ, 1, 10**9),
+                                 (sched.THREAD_RUNQ_WAITS, 2, 1)):
+            rows.rows(metric).extend((thread, counts[i][at] / unit if unit != 1 else counts[i][at])
+                                     for thread, i in zip(every, ids))
+        rows.rows(sched.THREAD_SWITCHES).extend((thread + (kind,), counts[i][3 + k]) for thread, i in zip(every, ids)
+                                                for k, kind in enumerate(sched.SWITCH_KINDS))
+        outs = [{(m.name, labels): v for m, r in budget.apply(snap).series.items() for labels, v in r}
+                for budget, snap in ((by_columns, columns), (by_rows, rows))]
+        assert outs[0] == pytest.approx(outs[1], rel=1e-12), step
+        assert by_columns.kept("thread") == by_rows.kept("thread"), step
+        assert by_columns.folded() == by_rows.folded() and by_columns.folded_total() == by_rows.folded_total()
+    assert by_rows.folded_total()["thread"] > 100
+    assert ("drums_thread_context_switches_total", ("other", "other", "other", "involuntary")) in outs[0]
 
 
 def test_the_rtt_of_a_connection_the_columns_lack_shows_while_a_slot_is_free():

@@ -79,7 +79,7 @@ class AutoAdapter(Adapter):
         OWNERS_REREAD seconds (a socket handed to another process keeps its inode): on a host
         whose connections stay, rarely."""
         held, pids = self._owners
-        alive = [pid for pid in distinct(pids) if self.scan.table.alive(pid)]
+        alive = [pid for pid in distinct(pids).tolist() if self.scan.table.alive(pid)]
         live = among(pids, alive)
         held, pids = held[live], pids[live]
         wanted = np.unique(inodes[inodes != 0], return_counts=True)[0]  # with counts: see arrays.distinct
@@ -145,7 +145,7 @@ class AutoAdapter(Adapter):
         accepting = established & (listener[table["sport"]] == pid)
         ends["port"] = np.where(accepting, table["sport"], table["dport"])
         ends["accepting"] = accepting
-        names = {p: f"/{self.scan.name(p) or 'process'}/{p}" for p in distinct(pid)}
+        names = {p: f"/{self.scan.name(p) or 'process'}/{p}" for p in distinct(pid).tolist()}
         edges, remote_nodes = set(), set()
         ends = ends[established]
         for end in ends[distinct_rows(_words(ends))].tolist():

@@ -12,7 +12,7 @@ import numpy as np
 
 from drums.arrays import among, distinct
 from drums.kernel.btf import Btf
-from drums.metrics import COUNTER, HISTOGRAM, Changes, Histogram, Metric, Snapshot, highest
+from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
 from drums.probes.entries import Entries
@@ -40,6 +40,12 @@ THREAD_RUNQ_WAITS = Metric("drums_thread_runqueue_waits_total", COUNTER,
                            "Times the thread waited on a run queue", ("pid", "tid", "thread"))
 THREAD_SWITCHES = Metric("drums_thread_context_switches_total", COUNTER, "Context switches of the thread",
                          ("pid", "tid", "thread", "kind"))
+# The threads come as Columns (a host's thousands of threads hold no Python object each): their
+# times in nanoseconds, shown in seconds; their switches two rows each, by kind.
+THREAD_GROUP = (THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS)
+_THREAD_UNITS = (1_000_000_000, 1_000_000_000, 1)
+SWITCH_KINDS = ("voluntary", "involuntary")
+PROCESS_METRICS = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES)  # those made as rows, a process at a time
 
 _SCHED = "5Q24I"  # struct sched_t
 _THREAD_VALUE = struct.Struct("<IIQQQQQ16s" + _SCHED)
@@ -51,7 +57,9 @@ _ONCPU = struct.Struct("<QIIQQ")  # struct oncpu_t
 # Slots of the threads' array (bpf/sched.bpf.c), a power of two: 8,192 hold a host's threads but
 # for those whose slot another thread holds (a hash lookup more per switch), in 1.6 MB.
 THREAD_SLOTS = 8192
-_WORD_START = 2  # of a thread's value as 8-byte words: its process's start time
+# A thread's value as 8-byte words: its process's start time, its runtime when its slot was taken,
+# its name, and its counts (on-CPU ns, run-queue ns, waits, voluntary and involuntary switches).
+_WORD_START, _WORD_BASE, _WORDS_COMM, _WORDS_COUNTS = 2, 3, slice(6, 8), slice(8, 13)
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -101,10 +109,13 @@ class SchedProbe(BpfProbe):
         # neither for that collect. Kept while its process lives.
         self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
-        self._rows: list[dict] = [{} for _ in self.metrics]  # per metric: labels -> row, of every process made
+        self._rows: list[dict] = [{} for _ in PROCESS_METRICS]  # per metric: labels -> row, of every process made
         self._cpu: dict[int, float] = {}  # tgid -> CPU seconds of every process made, for the process table
         self._refreshed = -1  # the process table's refresh at the last collect
         self._threads = Entries(_THREAD_VALUE.size, 0)  # rows: each thread's tgid
+        # Each thread's CPU time as last shown, by thread ID, ascending, with its process's start:
+        # the running slice is estimated, and a thread's time never goes below what it showed.
+        self._shown = (np.empty(0, np.uint64), np.empty(0, np.uint64), np.empty(0, np.int64))
         self._collects = 0
         self._renames_lost = 0
 
@@ -178,7 +189,7 @@ class SchedProbe(BpfProbe):
             self._collect(snap)
         except BaseException:
             # What it kept may be half brought up to date: the next collect makes every row anew.
-            self._made, self._rows, self._cpu = {}, [{} for _ in self.metrics], {}
+            self._made, self._rows, self._cpu = {}, [{} for _ in PROCESS_METRICS], {}
             raise
 
     def _collect(self, snap: Snapshot) -> None:
@@ -208,7 +219,7 @@ class SchedProbe(BpfProbe):
         m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
         made, cpu = self._made, self._cpu
-        alive = pt.alive_among(distinct(tgids)) | exited.keys()
+        alive = pt.alive_among(distinct(tgids).tolist()) | exited.keys()
         ended = made.keys() - alive
         was = [made.pop(tgid) for tgid in ended]  # ended, and made again: their last rows
         for tgid in ended:
@@ -241,7 +252,7 @@ class SchedProbe(BpfProbe):
             cpu[tgid] = process.cpu
         # Every process's rows, brought up to date with those of the processes made again or gone
         # (a thousand processes, a few of which ran: no walk over all of them).
-        for i, metric in enumerate(self.metrics):
+        for i, metric in enumerate(PROCESS_METRICS):
             rows, changed = self._rows[i], [row for process in remade for row in process.rows[i]]
             gone = [labels for process in was for labels, _ in process.rows[i]]
             for labels in gone:
@@ -250,12 +261,42 @@ class SchedProbe(BpfProbe):
             if rows:
                 snap.rows(metric).extend(rows.values())
             snap.changes[(metric,)] = Changes(self._collects - 1, self._collects, changed, gone)
+        self._thread_columns(snap, m, tgids, among(tgids, alive), running)
         pt.ran(dict(cpu))
         self.read_dropped()
 
+    def _thread_columns(self, snap: Snapshot, m, tgids: np.ndarray, alive: np.ndarray, running: dict[int, int]) -> None:
+        """The threads' rows, as Columns: those of the processes alive."""
+        w = m.words
+        counts = w[:, _WORDS_COUNTS].astype(np.int64)
+        if running:
+            on = np.flatnonzero(among(m.keys, running))
+            now = np.fromiter((running[tid] for tid in m.keys[on].tolist()), np.int64, len(on))
+            counts[on, 0] = np.maximum(counts[on, 0], now - w[on, _WORD_BASE].astype(np.int64))
+        keys, start, cpu = self._shown
+        if len(keys):
+            at = np.minimum(np.searchsorted(keys, m.keys), len(keys) - 1)
+            same = (keys[at] == m.keys) & (start[at] == w[:, _WORD_START])
+            counts[same, 0] = np.maximum(counts[same, 0], cpu[at[same]])
+        self._shown = (m.keys, w[:, _WORD_START].copy(), counts[:, 0].copy())
+        counts, tids, pids, comms = counts[alive], m.keys[alive], tgids[alive].astype(np.int64), w[alive, _WORDS_COMM]
+        ids = pids << 32 | tids.astype(np.int64)
+
+        def labels(at: list[int]) -> list[tuple[str, str, str]]:
+            names = [comm.tobytes().split(b"\0", 1)[0].decode(errors="replace") for comm in comms[at]]
+            return list(zip(map(str, pids[at].tolist()), map(str, tids[at].tolist()), names))
+        snap.groups[THREAD_GROUP] = Columns(ids, counts[:, :3], np.zeros(len(ids), np.intp), ("",), pids, labels,
+                                            units=_THREAD_UNITS)
+        kinds = len(SWITCH_KINDS)
+        snap.groups[(THREAD_SWITCHES,)] = Columns(
+            (ids[:, None] * kinds + np.arange(kinds)).ravel(), counts[:, 3:5].reshape(-1, 1),
+            np.tile(np.arange(kinds), len(ids)), SWITCH_KINDS, np.repeat(pids, kinds),
+            lambda at: [thread + (SWITCH_KINDS[i % kinds],) for i, thread in zip(at, labels([i // kinds for i in at]))],
+            entities=np.repeat(ids, kinds))
+
     def _make(self, tgid: int, seen: tuple, live: list[tuple[int, bytes]], running: dict[int, int],
               before: _Made | None) -> _Made:
-        """The rows of one process and of its threads, from its entries in the two maps."""
+        """The rows of one process, from its threads' entries and its exited threads' in the two maps."""
         exited, name = seen
         top, held = self._highest, []
 
@@ -267,19 +308,12 @@ class SchedProbe(BpfProbe):
         if exited is not None:
             start, *s = _PROCESS_VALUE.unpack(exited)
             totals.add_exited(tgid, start, s)
-        rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
+        rows: dict[Metric, list] = {metric: [] for metric in PROCESS_METRICS}
         for tid, raw in live:
-            _, _pad, _enqueued, start, base, _delay_base, _runs_base, comm, *s = _THREAD_VALUE.unpack(raw)
+            _, _pad, _enqueued, start, base, _delay_base, _runs_base, _comm, *s = _THREAD_VALUE.unpack(raw)
             if tid in running:
                 s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)
-            oncpu, runq_ns, runq_waits, vol, invol = s[:5]
-            labels = (str(tgid), str(tid), comm.split(b"\0", 1)[0].decode(errors="replace"))
-            oncpu = hold((THREAD_CPU, tid, start), oncpu)  # with a running slice estimated here, never below the last
-            rows[THREAD_CPU].append((labels, oncpu / 1e9))
-            rows[THREAD_RUNQ].append((labels, runq_ns / 1e9))
-            rows[THREAD_RUNQ_WAITS].append((labels, runq_waits))
-            rows[THREAD_SWITCHES] += ((labels + ("voluntary",), vol), (labels + ("involuntary",), invol))
         cpu = 0.0
         for (_, start), s in totals.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
@@ -288,8 +322,8 @@ class SchedProbe(BpfProbe):
             cpu = hold((PROCESS_CPU, key), oncpu / 1e9)
             rows[PROCESS_CPU].append((labels, cpu))
             rows[PROCESS_RUNQ].append((labels, hold((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits))))
-            for kind, n in (("voluntary", vol), ("involuntary", invol)):
+            for kind, n in zip(SWITCH_KINDS, (vol, invol)):
                 rows[PROCESS_SWITCHES].append((labels + (kind,), hold((PROCESS_SWITCHES, key, kind), n)))
         for key in set(before.held).difference(held) if before else ():  # threads that ended, a start that changed
             top.pop(key, None)
-        return _Made(seen, tuple(tuple(rows[metric]) for metric in self.metrics), tuple(held), cpu)
+        return _Made(seen, tuple(tuple(rows[metric]) for metric in PROCESS_METRICS), tuple(held), cpu)

@@ -227,7 +227,7 @@ class SocketsProbe(BpfProbe):
         klass = (words[:, 3] >> 16) & 0xFFFF
         # Per process, not per socket: which are gone, and the names of the others.
         names, dead = {}, []
-        for pid in distinct(pids):
+        for pid in distinct(pids).tolist():
             if pt.alive(pid):
                 names[pid] = pt.name(pid)
             else:
@@ -315,7 +315,7 @@ class SocketsProbe(BpfProbe):
         closed = np.zeros(len(pids), bool)
         idle = m.same & (klass != _TCP)
         now = time.monotonic()
-        due = [pid for pid in distinct(pids[idle])
+        due = [pid for pid in distinct(pids[idle]).tolist()
                if self.proctable.alive(pid) and now - self._fds_read_at.get(pid, float("-inf")) >= FD_CHECK_INTERVAL]
         if due:
             inodes_of = {pid: self.proctable.socket_inodes(pid) for pid in due}

@@ -109,6 +109,7 @@ def test_distinct_values_come_ascending_without_importing_numpy_ma():
     """What the sockets and sched probes take per process each collect: np.unique asked for values
     alone imports numpy.ma (1.2 MB) at its first call."""
     code = ("import sys, numpy as np; from drums.arrays import distinct; "
-            "print(distinct(np.array([7, 3, 7, 1, 3], np.int64)), distinct(np.array([], np.uint32)), 'numpy.ma' in sys.modules)")
+            "print(distinct(np.array([7, 3, 7, 1, 3], np.int64)).tolist(), "
+            "distinct(np.array([], np.uint32)).tolist(), 'numpy.ma' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split("\n")[0] == "[1, 3, 7] [] False"

@@ -409,9 +409,8 @@ def test_a_collect_makes_again_only_the_rows_of_processes_whose_threads_ran(sche
         child.read()
         settle(child.pid)
 
-    def rows(snap, pid):
-        return [row for metric in (sched.THREAD_CPU, sched.PROCESS_CPU, sched.PROCESS_RUNQ) for row in snap.of(metric)
-                if row[0][0] == str(pid)]
+    def rows(snap, pid, metrics=(sched.PROCESS_CPU, sched.PROCESS_RUNQ)):
+        return [row for metric in metrics for row in snap.of(metric) if row[0][0] == str(pid)]
     collect(sched_probe)
     before, k_before = collect(sched_probe), process_schedstat(burner.pid)
     burner.go()
@@ -420,6 +419,9 @@ def test_a_collect_makes_again_only_the_rows_of_processes_whose_threads_ran(sche
     after, k_after = collect(sched_probe), process_schedstat(burner.pid)
     # The sleeper's rows are the very ones of the last collect; the burner's were made again, exact.
     assert rows(before, sleeper.pid) and all(a is b for a, b in zip(rows(after, sleeper.pid), rows(before, sleeper.pid)))
+    threads = (sched.THREAD_CPU, sched.THREAD_RUNQ, sched.THREAD_SWITCHES)  # made from arrays: the same values
+    assert len(rows(before, sleeper.pid, threads)) == 8
+    assert rows(after, sleeper.pid, threads) == rows(before, sleeper.pid, threads)
     cpu = value(after, PROCESS_CPU, pid=burner.pid) - value(before, PROCESS_CPU, pid=burner.pid)
     assert 0.2 <= cpu and abs(cpu - (k_after - k_before) / 1e9) <= 1e-6, (cpu, k_after - k_before)
 
@@ -445,7 +447,7 @@ def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sched_probe, c
             wait_until(lambda: tid not in thread_entries(sched_probe), "the thread's entry gone", timeout=FREED_WITHIN)
         else:
             children[step - 4].end()
-        before = {metric: (dict(snap.of(metric)), snap.changes[(metric,)].mark) for metric in sched_probe.metrics}
+        before = {metric: (dict(snap.of(metric)), snap.changes[(metric,)].mark) for metric in sched.PROCESS_METRICS}
         snap = collect(sched_probe)
         for metric, (rows, mark) in before.items():
             told = snap.changes[(metric,)]
