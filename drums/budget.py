@@ -214,9 +214,10 @@ class _Columnar:
         self.ids = np.empty(0, np.int64)
         self.order = np.empty(0, np.intp)  # that sorts ids
         self.sorted = np.empty(0, np.int64)  # ids[order]
-        self.last = np.empty((0, len(metrics)), np.int64)  # each entity's values at the last collect
-        self.folded = np.empty((0, len(metrics)), np.int64)  # and as last summed into `other`, where
-        self.infold = np.empty(0, bool)  # it is in `other`
+        self.last = np.empty((0, len(metrics)), np.int64)  # each row's values at the last collect
+        # Whether it is in `other`: then its values there are `last`, for a row not kept that changed
+        # adds its growth to `other` at once.
+        self.infold = np.empty(0, bool)
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
         self.entity_of = _entity_getter(labels, kind)
 
@@ -237,11 +238,10 @@ class _Columnar:
             src[order] = self.order[pos]  # where each entity was; any row for a new one, zeroed below
             new[order[self.sorted[pos] == ascending]] = False
             # take: four times faster than indexing with an array
-            self.last, self.folded, self.infold = (a.take(src, axis=0) for a in (self.last, self.folded, self.infold))
+            self.last, self.infold = self.last.take(src, axis=0), self.infold.take(src)
         else:
-            self.last, self.folded = np.zeros((2, len(ids), self.last.shape[1]), np.int64)
-            self.infold = np.zeros(len(ids), bool)
-        self.last[new], self.folded[new], self.infold[new] = 0, 0, False
+            self.last, self.infold = np.zeros((len(ids), self.last.shape[1]), np.int64), np.zeros(len(ids), bool)
+        self.last[new], self.infold[new] = 0, False
         self.ids, self.order, self.sorted = ids, order, ascending
         return new
 
@@ -414,13 +414,13 @@ class Budget:
         enters[own] = False
         enters[demoted] = True
         entering = np.flatnonzero(enters)
-        now, was = vals[entering], np.where(c.infold[entering, None], c.folded[entering], 0)
+        now, was = vals[entering], np.where(c.infold[entering, None], c.last[entering], 0)
         steps, into = np.where(now < was, now, now - was), cols.dims[entering]
         sums = np.zeros((len(c.dim_names), len(c.metrics)), np.int64)
         np.add.at(sums, into, steps)
         for d in np.flatnonzero(np.bincount(into, minlength=len(c.dim_names))).tolist():
             c.totals[d] = c.totals.get(d, 0) + sums[d]
-        c.folded[entering], c.infold[entering] = now, True
+        c.infold[entering] = True
         c.last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
         if c.totals:
             dims = list(c.totals)
