@@ -91,6 +91,27 @@ _RAW = AttachPath("raw_tracepoint", tuple(("raw_tracepoint", tp, fn) for tp, fn 
                   "Linux >= 5.7 (raw tracepoint links that outlive the loader)")
 
 
+class _ThreadLabels:
+    """The label values of threads (pid, tid, name), made when the budget or a reader of the
+    snapshot asks for them: of a host's thousands, those with series of their own. What the last
+    collect's asked for are taken again while the thread keeps its name."""
+
+    def __init__(self, ids: np.ndarray, comms: np.ndarray, known: dict[int, tuple]):
+        self.ids, self.comms = ids, comms  # each thread's pid << 32 | tid, and its name as two words
+        self.known, self.made = known, {}  # id -> (name words, labels): the last collect's, and this one's
+
+    def __call__(self, at: list[int]) -> list[tuple[str, str, str]]:
+        out = []
+        for i, id_, comm in zip(at, self.ids[at].tolist(), map(tuple, self.comms[at].tolist())):
+            made = self.made.get(id_) or self.known.get(id_)
+            if made is None or made[0] != comm:
+                name = self.comms[i].tobytes().split(b"\0", 1)[0].decode(errors="replace")
+                made = comm, (str(id_ >> 32), str(id_ & 0xFFFFFFFF), name)
+            self.made[id_] = made
+            out.append(made[1])
+        return out
+
+
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
@@ -116,6 +137,7 @@ class SchedProbe(BpfProbe):
         # Each thread's CPU time as last shown, by thread ID, ascending, with its process's start:
         # the running slice is estimated, and a thread's time never goes below what it showed.
         self._shown = (np.empty(0, np.uint64), np.empty(0, np.uint64), np.empty(0, np.int64))
+        self._labelled: dict[int, tuple] = {}  # the labels the last collect's threads were asked for
         self._collects = 0
         self._renames_lost = 0
 
@@ -279,12 +301,10 @@ class SchedProbe(BpfProbe):
             same = (keys[at] == m.keys) & (start[at] == w[:, _WORD_START])
             counts[same, 0] = np.maximum(counts[same, 0], cpu[at[same]])
         self._shown = (m.keys, w[:, _WORD_START].copy(), counts[:, 0].copy())
-        counts, tids, pids, comms = counts[alive], m.keys[alive], tgids[alive].astype(np.int64), w[alive, _WORDS_COMM]
-        ids = pids << 32 | tids.astype(np.int64)
-
-        def labels(at: list[int]) -> list[tuple[str, str, str]]:
-            names = [comm.tobytes().split(b"\0", 1)[0].decode(errors="replace") for comm in comms[at]]
-            return list(zip(map(str, pids[at].tolist()), map(str, tids[at].tolist()), names))
+        counts, pids = counts[alive], tgids[alive].astype(np.int64)
+        ids = pids << 32 | m.keys[alive].astype(np.int64)
+        labels = _ThreadLabels(ids, w[alive, _WORDS_COMM], self._labelled)
+        self._labelled = labels.made
         snap.groups[THREAD_GROUP] = Columns(ids, counts[:, :3], np.zeros(len(ids), np.intp), ("",), pids, labels,
                                             units=_THREAD_UNITS)
         kinds = len(SWITCH_KINDS)
