@@ -34,10 +34,8 @@ def _number(value) -> str:
 _INF = 'le="+Inf"'
 
 
-def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") -> str:
+def _labels(names: tuple[str, ...], values: tuple[str, ...]) -> str:
     parts = [f'{n}="{_escape(v)}"' for n, v in zip(names, values)]
-    if extra:
-        parts.append(extra)
     return "{" + ",".join(parts) + "}" if parts else ""
 
 
@@ -109,8 +107,10 @@ def _text(metric: Metric, row: tuple, before: tuple | None, text: str, bounds: l
 def _histogram(name: str, names: tuple[str, ...], values: tuple[str, ...], h, bounds: list[str]) -> str:
     """The lines of one histogram series: its buckets, sum and count."""
     own = bounds if h.bounds is None else ['le="' + _number(b) + '"' for b in h.bounds]
-    lines = [f"{name}_bucket{_labels(names, values, bound)} {count}\n" for bound, count in zip(own, h.cumulative)]
-    lines.append(f"{name}_bucket{_labels(names, values, _INF)} {h.count}\n")
-    lines.append(f"{name}_sum{_labels(names, values)} {_number(h.sum)}\n")
-    lines.append(f"{name}_count{_labels(names, values)} {h.count}\n")
+    labels = _labels(names, values)  # escaped once, for every line of the series
+    bucket = f"{name}_bucket{labels[:-1]}," if labels else f"{name}_bucket{{"
+    lines = [f"{bucket}{bound}}} {count}\n" for bound, count in zip(own, h.cumulative)]
+    lines.append(f"{bucket}{_INF}}} {h.count}\n")
+    lines.append(f"{name}_sum{labels} {_number(h.sum)}\n")
+    lines.append(f"{name}_count{labels} {h.count}\n")
     return "".join(lines)
