@@ -267,6 +267,7 @@ class Agent:
                 self._success[probe.name] = 1
             except Exception as e:  # one probe's failure must not cost the others their scrape
                 self._success[probe.name] = 0
+                raw.leave_out(probe.metrics)
                 log.warning("probe %s failed to collect: %s", probe.name, e,
                             exc_info=log.isEnabledFor(logging.DEBUG))
             self._durations[probe.name] = time.perf_counter() - start
@@ -329,6 +330,7 @@ class Agent:
         pids = self._chosen()
         chosen = {str(pid) for pid in pids}
         out = Snapshot()
+        out.unread = snap.unread
         for metric, rows in snap.singles.items():
             out.rows(metric).extend(_of_chosen(metric, rows, chosen))
         for metrics, rows in snap.groups.items():

@@ -293,6 +293,10 @@ class Budget:
         return self.kinds[kind].limit
 
     def apply(self, snap: Snapshot) -> Snapshot:
+        """The snapshot's rows within the budget. What it holds of the metrics of a probe that
+        failed to collect (snap.unread: the agent took their rows out) stays as it was, and their
+        entities keep their slots: their rows are missing, not gone, and the next collect goes on
+        from the last one read."""
         out = Snapshot()
         by_kind: dict[str, dict[tuple[Metric, ...], list]] = {kind: {} for kind in KINDS}
         for metric, rows in snap.singles.items():
@@ -308,12 +312,15 @@ class Budget:
             else:
                 by_kind[kind][metrics] = (rows, False)
         for kind, groups in by_kind.items():
-            self._apply_kind(self.kinds[kind], kind, groups, snap.changes, out)
+            self._apply_kind(self.kinds[kind], kind, groups, snap.changes, snap.unread, out)
         return out
 
-    def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, out: Snapshot) -> None:
+    def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, unread: set, out: Snapshot) -> None:
+        held = {metrics for metrics in st.groups.keys() | st.columnar.keys() if not unread.isdisjoint(metrics)}
         columns = {metrics: rows for metrics, (rows, _) in groups.items() if isinstance(rows, Columns)}
         if columns or st.columnar:  # none now: every entity gone
+            if held:
+                return  # a kind given as columns comes from one probe: held whole while it fails
             beside = {metrics: group for metrics, group in groups.items() if metrics not in columns}
             if any(m.additive for metrics in beside for m in metrics):
                 raise ValueError(f"{kind}: groups given as columns may have beside them only gauges that do "
@@ -325,7 +332,7 @@ class Budget:
         # only changed rows get per-row work, the rest is dict and set operations.
         seen = []  # (group, changed rows, labels gone)
         grew: dict[str, dict] = {}
-        for metrics in groups.keys() | st.groups.keys():  # a group absent this time lost all its rows
+        for metrics in groups.keys() | (st.groups.keys() - held):  # a group absent this time lost all its rows
             rows, single = groups.get(metrics, ([], False))
             g = st.groups.get(metrics) or st.groups.setdefault(metrics, _Group(metrics, kind, single))
             changed, gone = g.update(rows, grew, told.get(metrics))
@@ -339,7 +346,8 @@ class Budget:
                 activity[entity] = activity.get(entity, 0.0) + d / whole
         st.kept -= ended  # entities that ended free their slots
         was_kept = set(st.kept)
-        self._choose(st, lambda n: islice(entities - st.kept, n), activity)
+        if not held:  # while some of their rows are unread, the entities keep their slots
+            self._choose(st, lambda n: islice(entities - st.kept, n), activity)
         kept = st.kept
         promoted, demoted = kept - was_kept, was_kept - kept
         for g, changed, gone in seen:
@@ -349,6 +357,8 @@ class Budget:
         st.folded_total += sum(e not in kept for e in new) + len(demoted)
         for key, values in st.totals.items():
             metrics, labels = key
+            if metrics in held:
+                continue
             if len(metrics) == 1:
                 out.rows(metrics[0]).append((labels, values[0]))
             else:

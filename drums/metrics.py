@@ -154,6 +154,7 @@ class Snapshot:
         self.groups: dict[tuple[Metric, ...], list[tuple[tuple[str, ...], tuple]] | Columns] = {}
         self.read_at: float | None = None  # time.time() when the probes were read, if known
         self.changes: dict[tuple[Metric, ...], Changes] = {}  # by group (a metric alone: a group of one)
+        self.unread: set[Metric] = set()  # the metrics of probes that failed to collect: missing, not gone
         self._spreading = threading.Lock()
 
     @property
@@ -192,6 +193,16 @@ class Snapshot:
         for metrics, rows in self.groups.items():
             if isinstance(rows, Columns):
                 self.groups[metrics] = rows.of_processes(pids).rows()
+
+    def leave_out(self, metrics: tuple[Metric, ...]) -> None:
+        """Take out the rows of a probe that failed to collect (it may have added some before it
+        failed): its metrics are unread in this snapshot, their series missing rather than gone."""
+        out = set(metrics)
+        self.unread |= out
+        for metric in out:
+            self._series.pop(metric, None)
+        self.groups = {group: rows for group, rows in self.groups.items() if out.isdisjoint(group)}
+        self.changes = {group: told for group, told in self.changes.items() if out.isdisjoint(group)}
 
     def add(self, metric: Metric, labels: tuple[str, ...], value) -> None:
         self._series.setdefault(metric, []).append((labels, value))

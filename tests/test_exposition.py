@@ -352,6 +352,36 @@ def test_a_budget_given_threads_as_two_groups_of_columns_gives_what_one_given_ro
     assert ("drums_thread_context_switches_total", ("other", "other", "other", "involuntary")) in outs[0]
 
 
+def test_a_probe_that_fails_to_collect_leaves_the_budget_as_it_was():
+    """Processes (rows: CPU and sent bytes from one probe, memory from another) and sockets (Columns)
+    count on; at the second collect the probe of CPU and sockets fails, after it added some of its
+    rows. That collect shows none of its series; the third shows what a budget that never saw the
+    second shows: no entity lost or gained a slot, `other` counted nothing twice."""
+    rng = random.Random(5)
+
+    def collect(step: int) -> Snapshot:
+        pids = range(1, 9)
+        snap = _snap({str(p): 1.0 * p * step + rng.random() for p in pids},
+                     sent={str(p): (9 - p) * step * 10 for p in pids}, mem={str(p): p * 100 for p in pids})
+        inodes = np.arange(1, 41, dtype=np.int64)
+        snap.groups[(SOCKET_SENT, SOCKET_RECEIVED)] = Columns(
+            inodes, np.stack([inodes * step * rng.randint(1, 3), inodes]).T.copy(), np.zeros(40, np.intp), ("tcp",),
+            np.ones(40, np.int64), lambda at: [("1", str(inodes[i]), "tcp") for i in at])
+        return snap
+    snaps = [collect(step) for step in (1, 2, 3)]
+    snaps[1].leave_out((CPU, SENT, SOCKET_SENT, SOCKET_RECEIVED))
+    failing, steady = Budget({"process": 2, "socket": 3}), Budget({"process": 2, "socket": 3})
+    failing.apply(snaps[0])
+    steady.apply(snaps[0])
+    during = failing.apply(snaps[1]).series
+    assert {m.name for m in during} == {MEM.name} and len(during[MEM]) == 3  # two kept and other
+    after = [{m.name: sorted(rows) for m, rows in budget.apply(snaps[2]).series.items()}
+             for budget in (failing, steady)]
+    assert after[0] == after[1]
+    assert after[0][CPU.name][-1][0] == ("other", "other") and len(after[0][SOCKET_SENT.name]) == 4
+    assert failing.folded_total() == steady.folded_total()
+
+
 def test_the_rtt_of_a_connection_the_columns_lack_shows_while_a_slot_is_free():
     """A connection older than the agent has an RTT and no entry (it never moved under the
     probes): its RTT is shown in a slot the columns leave free, the first by its addresses."""
