@@ -243,12 +243,13 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
 WHY = {
     "host": "psutil: /proc/stat, meminfo, vmstat, diskstats, net/dev, the mounts and a statvfs each",
     "process": "psutil for the chosen processes due (stat, statm, status, io, fd; smaps_rollup when RSS moved)",
-    "sched": "the thread map whole, rows remade for processes whose threads ran, renamed or came",
+    "sched": "the thread map whole, its threads handed on as arrays (no row per thread); rows remade for "
+             "processes whose threads ran, renamed or came",
     "sockets": "the sockets marked changed since the last collect, all handed on as arrays (no row per socket)",
     "tcp": "the connections marked changed; sock_diag RTT of the kept connections every 5 s",
     "latency": "its map, empty unless the TCP latency probe is asked for",
     "rest of the collect": "process table, PIDs to read, the graph's join, the budget's ranking and folds "
-                           "(the sockets' as arrays), self-metrics",
+                           "(sockets, connections and threads as arrays, processes as rows), self-metrics",
     "render, gzip, HTTP": "the text of families that changed, ISA-L gzip, h11 on asyncio, and the client's gunzip",
 }
 
