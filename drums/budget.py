@@ -328,7 +328,7 @@ class Budget:
             self._apply_columns(st, kind, {**dict.fromkeys(st.columnar), **columns}, out)
             self._beside_columns(st, kind, beside, out)
             return
-        # Ten thousand sockets pass here at each scrape, few of which did anything since the last:
+        # A thousand processes' rows pass here at each scrape, few of which changed since the last:
         # only changed rows get per-row work, the rest is dict and set operations.
         seen = []  # (group, changed rows, labels gone)
         grew: dict[str, dict] = {}

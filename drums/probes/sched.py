@@ -15,7 +15,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries
+from drums.probes.entries import Entries, Matched
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -287,8 +287,10 @@ class SchedProbe(BpfProbe):
         pt.ran(dict(cpu))
         self.read_dropped()
 
-    def _thread_columns(self, snap: Snapshot, m, tgids: np.ndarray, alive: np.ndarray, running: dict[int, int]) -> None:
-        """The threads' rows, as Columns: those of the processes alive."""
+    def _thread_columns(self, snap: Snapshot, m: Matched, tgids: np.ndarray, alive: np.ndarray,
+                        running: dict[int, int]) -> None:
+        """The threads' rows, as two groups of Columns: those of the processes alive (`alive`: a
+        mask of m's entries). A thread on a CPU now has its running slice counted (`running`)."""
         w = m.words
         counts = w[:, _WORDS_COUNTS].astype(np.int64)
         if running:
@@ -344,6 +346,6 @@ class SchedProbe(BpfProbe):
             rows[PROCESS_RUNQ].append((labels, hold((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits))))
             for kind, n in zip(SWITCH_KINDS, (vol, invol)):
                 rows[PROCESS_SWITCHES].append((labels + (kind,), hold((PROCESS_SWITCHES, key, kind), n)))
-        for key in set(before.held).difference(held) if before else ():  # threads that ended, a start that changed
+        for key in set(before.held).difference(held) if before else ():  # of a start the PID no longer has
             top.pop(key, None)
         return _Made(seen, tuple(tuple(rows[metric]) for metric in PROCESS_METRICS), tuple(held), cpu)
