@@ -5,11 +5,15 @@ import json
 import time
 import urllib.request
 
+import pytest
+
 from drums.graph.ros1 import MAX_NODES, MAX_VALUES
 from tests.agentproc import assert_monotonic, running_agent, samples, scrape
 from tests.conftest import wait_until
 from tests.graph.test_ros1 import Wire
 from tests.robustness.test_http import MB, agent_process, timed_scrape
+
+pytestmark = pytest.mark.lane2  # twenty seconds of its own master and agent: make test runs it beside the rest
 
 
 def value(url: str, name: str, **labels) -> float:

@@ -20,6 +20,8 @@ from tests.graph.rosnodes import payload
 from tests.graph.test_topics import UDP
 from tests.top.pilot import number, row, run, shown, until
 
+pytestmark = pytest.mark.lane2  # a minute of its own ROS 2 domain and agents: make test runs it beside the rest
+
 ARGS = ("--graph", "ros2", *(a for p in ("rcl", "rtps", "loads", "process", "sched", "host", "sockets")
                              for a in ("--probe", p)))
 CHUNK, PERIOD = 10240, 0.1  # the TCP sender's pace: 100 KiB/s
