@@ -8,6 +8,7 @@ others last time (their rows, in an object array beside the keys).
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,6 +134,28 @@ class Entries:
             self._keys, self._words, self._rows = matched.keys, matched.words, matched.rows
         else:
             self._keys, self._words, self._rows = matched.keys[mask], matched.words[mask], matched.rows[mask]
+
+
+class Remembered:
+    """What a probe made for some of its entries at its last collect (their label values), taken
+    again at this one for a key whose source (a process's name, a thread's) is the same: of ten
+    thousand entries, the budget asks for the hundred it keeps at every scrape, and few changed."""
+
+    def __init__(self):
+        self.known: dict = {}  # key -> (source, what was made): the last collect's
+        self.made: dict = {}  # and this one's
+
+    def turn(self) -> "Remembered":
+        """A new collect: what the last one made is what this one may take again."""
+        self.known, self.made = self.made, {}
+        return self
+
+    def get(self, key: Hashable, source: Hashable, make: Callable[[], tuple]) -> tuple:
+        was = self.made.get(key) or self.known.get(key)
+        if was is None or was[0] != source:
+            was = source, make()
+        self.made[key] = was
+        return was[1]
 
 
 _GENERATION = struct.Struct("<QQ")  # a `generation` array's two entries: the generation, marks lost

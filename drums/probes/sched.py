@@ -15,7 +15,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries, Matched
+from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -96,20 +96,17 @@ class _ThreadLabels:
     snapshot asks for them: of a host's thousands, those with series of their own. What the last
     collect's asked for are taken again while the thread keeps its name."""
 
-    def __init__(self, ids: np.ndarray, comms: np.ndarray, known: dict[int, tuple]):
+    def __init__(self, ids: np.ndarray, comms: np.ndarray, remembered: Remembered):
         self.ids, self.comms = ids, comms  # each thread's pid << 32 | tid, and its name as two words
-        self.known, self.made = known, {}  # id -> (name words, labels): the last collect's, and this one's
+        self.remembered = remembered  # by id, checked against the name's words
 
     def __call__(self, at: list[int]) -> list[tuple[str, str, str]]:
-        out = []
-        for i, id_, comm in zip(at, self.ids[at].tolist(), map(tuple, self.comms[at].tolist())):
-            made = self.made.get(id_) or self.known.get(id_)
-            if made is None or made[0] != comm:
-                name = self.comms[i].tobytes().split(b"\0", 1)[0].decode(errors="replace")
-                made = comm, (str(id_ >> 32), str(id_ & 0xFFFFFFFF), name)
-            self.made[id_] = made
-            out.append(made[1])
-        return out
+        return [self.remembered.get(id_, comm, lambda: _thread_labels(id_, comm))
+                for id_, comm in zip(self.ids[at].tolist(), map(bytes, self.comms[at]))]
+
+
+def _thread_labels(id_: int, comm: bytes) -> tuple[str, str, str]:
+    return str(id_ >> 32), str(id_ & 0xFFFFFFFF), comm.split(b"\0", 1)[0].decode(errors="replace")
 
 
 class SchedProbe(BpfProbe):
@@ -137,7 +134,7 @@ class SchedProbe(BpfProbe):
         # Each thread's CPU time as last shown, by thread ID, ascending, with its process's start:
         # the running slice is estimated, and a thread's time never goes below what it showed.
         self._shown = (np.empty(0, np.uint64), np.empty(0, np.uint64), np.empty(0, np.int64))
-        self._labelled: dict[int, tuple] = {}  # the labels the last collect's threads were asked for
+        self._labelled = Remembered()  # the labels the last collect's threads were asked for
         self._collects = 0
         self._renames_lost = 0
 
@@ -305,8 +302,7 @@ class SchedProbe(BpfProbe):
         self._shown = (m.keys, w[:, _WORD_START].copy(), counts[:, 0].copy())
         counts, pids = counts[alive], tgids[alive].astype(np.int64)
         ids = pids << 32 | m.keys[alive].astype(np.int64)
-        labels = _ThreadLabels(ids, w[alive, _WORDS_COMM], self._labelled)
-        self._labelled = labels.made
+        labels = _ThreadLabels(ids, w[alive, _WORDS_COMM], self._labelled.turn())
         snap.groups[THREAD_GROUP] = Columns(ids, counts[:, :3], np.zeros(len(ids), np.intp), ("",), pids, labels,
                                             units=_THREAD_UNITS)
         kinds = len(SWITCH_KINDS)

@@ -19,7 +19,7 @@ from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_fentry,
                               needs_kprobes, needs_tracepoints, offset_defines, typed)
-from drums.probes.entries import Entries, Matched
+from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
@@ -133,22 +133,16 @@ class _Labels:
     an entry given to another socket meanwhile, of a process this collect did not name: its name
     is then empty."""
 
-    def __init__(self, words: np.ndarray, names: dict[int, str], proc_net_unix: str, known: dict[bytes, tuple]):
+    def __init__(self, words: np.ndarray, names: dict[int, str], proc_net_unix: str, remembered: Remembered):
         self.words, self.names, self.proc_net_unix = words, names, proc_net_unix
-        # Identity words -> (process name, labels): the last collect's, and this one's.
-        self.known, self.made = known, {}
+        self.remembered = remembered  # by the identity words, checked against the process's name
         self._paths: dict[int, str] | None = None  # unix sockets' bound paths, read at the first asked for
 
     def __call__(self, at: list[int]) -> list[tuple[str, ...]]:
         out = []
         for raw in self.words[at, :_WORDS_IDENTITY]:
-            key = raw.tobytes()
-            name = self.names.get(int(raw[1]) & 0xFFFFFFFF, "")
-            made = self.made.get(key) or self.known.get(key)
-            if made is None or made[0] != name:
-                made = name, self._make(key, name)
-            self.made[key] = made
-            out.append(made[1])
+            key, name = raw.tobytes(), self.names.get(int(raw[1]) & 0xFFFFFFFF, "")
+            out.append(self.remembered.get(key, name, lambda: self._make(key, name)))
         return out
 
     def _make(self, key: bytes, name: str) -> tuple[str, ...]:
@@ -197,7 +191,7 @@ class SocketsProbe(BpfProbe):
         self._forgotten: dict[tuple[int, int, int], list[int]] = {}
         self._live_totals: dict = {}  # _owned() of the live entries, as of the last collect
         self._entries_summed = False  # whether _live_totals is that of the entries the last collect kept
-        self._labelled: dict[bytes, tuple] = {}  # the labels the last collect's sockets were asked for
+        self._labelled = Remembered()  # the labels the last collect's sockets were asked for
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -244,11 +238,10 @@ class SocketsProbe(BpfProbe):
         # Each socket by its inode; one without (it had no struct socket when first counted) by its
         # entry's key, a kernel address, which as an int64 is below 0 and so no inode.
         ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
-        labels = _Labels(w, names, self.proc_net_unix, self._labelled)
         snap.groups[SOCKET_GROUP] = Columns(
             np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
-            klass[live].astype(np.intp), PROTOCOLS, pids[live], labels, _ports(w))
-        self._labelled = labels.made
+            klass[live].astype(np.intp), PROTOCOLS, pids[live],
+            _Labels(w, names, self.proc_net_unix, self._labelled.turn()), _ports(w))
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:

@@ -21,7 +21,7 @@ from drums.metrics import COUNTER, GAUGE, Columns, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
-from drums.probes.entries import Entries
+from drums.probes.entries import Entries, Remembered
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
@@ -109,27 +109,20 @@ def merged(ids: np.ndarray, counts: np.ndarray, closed: np.ndarray, carried: dic
 class _Labels:
     """The label values of connections, made from the words of their heads when the budget or a
     reader of the snapshot asks for them (of ten thousand connections, the hundred it keeps).
-    What the last collect's asked for are taken again where the words that name the connection
-    are the same."""
+    What the last collect's asked for are taken again, by the words that name the connection."""
 
-    def __init__(self, heads: np.ndarray, known: dict[bytes, tuple]):
-        self.heads = heads
-        # The words that name a connection -> its labels: the last collect's, and this one's.
-        self.known, self.made = known, {}
+    def __init__(self, heads: np.ndarray, remembered: Remembered):
+        self.heads, self.remembered = heads, remembered
 
     def __call__(self, at: list[int]) -> list[tuple[str, ...]]:
-        out = []
-        for raw in self.heads[at, :_HEAD_WORDS] & _NAME_MASK:
-            key = raw.tobytes()
-            labels = self.made.get(key) or self.known.get(key)
-            if labels is None:
-                netns, family, lport, rport, _state, laddr, raddr = _CONN_HEAD.unpack(key)
-                # Interned: as the sockets probe's labels, one string each
-                labels = (intern(endpoint(family, laddr, lport)), intern(endpoint(family, raddr, rport)),
-                          intern(str(netns)))
-            self.made[key] = labels
-            out.append(labels)
-        return out
+        return [self.remembered.get(key, None, lambda: _connection_labels(key))
+                for key in map(bytes, self.heads[at, :_HEAD_WORDS] & _NAME_MASK)]
+
+
+def _connection_labels(head: bytes) -> tuple[str, str, str]:
+    netns, family, lport, rport, _state, laddr, raddr = _CONN_HEAD.unpack(head)
+    # Interned: as the sockets probe's labels, one string each
+    return intern(endpoint(family, laddr, lport)), intern(endpoint(family, raddr, rport)), intern(str(netns))
 
 
 class TcpProbe(BpfProbe):
@@ -153,7 +146,7 @@ class TcpProbe(BpfProbe):
         self._rtt_at = float("-inf")
         self._carried: dict[int, np.ndarray] = {}  # connection id -> what closed connections with it counted
         self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)
-        self._labelled: dict[bytes, tuple] = {}  # the labels the last collect's connections were asked for
+        self._labelled = Remembered()  # the labels the last collect's connections were asked for
         self._wanted: set[tuple[str, str]] | None = None
 
     def want_rtt(self, connections: set[tuple[str, str]]) -> None:
@@ -183,10 +176,9 @@ class TcpProbe(BpfProbe):
         # The entries' own arrays as a rule (no connection closed, none summed): the next collect
         # writes over them in place, so what a reader keeps of the columns it copies.
         heads = words if first is None else words[first]
-        labels = _Labels(heads, self._labelled)
-        snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None, labels,
+        snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None,
+                                          _Labels(heads, self._labelled.turn()),
                                           ((heads[:, 0] >> 48) << 16 | (heads[:, 1] & 0xFFFF)).astype(np.int64))
-        self._labelled = labels.made
         if closed.any():
             self.opened["tcp_conns"].delete_unchanged(  # one that changed instead comes back marked
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])

@@ -20,6 +20,7 @@ import pytest
 from drums.budget import Budget
 from drums.metrics import Columns
 from drums.probes import tcp
+from drums.probes.entries import Remembered
 from drums.probes.tcp import CONN_GROUP, merged
 from tests.conftest import connected_pairs, eventually, ip, peer_namespace, series, wait_until
 
@@ -491,7 +492,7 @@ def test_a_connection_met_late_adds_to_the_host_only_what_it_retransmits_after(t
         assert before >= 100
         labels = (name(sender.getsockname()), name(sender.getpeername()), NETNS)
         entries = tcp_probe._entries
-        names = tcp._Labels(entries._words, {})(list(range(len(entries))))
+        names = tcp._Labels(entries._words, Remembered())(list(range(len(entries))))
         (key,) = [k for k, named in zip(entries._keys.tolist(), names) if named == labels]
         tcp_probe.opened["tcp_conns"].delete(struct.pack("<Q", key))
         del tcp_probe._marked["tcp_conns"]  # a deletion the programs did not mark: the next collect reads whole
