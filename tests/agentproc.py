@@ -47,16 +47,7 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
                              "--stream-port", "0", "--address", address, *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://{address}:{port}/metrics"
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            urllib.request.urlopen(url, timeout=5).read()
-            break
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
-                pytest.fail(f"agent did not serve: {proc.stdout.read()}")
-            time.sleep(0.1)
+    serving(proc, url)
     try:
         yield url
     finally:  # a failed test stops its agent too
@@ -76,6 +67,21 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
     assert "Traceback" not in log, log
     if bpf:
         assert not os.path.exists(pins), "pins left behind after shutdown"
+
+
+def serving(proc: subprocess.Popen, url: str) -> None:
+    """Wait until the agent `proc` answers at `url`, 30 s at most; kill it and fail with its log if
+    it ends or does not answer by then."""
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            urllib.request.urlopen(url, timeout=5).read()
+            return
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"agent did not serve: {proc.stdout.read()}")
+            time.sleep(0.1)
 
 
 def scrape(url: str) -> str:

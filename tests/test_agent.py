@@ -19,7 +19,7 @@ import psutil
 import pytest
 
 from drums.client import Agent
-from tests.agentproc import free_port, running_agent, samples, scrape
+from tests.agentproc import free_port, running_agent, samples, scrape, serving
 from tests.conftest import TEST_PIN_ROOT, eventually
 
 
@@ -151,14 +151,7 @@ def test_sigterm_that_the_kernel_hands_to_another_thread_stops_the_agent():
                              "--probe", "host", "--graph", "auto"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                scrape(f"http://127.0.0.1:{port}/metrics")
-                break
-            except OSError:
-                assert proc.poll() is None and time.monotonic() < deadline, "the agent did not serve"
-                time.sleep(0.1)
+        serving(proc, f"http://127.0.0.1:{port}/metrics")
         others = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task") if int(t) != proc.pid]
         assert others
         tgkill = {"x86_64": 234, "aarch64": 131}[os.uname().machine]  # the syscall's number
