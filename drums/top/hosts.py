@@ -121,7 +121,8 @@ def connections(frame: Frame) -> Table:
             if not (received or sent):
                 continue
             pid, process, protocol, local, remote, inode = key
-            rows.append(Row(f"socket|{agent.host}|{pid}|{inode}", {
+            # With its protocol: the budget sums the sockets it folds into an `other` row per protocol
+            rows.append(Row(f"socket|{agent.host}|{pid}|{protocol}|{inode}", {
                 "host": agent.host, "pid": int(pid) if pid.isdigit() else None, "process": process,
                 "protocol": protocol, "local": local or None, "remote": remote or None,
                 "received_bytes_per_second": received, "sent_bytes_per_second": sent,
