@@ -157,6 +157,12 @@ class ProcessTable:
         run since the probe attached); None when no sched probe said so at this refresh."""
         return self._cpu.get(pid, 0.0) if self._cpu_at == self.refreshes else None
 
+    def cpu_seconds(self) -> dict[int, float] | None:
+        """Each process's CPU seconds as the sched probe said at this refresh (one it did not name
+        has not run since it attached); None when it did not (it failed, or is not attached). The
+        dict is replaced whole, never changed: a reader on another thread may keep it."""
+        return self._cpu if self._cpu_at == self.refreshes else None
+
     def alive(self, pid: int) -> bool:
         return pid in self._names
 

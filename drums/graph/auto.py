@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import socket
 import time
+from itertools import chain
 from typing import Callable
 
 import numpy as np
@@ -18,10 +19,12 @@ from drums.graph.adapter import Adapter
 from drums.graph.model import Connection, GraphState, Host, Node, Process
 from drums.graph.nodepids import ProcScan
 from drums.kernel import sockdiag
-from drums.proctable import ProcessTable
 
 ESTABLISHED, LISTEN = 1, 10
-OWNERS_REREAD = 60.0
+# Seconds between re-reads of the open files of the processes that ran since their last read (a
+# socket handed to another process keeps its inode: only a re-read tells its new holder), and
+# between reads of every process's, whatever the sched probe says (it may lose events).
+OWNERS_REREAD, OWNERS_FULL = 60.0, 600.0
 # What names the edge of a connection's end: its process, the address it talks to, and the port
 # of the service (its peer's, or its own where it accepted the connection).
 _END = np.dtype({"names": ["pid", "address", "family", "port", "accepting"],
@@ -31,19 +34,6 @@ _ADDRESS = np.dtype({"names": ["src", "family"], "formats": ["V16", "u1"], "offs
 
 def _endpoint(address: str, port: int) -> str:
     return f"[{address}]:{port}" if ":" in address else f"{address}:{port}"
-
-
-def _socket_owners(table: ProcessTable) -> tuple[np.ndarray, np.ndarray]:
-    """Socket inodes, ascending, and the PID holding each (one, where several do), from every
-    process's open files."""
-    inodes, pids = [], []
-    for pid in table.pids():
-        held = table.socket_inodes(pid)
-        inodes += held
-        pids += [pid] * len(held)
-    inodes, pids = np.array(inodes, np.int64), np.array(pids, np.int64)
-    first = distinct_rows(inodes[:, None])  # ascending; of one inode, the first holder listed
-    return inodes[first], pids[first]
 
 
 def _words(records: np.ndarray) -> np.ndarray:
@@ -59,38 +49,80 @@ class AutoAdapter(Adapter):
     name = "auto"
     interval = 5.0  # reading every process's open files costs a readlink per file
 
-    def __init__(self, proc: str = "/proc", tcp_changes: Callable[[], int | None] | None = None):
+    def __init__(self, proc: str = "/proc", tcp_changes: Callable[[], int | None] | None = None,
+                 ran: Callable[[], dict[int, float] | None] | None = None):
         """`tcp_changes`: a count that moves whenever a TCP socket of the host changes state (the
         tcp probe's; None when it cannot say). While it holds still, the connections and listeners
         are those of the last dump: a poll dumps them again (10,000 sockets: 40 ms) only when it
-        moved, when a process of the graph ended, or at least every OWNERS_REREAD seconds."""
+        moved, when a process of the graph ended, or at least every OWNERS_REREAD seconds.
+        `ran`: each process's CPU seconds as the sched probe last counted them (None when it cannot
+        say): a process whose count has not moved has not run, so holds the sockets it held."""
         self.scan = ProcScan(proc)
-        self.tcp_changes = tcp_changes
+        self.tcp_changes, self.ran = tcp_changes, ran
         self._dumped: tuple[int | None, float, GraphState] | None = None  # (changes, when, state)
-        # Socket inodes, ascending, and the PID holding each, from the last reading of open files;
-        # and the inodes no process held at that reading.
-        self._owners = (np.empty(0, np.int64), np.empty(0, np.int64))
-        self._unowned = np.empty(0, np.int64)
-        self._read_at = float("-inf")
+        empty = np.empty(0, np.int64)
+        # From the last reading of each process's open files: its socket inodes, with the PID
+        # holding each; the processes read, ascending, with their CPU seconds then (NaN: unknown);
+        # the inodes no process held.
+        self._held = (empty, empty)
+        self._read_pids, self._read_cpu = empty, np.empty(0)
+        self._unowned = empty
+        self._read_at = self._full_at = float("-inf")
+
+    def _read_owners(self, everyone: bool) -> bool:
+        """Read the open files of every process that may hold other sockets than at its last read:
+        one not read before, or that ran since (the sched probe says), or every one when the probe
+        cannot say or `everyone` (then True). A host of a thousand idle processes with ten thousand
+        sockets costs a readlink per file otherwise (150 ms)."""
+        table = self.scan.table
+        told = self.ran() if self.ran else None
+        alive = np.array(sorted(table.pids()), np.int64)
+        cpu = np.full(len(alive), np.nan)  # NaN equals nothing: read again next time
+        if told is not None:
+            cpu[:] = np.fromiter((told.get(pid, 0.0) for pid in alive.tolist()), np.float64, len(alive))
+        last = np.full(len(alive), np.nan)
+        known = within(alive, self._read_pids)
+        last[known] = self._read_cpu[np.searchsorted(self._read_pids, alive[known])]
+        everyone = everyone or told is None
+        again = alive if everyone else alive[last != cpu]
+        inodes, pids = self._held
+        keep = within(pids, alive) & ~within(pids, again)
+        read = [(pid, table.socket_inodes(pid)) for pid in again.tolist()]
+        inodes = np.concatenate([inodes[keep], np.fromiter(chain.from_iterable(i for _, i in read), np.int64)])
+        pids = np.concatenate([pids[keep], np.repeat(again, [len(i) for _, i in read])])
+        self._held, self._read_pids, self._read_cpu = (inodes, pids), alive, cpu
+        return everyone
+
+    def _holders(self) -> tuple[np.ndarray, np.ndarray]:
+        """Socket inodes, ascending, and the PID holding each (one, where several do), of the
+        processes alive."""
+        inodes, pids = self._held
+        live = among(pids, [pid for pid in distinct(pids).tolist() if self.scan.table.alive(pid)])
+        inodes, pids = inodes[live], pids[live]
+        first = distinct_rows(inodes[:, None])
+        return inodes[first], pids[first]
 
     def _owners_of(self, inodes: np.ndarray) -> np.ndarray:
-        """The PID holding each of these socket inodes (-1: none known). Every process's open
-        files are read when a socket is new since the last reading, and at least every
-        OWNERS_REREAD seconds (a socket handed to another process keeps its inode): on a host
-        whose connections stay, rarely."""
-        held, pids = self._owners
-        alive = [pid for pid in distinct(pids).tolist() if self.scan.table.alive(pid)]
-        live = among(pids, alive)
-        held, pids = held[live], pids[live]
+        """The PID holding each of these socket inodes (-1: none known). Open files are read when
+        a socket is new since the last reading, and at least every OWNERS_REREAD seconds: on a
+        host whose connections stay, rarely, and then those of the processes that ran."""
+        held, pids = self._holders()
         wanted = np.unique(inodes[inodes != 0], return_counts=True)[0]  # with counts: see arrays.distinct
         now = time.monotonic()
-        if (~within(wanted, held) & ~within(wanted, self._unowned)).any() or now - self._read_at >= OWNERS_REREAD:
-            held, pids = _socket_owners(self.scan.table)
+        unknown = ~within(wanted, held) & ~within(wanted, self._unowned)
+        if unknown.any() or now - self._read_at >= OWNERS_REREAD:
+            everyone = self._read_owners(now - self._full_at >= OWNERS_FULL)
+            # A new socket's holder ran as it opened it, though maybe after the sched probe's last
+            # count: one still without a holder is looked for in every process.
+            held, pids = self._holders()
+            if not everyone and (unknown & ~within(wanted, held)).any():
+                everyone = self._read_owners(True)
+                held, pids = self._holders()
             self._unowned = wanted[~within(wanted, held)]
             self._read_at = now
+            self._full_at = now if everyone else self._full_at
         else:
             self._unowned = self._unowned[within(self._unowned, wanted)]
-        self._owners = held, pids
         if not len(held):
             return np.full(len(inodes), -1, np.int64)
         at = np.minimum(np.searchsorted(held, inodes), len(held) - 1)

@@ -13,6 +13,8 @@ import networkx as nx
 import psutil
 import pytest
 
+from drums.agent import Agent, Selection
+from drums.budget import Budget
 from drums.cli import main
 from drums.errors import GraphError
 from drums.graph.adapter import ChildAdapter, Follower
@@ -239,6 +241,85 @@ def test_the_auto_graph_dumps_the_connections_again_only_when_a_tcp_socket_chang
     finally:
         server.kill()
         server.wait()
+
+
+# Connects to its own listener; on "give", hands its client socket to the taker at the unix path
+# given and closes its own copy; on "connect", connects once more.
+GIVER = textwrap.dedent("""
+    import socket, sys
+    s = socket.socket(); s.bind(("127.0.0.1", 0)); s.listen(); print(s.getsockname()[1], flush=True)
+    client = socket.create_connection(s.getsockname()); held = [s.accept()[0]]
+    for line in sys.stdin:
+        if line == "give\\n":
+            u = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM); u.connect(sys.argv[1])
+            socket.send_fds(u, [b"x"], [client.fileno()])
+            client.close()
+        else:
+            held += [socket.create_connection(s.getsockname()), s.accept()[0]]
+        print("done", flush=True)
+""")
+TAKER = textwrap.dedent("""
+    import socket, sys, time
+    u = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM); u.bind(sys.argv[1]); print("ready", flush=True)
+    _, fds, _, _ = socket.recv_fds(u, 1, 1); print("taken", flush=True); time.sleep(60)
+""")
+
+
+def test_the_auto_graph_reads_again_the_open_files_of_the_processes_that_ran_and_no_others(
+        tmp_path, monkeypatch, sched_probe, proctable):
+    """With the sched probe's CPU counts, a re-read of open files reads those of the processes that
+    ran since their last read: a connection handed to another process is seen in its hands, and a
+    process that slept holding sockets is not read again. A socket whose holder ran after the
+    probe's last count is looked for in every process."""
+    import drums.graph.auto as auto
+    monkeypatch.setattr(auto, "OWNERS_REREAD", 0.0)  # each poll re-reads
+    agent = Agent([sched_probe], proctable, Selection.parse(), Budget({"process": 1000, "thread": 1000}))
+    adapter = AutoAdapter(ran=proctable.cpu_seconds)
+    read = []
+    socket_inodes = adapter.scan.table.socket_inodes
+    adapter.scan.table.socket_inodes = lambda pid: (read.append(pid), socket_inodes(pid))[1]
+    path = str(tmp_path / "taker")
+    taker = subprocess.Popen([sys.executable, "-c", TAKER, path], stdout=subprocess.PIPE, text=True)
+    giver = subprocess.Popen([sys.executable, "-c", GIVER, path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True)
+    idle = subprocess.Popen([sys.executable, "-c", SERVER_OF_LINES], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        port, idle_port = int(giver.stdout.readline()), int(idle.stdout.readline())
+        idle.stdin.write("connect\n")
+        idle.stdin.flush()
+        assert taker.stdout.readline() == "ready\n" and idle.stdout.readline() == "connected\n"
+
+        def tell(line: str) -> None:
+            giver.stdin.write(line)
+            giver.stdin.flush()
+            assert giver.stdout.readline() == "done\n"
+
+        def poll() -> set[tuple[str, str]]:  # the edges of the giver's port
+            read.clear()
+            return {(c.publisher, c.subscriber) for c in adapter.poll().connections if c.topic == f"tcp:{port}"}
+
+        given, taken = f"/python/{giver.pid}", f"/python/{taker.pid}"
+        # Counted once the idle server waits for its next line: from then on it does not run.
+        wait_until(lambda: psutil.Process(idle.pid).status() == psutil.STATUS_SLEEPING, "the idle server to wait")
+        agent.collect()
+        assert poll() == {(given, given)}
+        assert {giver.pid, taker.pid, idle.pid} <= set(read)  # each read a first time
+        tell("give\n")
+        assert taker.stdout.readline() == "taken\n"
+        agent.collect()  # the giver and the taker ran; the idle server slept
+        assert poll() == {(taken, given)}
+        assert {giver.pid, taker.pid} <= set(read) and idle.pid not in read
+        # A new connection of the giver, after the probe's last count: found by reading every process.
+        tell("connect\n")
+        assert poll() == {(taken, given), (given, given)}
+        assert idle.pid in read
+        assert (f"/python/{idle.pid}", f"/python/{idle.pid}", f"tcp:{idle_port}") in {
+            (c.publisher, c.subscriber, c.topic) for c in adapter.poll().connections}
+    finally:
+        for p in (giver, taker, idle):
+            p.kill()
+            p.wait()
 
 
 class FakeReader(ChildAdapter):
