@@ -27,7 +27,7 @@ def test_a_renderer_that_remembers_the_last_scrape_writes_what_a_fresh_one_write
         snap = Snapshot()
         snap.group_rows((CPU, MEM)).extend(((pid, "p"), (value, 100)) for pid, value in cpu.items())
         if lat is not None:
-            snap.add(LAT, ("1", "a"), lat)
+            snap.add(LAT, ("1", 'a "b" \\ c\nd'), lat)  # its labels escaped, taken again as its counts change
             snap.add(LAT, ("2", "b"), Histogram([1, 1], 0.001, 1))  # the same each time: its text is kept
         return snap
 

@@ -48,7 +48,7 @@ class Renderer:
     written again. What a render did not use is forgotten."""
 
     def __init__(self):
-        self._families: dict[Metric, tuple[list, list[str], str]] = {}  # metric -> (its rows, their texts, all)
+        self._families: dict[Metric, tuple[list, list[str], str]] = {}  # metric -> (its rows, their texts, header)
 
     def __call__(self, snap: Snapshot) -> bytes:
         families, kept = self._families, {}
@@ -58,11 +58,12 @@ class Renderer:
             if not rows:
                 continue
             last = families.get(metric)
-            if last is None or last[0] != rows:
-                texts = _texts(metric, rows, last)  # rows copied: a snapshot may be added to after
-                last = (rows.copy(), texts, _header(metric) + "".join(texts))
+            if last is None or last[0] != rows:  # rows copied: a snapshot may be added to after
+                last = (rows.copy(), _texts(metric, rows, last), last[2] if last else _header(metric))
             kept[metric] = last
+            # The lines joined once, into the page: a family's text kept joined too held the page twice.
             out.append(last[2])
+            out += last[1]
         # Two renders at once: the last one's is kept, both are right.
         self._families = kept
         return "".join(out).encode()
@@ -98,16 +99,17 @@ def _text(metric: Metric, row: tuple, before: tuple | None, text: str, bounds: l
     same_labels = before is not None and before[0] == values
     if same_labels and before[1] == v:
         return text
-    if bounds is not None:
-        return _histogram(metric.name, metric.labels, values, v, bounds)
+    if bounds is not None:  # labels as escaped for the series' last text: its _count line's
+        labels = text[text.rindex("\n", 0, -1) + len(metric.name) + 7:text.rindex(" ")] if same_labels else \
+            _labels(metric.labels, values)
+        return _histogram(metric.name, labels, v, bounds)
     line = text[:text.rindex(" ") + 1] if same_labels else f"{metric.name}{_labels(metric.labels, values)} "
     return f"{line}{_number(v)}\n"
 
 
-def _histogram(name: str, names: tuple[str, ...], values: tuple[str, ...], h, bounds: list[str]) -> str:
-    """The lines of one histogram series: its buckets, sum and count."""
+def _histogram(name: str, labels: str, h, bounds: list[str]) -> str:
+    """The lines of one histogram series (`labels` escaped and joined): its buckets, sum and count."""
     own = bounds if h.bounds is None else ['le="' + _number(b) + '"' for b in h.bounds]
-    labels = _labels(names, values)  # escaped once, for every line of the series
     bucket = f"{name}_bucket{labels[:-1]}," if labels else f"{name}_bucket{{"
     lines = [f"{bucket}{bound}}} {count}\n" for bound, count in zip(own, h.cumulative)]
     lines.append(f"{bucket}{_INF}}} {h.count}\n")
