@@ -245,6 +245,16 @@ class _Columnar:
         self.ids, self.order, self.sorted = ids, order, ascending
         return new
 
+    def rows_of(self, cols: Columns, entities: np.ndarray) -> np.ndarray:
+        """Where the rows of these entities (ascending) are in `cols`, ascending: found among the
+        few entities in the rows' sorted ids, where each row is an entity, not the other way round."""
+        if not len(entities):
+            return np.empty(0, np.intp)
+        if cols.entities is not None:
+            return np.flatnonzero(within(cols.entities, entities))
+        at = np.minimum(np.searchsorted(self.sorted, entities), len(self.sorted) - 1)
+        return np.sort(self.order[at[self.sorted[at] == entities]])
+
     def other_labels(self, dim: int) -> tuple[str, ...]:
         labels = [OTHER] * len(self.metrics[0].labels)
         if self.dim is not None:
@@ -388,7 +398,7 @@ class Budget:
             everyone = seen[0][0].sorted  # the one group's ids, ascending, are the entities
         else:
             everyone = distinct(np.concatenate([cols.of() for _, cols, _ in seen]))
-        fresh = everyone[~within(everyone, st.ids)]
+        fresh = everyone[:0] if everyone is st.ids else everyone[~within(everyone, st.ids)]  # as a rule: none
         st.ids = everyone
 
         def kept() -> np.ndarray:  # the entities with series of their own, ascending
@@ -405,11 +415,11 @@ class Budget:
         st.folded_total += int((~within(fresh, held)).sum()) + len(demoted)
         st.named = set()
         for c, cols, changed in seen:
-            own = np.flatnonzero(within(cols.of(), held))
+            own, left = c.rows_of(cols, held), c.rows_of(cols, demoted)
             rows = cols.rows(own.tolist())
             out.group_rows(c.metrics).extend(rows)
             st.named.update(c.entity_of(labels) for labels, _ in rows)
-            self._fold_columns(c, cols, changed, own, np.flatnonzero(within(cols.of(), demoted)), out)
+            self._fold_columns(c, cols, changed, own, left, out)
 
     @staticmethod
     def _fold_columns(c: _Columnar, cols: Columns, changed: np.ndarray, own: np.ndarray, demoted: np.ndarray,
