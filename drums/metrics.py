@@ -131,10 +131,9 @@ class Columns:
 def shown(values: np.ndarray, units: tuple[int, ...] | None) -> list[tuple]:
     """Rows of counts as the metrics show them: in their units (seconds of nanoseconds), as floats
     where a unit is not 1."""
-    rows = map(tuple, values.tolist())
     if units is None:
-        return list(rows)
-    return [tuple(v / u if u != 1 else v for v, u in zip(row, units)) for row in rows]
+        return list(map(tuple, values.tolist()))
+    return list(zip(*[(values[:, i] / u if u != 1 else values[:, i]).tolist() for i, u in enumerate(units)]))
 
 
 def _rows(rows: "list | Columns") -> list:

@@ -94,19 +94,32 @@ _RAW = AttachPath("raw_tracepoint", tuple(("raw_tracepoint", tp, fn) for tp, fn 
 class _ThreadLabels:
     """The label values of threads (pid, tid, name), made when the budget or a reader of the
     snapshot asks for them: of a host's thousands, those with series of their own. What the last
-    collect's asked for are taken again while the thread keeps its name."""
+    collect's asked for are taken again while the thread keeps its name, with those of its rows of
+    switches (the same tuples each time: a kept idle thread's rows compare by identity)."""
 
     def __init__(self, ids: np.ndarray, comms: np.ndarray, remembered: Remembered):
         self.ids, self.comms = ids, comms  # each thread's pid << 32 | tid, and its name as two words
         self.remembered = remembered  # by id, checked against the name's words
 
-    def __call__(self, at: list[int]) -> list[tuple[str, str, str]]:
+    def _made(self, at: list[int]) -> list[tuple[tuple[str, ...], ...]]:
+        """Per thread at these indices: its labels, then each kind of switch's."""
         return [self.remembered.get(id_, comm, lambda: _thread_labels(id_, comm))
                 for id_, comm in zip(self.ids[at].tolist(), map(bytes, self.comms[at]))]
 
+    def __call__(self, at: list[int]) -> list[tuple[str, str, str]]:
+        return [made[0] for made in self._made(at)]
 
-def _thread_labels(id_: int, comm: bytes) -> tuple[str, str, str]:
-    return str(id_ >> 32), str(id_ & 0xFFFFFFFF), comm.split(b"\0", 1)[0].decode(errors="replace")
+    def switches(self, at: list[int]) -> list[tuple[str, str, str, str]]:
+        """The labels of the rows of switches at these indices: thread i's are rows i * kinds + kind."""
+        kinds = len(SWITCH_KINDS)
+        threads = list(dict.fromkeys(i // kinds for i in at))  # a kept thread's rows come together
+        made = dict(zip(threads, self._made(threads)))
+        return [made[i // kinds][1 + i % kinds] for i in at]
+
+
+def _thread_labels(id_: int, comm: bytes) -> tuple[tuple[str, ...], ...]:
+    thread = str(id_ >> 32), str(id_ & 0xFFFFFFFF), comm.split(b"\0", 1)[0].decode(errors="replace")
+    return (thread, *(thread + (kind,) for kind in SWITCH_KINDS))
 
 
 class SchedProbe(BpfProbe):
@@ -309,7 +322,7 @@ class SchedProbe(BpfProbe):
         snap.groups[(THREAD_SWITCHES,)] = Columns(
             (ids[:, None] * kinds + np.arange(kinds)).ravel(), counts[:, 3:5].reshape(-1, 1),
             np.tile(np.arange(kinds), len(ids)), SWITCH_KINDS, np.repeat(pids, kinds),
-            lambda at: [thread + (SWITCH_KINDS[i % kinds],) for i, thread in zip(at, labels([i // kinds for i in at]))],
+            labels.switches,
             entities=np.repeat(ids, kinds))
 
     def _make(self, tgid: int, seen: tuple, live: list[tuple[int, bytes]], running: dict[int, int],
