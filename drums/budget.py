@@ -10,7 +10,8 @@ The budget remembers each row between collects and does per-row work only for ro
 on an idle host with ten thousand processes' rows a collect is a few dict and set operations. A
 probe that tells its rows as changes to those of its last collect (Snapshot.changes) spares it even
 comparing them. Groups given as Columns (the sockets, the TCP connections, the threads) are ranked
-and summed as arrays, and label values are asked for only for the rows kept: ten thousand sockets
+and summed as arrays, and label values are asked for only for the rows kept (and of those, where
+the probe stamps what they are made from, only for the rows that changed): ten thousand sockets
 hold no Python object each.
 """
 from __future__ import annotations
@@ -220,6 +221,10 @@ class _Columnar:
         self.infold = np.empty(0, bool)
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
         self.entity_of = _entity_getter(labels, kind)
+        # The rows given for the kept at the last collect, by id, with the ids ascending and their
+        # stamps (Columns.stamps), where the Columns had them
+        self.given: dict[int, tuple] = {}
+        self.given_ids, self.given_stamps = np.empty(0, np.int64), np.empty((0, 0), np.uint64)
 
     def none(self) -> Columns:
         """The group's Columns of a collect that gave it no rows."""
@@ -254,6 +259,28 @@ class _Columnar:
             return np.flatnonzero(within(cols.entities, entities))
         at = np.minimum(np.searchsorted(self.sorted, entities), len(self.sorted) - 1)
         return np.sort(self.order[at[self.sorted[at] == entities]])
+
+    def rows(self, cols: Columns, own: np.ndarray, changed: np.ndarray) -> list[tuple]:
+        """The rows at `own` (ascending): one given at the last collect, with the same id, values
+        (not `changed`) and stamps, is given again as it was, its labels not asked for (the two
+        hundred threads kept, few of which ran) and the same tuple for the render to compare."""
+        if cols.stamps is None:
+            return cols.rows(own.tolist())
+        ids, stamps = cols.ids[own], cols.stamps[own]
+        same = np.zeros(len(own), bool)
+        if len(self.given_ids) and len(own):
+            at = np.minimum(np.searchsorted(self.given_ids, ids), len(self.given_ids) - 1)
+            same = (self.given_ids[at] == ids) & (self.given_stamps[at] == stamps).all(axis=1)
+            same[np.searchsorted(own, changed[within(changed, own)])] = False
+        out = [None] * len(own)
+        for i, id_ in zip(np.flatnonzero(same).tolist(), ids[same].tolist()):
+            out[i] = self.given[id_]
+        for i, row in zip(np.flatnonzero(~same).tolist(), cols.rows(own[~same].tolist())):
+            out[i] = row
+        order = np.argsort(ids)
+        self.given_ids, self.given_stamps = ids[order], stamps[order]
+        self.given = dict(zip(ids.tolist(), out))
+        return out
 
     def other_labels(self, dim: int) -> tuple[str, ...]:
         labels = [OTHER] * len(self.metrics[0].labels)
@@ -416,7 +443,7 @@ class Budget:
         st.named = set()
         for c, cols, changed in seen:
             own, left = c.rows_of(cols, held), c.rows_of(cols, demoted)
-            rows = cols.rows(own.tolist())
+            rows = c.rows(cols, own, changed)
             out.group_rows(c.metrics).extend(rows)
             st.named.update(c.entity_of(labels) for labels, _ in rows)
             self._fold_columns(c, cols, changed, own, left, out)

@@ -99,6 +99,9 @@ class Columns:
     # and involuntary switches); None: each row is an entity of its own, named by its id
     entities: np.ndarray | None = None
     units: tuple[int, ...] | None = None  # per metric, the counts in one unit shown (1e9 ns a second); None: 1
+    # (n, k) uint64: what each row's label values are made from beside its id (a thread's name): a
+    # reader may take a row's labels again while its id and stamps are the same; None: it may not
+    stamps: np.ndarray | None = None
 
     def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
         """(labels, values) rows, as a group's rows are: all, or those at these indices."""
@@ -125,7 +128,8 @@ class Columns:
         def part(a):
             return None if a is None else a[where]
         return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names, part(self.pids),
-                       lambda at: self.labels(where[at].tolist()), part(self.ports), part(self.entities), self.units)
+                       lambda at: self.labels(where[at].tolist()), part(self.ports), part(self.entities), self.units,
+                       part(self.stamps))
 
 
 def shown(values: np.ndarray, units: tuple[int, ...] | None) -> list[tuple]:

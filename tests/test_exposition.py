@@ -382,6 +382,40 @@ def test_a_probe_that_fails_to_collect_leaves_the_budget_as_it_was():
     assert failing.folded_total() == steady.folded_total()
 
 
+def test_a_kept_row_whose_id_values_and_stamps_stay_is_given_again_without_its_labels():
+    """Threads as the sched probe gives them (Columns with their names' words as stamps): a kept
+    thread that did not run is given as the same row, its labels not asked for; one that ran, or
+    was renamed, is made anew; a thread that gets a slot has its labels made."""
+    names = {1: b"alpha", 2: b"beta", 3: b"gamma"}
+    cpu = {1: 30, 2: 20, 3: 10}  # the two busiest get the slots
+    asked = []
+
+    def collect() -> list:
+        snap = Snapshot()
+        ids = np.array(sorted(names), np.int64)
+        stamps = np.array([[int.from_bytes(names[i].ljust(16, b"\0")[:8], "little"),
+                            int.from_bytes(names[i].ljust(16, b"\0")[8:], "little")] for i in ids], np.uint64)
+        labels = {i: ("7", str(i), names[i].decode()) for i in names}
+        snap.groups[sched.THREAD_GROUP] = Columns(
+            ids, np.array([[cpu[i] * 10**9, 0, 0] for i in ids], np.int64), np.zeros(3, np.intp), ("",),
+            np.full(3, 7, np.int64), lambda at: [asked.append(int(ids[i])) or labels[int(ids[i])] for i in at],
+            units=(10**9, 10**9, 1), stamps=stamps)
+        return budget.apply(snap).groups[sched.THREAD_GROUP]
+
+    budget = Budget({"thread": 2})
+    first = collect()
+    assert sorted(asked) == [1, 2] and [row[0] for row in first[:2]] == [("7", "1", "alpha"), ("7", "2", "beta")]
+    asked.clear()
+    assert all(a is b for a, b in zip(collect()[:2], first[:2])) and asked == []  # neither ran
+    cpu[1] += 1
+    names[2] = b"renamed"
+    third = collect()
+    assert sorted(asked) == [1, 2] and third[:2] == [(("7", "1", "alpha"), (31.0, 0.0, 0)),
+                                                      (("7", "2", "renamed"), (20.0, 0.0, 0))]
+    asked.clear()
+    assert all(a is b for a, b in zip(collect()[:2], third[:2])) and asked == []
+
+
 def test_the_rtt_of_a_connection_the_columns_lack_shows_while_a_slot_is_free():
     """A connection older than the agent has an RTT and no entry (it never moved under the
     probes): its RTT is shown in a slot the columns leave free, the first by its addresses."""

@@ -315,15 +315,15 @@ class SchedProbe(BpfProbe):
         self._shown = (m.keys, w[:, _WORD_START].copy(), counts[:, 0].copy())
         counts, pids = counts[alive], tgids[alive].astype(np.int64)
         ids = pids << 32 | m.keys[alive].astype(np.int64)
-        labels = _ThreadLabels(ids, w[alive, _WORDS_COMM], self._labelled.turn())
+        comms = w[alive, _WORDS_COMM]
+        labels = _ThreadLabels(ids, comms, self._labelled.turn())
         snap.groups[THREAD_GROUP] = Columns(ids, counts[:, :3], np.zeros(len(ids), np.intp), ("",), pids, labels,
-                                            units=_THREAD_UNITS)
+                                            units=_THREAD_UNITS, stamps=comms)
         kinds = len(SWITCH_KINDS)
         snap.groups[(THREAD_SWITCHES,)] = Columns(
             (ids[:, None] * kinds + np.arange(kinds)).ravel(), counts[:, 3:5].reshape(-1, 1),
             np.tile(np.arange(kinds), len(ids)), SWITCH_KINDS, np.repeat(pids, kinds),
-            labels.switches,
-            entities=np.repeat(ids, kinds))
+            labels.switches, entities=np.repeat(ids, kinds), stamps=np.repeat(comms, kinds, axis=0))
 
     def _make(self, tgid: int, seen: tuple, live: list[tuple[int, bytes]], running: dict[int, int],
               before: _Made | None) -> _Made:
