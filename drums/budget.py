@@ -266,7 +266,7 @@ class _Columnar:
         hundred threads kept, few of which ran) and the same tuple for the render to compare."""
         if cols.stamps is None:
             return cols.rows(own.tolist())
-        ids, stamps = cols.ids[own], cols.stamps[own]
+        ids, stamps = cols.ids[own], cols.stamps(own)
         same = np.zeros(len(own), bool)
         if len(self.given_ids) and len(own):
             at = np.minimum(np.searchsorted(self.given_ids, ids), len(self.given_ids) - 1)

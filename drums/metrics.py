@@ -99,9 +99,10 @@ class Columns:
     # and involuntary switches); None: each row is an entity of its own, named by its id
     entities: np.ndarray | None = None
     units: tuple[int, ...] | None = None  # per metric, the counts in one unit shown (1e9 ns a second); None: 1
-    # (n, k) uint64: what each row's label values are made from beside its id (a thread's name): a
-    # reader may take a row's labels again while its id and stamps are the same; None: it may not
-    stamps: np.ndarray | None = None
+    # The stamps of the rows at these indices, (len, k) uint64: what a row's label values are made
+    # from beside its id (a thread's name); a reader may take a row's labels again while its id and
+    # stamps are the same. None: it may not.
+    stamps: Callable[[np.ndarray], np.ndarray] | None = None
 
     def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
         """(labels, values) rows, as a group's rows are: all, or those at these indices."""
@@ -129,7 +130,7 @@ class Columns:
             return None if a is None else a[where]
         return Columns(self.ids[where], self.values[where], self.dims[where], self.dim_names, part(self.pids),
                        lambda at: self.labels(where[at].tolist()), part(self.ports), part(self.entities), self.units,
-                       part(self.stamps))
+                       self.stamps and (lambda at: self.stamps(where[at])))
 
 
 def shown(values: np.ndarray, units: tuple[int, ...] | None) -> list[tuple]:

@@ -399,7 +399,7 @@ def test_a_kept_row_whose_id_values_and_stamps_stay_is_given_again_without_its_l
         snap.groups[sched.THREAD_GROUP] = Columns(
             ids, np.array([[cpu[i] * 10**9, 0, 0] for i in ids], np.int64), np.zeros(3, np.intp), ("",),
             np.full(3, 7, np.int64), lambda at: [asked.append(int(ids[i])) or labels[int(ids[i])] for i in at],
-            units=(10**9, 10**9, 1), stamps=stamps)
+            units=(10**9, 10**9, 1), stamps=stamps.__getitem__)
         return budget.apply(snap).groups[sched.THREAD_GROUP]
 
     budget = Budget({"thread": 2})

@@ -318,12 +318,12 @@ class SchedProbe(BpfProbe):
         comms = w[alive, _WORDS_COMM]
         labels = _ThreadLabels(ids, comms, self._labelled.turn())
         snap.groups[THREAD_GROUP] = Columns(ids, counts[:, :3], np.zeros(len(ids), np.intp), ("",), pids, labels,
-                                            units=_THREAD_UNITS, stamps=comms)
+                                            units=_THREAD_UNITS, stamps=comms.__getitem__)
         kinds = len(SWITCH_KINDS)
         snap.groups[(THREAD_SWITCHES,)] = Columns(
             (ids[:, None] * kinds + np.arange(kinds)).ravel(), counts[:, 3:5].reshape(-1, 1),
             np.tile(np.arange(kinds), len(ids)), SWITCH_KINDS, np.repeat(pids, kinds),
-            labels.switches, entities=np.repeat(ids, kinds), stamps=np.repeat(comms, kinds, axis=0))
+            labels.switches, entities=np.repeat(ids, kinds), stamps=lambda at: comms[at // kinds])
 
     def _make(self, tgid: int, seen: tuple, live: list[tuple[int, bytes]], running: dict[int, int],
               before: _Made | None) -> _Made:

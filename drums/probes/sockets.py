@@ -47,6 +47,7 @@ _SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQQ")  # the counts, the genera
 _IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
 _PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
+_WORD = (1 << 64) - 1
 _U32 = struct.Struct("<I")
 
 # Listing a process's open files costs a readlink per file: a process's idle non-TCP sockets are
@@ -145,6 +146,13 @@ class _Labels:
             out.append(self.remembered.get(key, name, lambda: self._make(key, name)))
         return out
 
+    def stamps(self, at: np.ndarray) -> np.ndarray:
+        """What the labels of the sockets at these indices are made from: the words that name each,
+        and a hash of its process's name."""
+        names = [self.names.get(pid, "") for pid in (self.words[at, 1] & 0xFFFFFFFF).tolist()]
+        hashes = np.fromiter((hash(name) & _WORD for name in names), np.uint64, len(names))
+        return np.column_stack((self.words[at, :_WORDS_IDENTITY], hashes))
+
     def _make(self, key: bytes, name: str) -> tuple[str, ...]:
         ino, pid, netns, protocol, local, remote = _identity(key)
         if protocol == "unix":
@@ -238,10 +246,11 @@ class SocketsProbe(BpfProbe):
         # Each socket by its inode; one without (it had no struct socket when first counted) by its
         # entry's key, a kernel address, which as an int64 is below 0 and so no inode.
         ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
+        labels = _Labels(w, names, self.proc_net_unix, self._labelled.turn())
         snap.groups[SOCKET_GROUP] = Columns(
             np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
             klass[live].astype(np.intp), PROTOCOLS, pids[live],
-            _Labels(w, names, self.proc_net_unix, self._labelled.turn()), _ports(w))
+            labels, _ports(w), stamps=labels.stamps)
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:
