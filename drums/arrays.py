@@ -18,6 +18,16 @@ def among(keys: np.ndarray, values) -> np.ndarray:
     return within(keys, np.sort(np.fromiter(values, keys.dtype, len(values))))
 
 
+def rows_differ(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Whether each row of `a` differs from that of `b` (2-D, of one shape). A column at a time: the
+    rows of a probe's map are wider than the columns compared, and reading them whole for each
+    (a != b then any) took twice as long for ten thousand."""
+    differ = np.zeros(len(a), bool)
+    for j in range(a.shape[1]):
+        differ |= a[:, j] != b[:, j]
+    return differ
+
+
 def distinct(values: np.ndarray) -> np.ndarray:
     """The distinct values, ascending. Asked for the values alone, np.unique (numpy 2.4) first asks
     numpy.ma whether the array is masked, importing it at its first call: 1.2 MB of the agent's

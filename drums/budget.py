@@ -24,7 +24,7 @@ from operator import itemgetter
 
 import numpy as np
 
-from drums.arrays import distinct, within
+from drums.arrays import distinct, rows_differ, within
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, shown
 
 # Labels that split an entity's series (they survive folding); every other label names the entity.
@@ -413,7 +413,7 @@ class Budget:
             c = st.columnar.get(metrics) or st.columnar.setdefault(metrics, _Columnar(metrics, kind, cols))
             cols = cols or c.none()
             new = c.follow(cols.ids) if not np.array_equal(cols.ids, c.ids) else np.zeros(len(cols.ids), bool)
-            changed = np.flatnonzero((cols.values != c.last).any(axis=1) | new)
+            changed = np.flatnonzero(rows_differ(cols.values, c.last) | new)
             # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
             grew = np.maximum(cols.values[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
             whole = grew.sum(axis=0)
