@@ -42,6 +42,9 @@ KINDS = {
 }
 
 
+_LABELS = itemgetter(0)  # of a (labels, values) row
+
+
 def _entity_getter(labels: tuple[str, ...], kind: str) -> Callable[[tuple], object]:
     """What gives, from a row's label values, the entity of `kind` it is of."""
     return itemgetter(*[labels.index(label) for label in KINDS[kind][0]])
@@ -445,7 +448,7 @@ class Budget:
             own, left = c.rows_of(cols, held), c.rows_of(cols, demoted)
             rows = c.rows(cols, own, changed)
             out.group_rows(c.metrics).extend(rows)
-            st.named.update(c.entity_of(labels) for labels, _ in rows)
+            st.named.update(map(c.entity_of, map(_LABELS, rows)))
             self._fold_columns(c, cols, changed, own, left, out)
 
     @staticmethod
