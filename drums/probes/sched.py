@@ -72,13 +72,17 @@ def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
     return Histogram(cumulative, total_ns / 1e9, waits)
 
 
-@dataclass
+@dataclass(slots=True)
 class _Made:
-    """What one process's entries made at a collect, kept for the next while they stay the same."""
+    """What one process's entries made at a collect, kept for the next while they stay the same,
+    and as the floor of its next values: a total is read as live threads plus exited ones from two
+    maps one after the other, and a thread that exits between the two reads is in neither for that
+    collect, so a value is never shown below the one made before for the same process start."""
     seen: tuple  # (its exited threads' entry, its name)
     # Tuples, not lists or a set: a thousand processes keep theirs between collects (0.9 MB less).
-    rows: tuple  # its rows of each metric, in the probe's order
-    held: tuple  # its keys in the probe's highest values
+    rows: tuple  # its rows of each metric, in the probe's order: a row of CPU and run-queue time per
+    # process start, two of switches
+    starts: tuple  # the process start of each row of CPU time (a PID's exited threads may be of a start before)
     cpu: float  # its CPU seconds, for the process table
 
 
@@ -135,11 +139,8 @@ class SchedProbe(BpfProbe):
     def __init__(self, features, proctable: ProcessTable, **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
-        # The highest value each counter has had: a total is read as live threads plus exited ones
-        # from two maps one after the other, and a thread that exits between the two reads is in
-        # neither for that collect. Kept while its process lives.
-        self._highest: dict = {}
         self._made: dict[int, _Made] = {}  # tgid -> what its entries made at the last collect
+        self._remake = False  # every process made again at the next collect: the last one failed
         self._rows: list[dict] = [{} for _ in PROCESS_METRICS]  # per metric: labels -> row, of every process made
         self._cpu: dict[int, float] = {}  # tgid -> CPU seconds of every process made, for the process table
         self._refreshed = -1  # the process table's refresh at the last collect
@@ -220,8 +221,9 @@ class SchedProbe(BpfProbe):
         try:
             self._collect(snap)
         except BaseException:
-            # What it kept may be half brought up to date: the next collect makes every row anew.
-            self._made, self._rows, self._cpu = {}, [{} for _ in PROCESS_METRICS], {}
+            # Its rows may be half brought up to date: the next collect makes every process's anew
+            # (each one's last values stay, as the floor of its next).
+            self._rows, self._remake = [{} for _ in PROCESS_METRICS], True
             raise
 
     def _collect(self, snap: Snapshot) -> None:
@@ -256,19 +258,18 @@ class SchedProbe(BpfProbe):
         was = [made.pop(tgid) for tgid in ended]  # ended, and made again: their last rows
         for tgid in ended:
             del cpu[tgid]
-        for process in was:  # its highest values go with it
-            for key in process.held:
-                self._highest.pop(key, None)
         # Made again: a process new, with a thread new, changed, gone or on a CPU, with exited threads
         # whose entry changed, or renamed since the last collect; of a thousand, few.
         renamed = pt.renamed_since(self._refreshed)
         self._refreshed = pt.refreshes
-        suspects = alive if renamed is None else (alive - made.keys()) | (alive & (dirty | exited.keys() | renamed))
+        remake, self._remake = self._remake, False
+        suspects = alive if renamed is None or remake else \
+            (alive - made.keys()) | (alive & (dirty | exited.keys() | renamed))
         again = {}
         for tgid in suspects:
             seen = (exited.get(tgid), pt.name(tgid))
             before = made.get(tgid)
-            if before is None or tgid in dirty or before.seen != seen:
+            if remake or before is None or tgid in dirty or before.seen != seen:
                 again[tgid] = seen
         threads: dict[int, list[tuple[int, bytes]]] = {tgid: [] for tgid in again}
         for i in np.flatnonzero(among(tgids, again)).tolist():
@@ -288,7 +289,7 @@ class SchedProbe(BpfProbe):
             rows, changed = self._rows[i], [row for process in remade for row in process.rows[i]]
             gone = [labels for process in was for labels, _ in process.rows[i]]
             for labels in gone:
-                del rows[labels]
+                rows.pop(labels, None)  # none after a failed collect: the rows are made anew
             rows.update((row[0], row) for row in changed)
             if rows:
                 snap.rows(metric).extend(rows.values())
@@ -329,12 +330,13 @@ class SchedProbe(BpfProbe):
               before: _Made | None) -> _Made:
         """The rows of one process, from its threads' entries and its exited threads' in the two maps."""
         exited, name = seen
-        top, held = self._highest, []
-
-        def hold(key, value):  # never below what the key had
-            value = top[key] = highest(top.get(key), value)
-            held.append(key)
-            return value
+        kinds = len(SWITCH_KINDS)
+        # The values made last time, by process start: each of this start's now is never below its own.
+        last = {}
+        if before is not None:
+            cpus, runqs, switches = before.rows
+            for i, start in enumerate(before.starts):
+                last[start] = (cpus[i][1], runqs[i][1], *(n for _, n in switches[i * kinds:(i + 1) * kinds]))
         totals = ProcessTotals()
         if exited is not None:
             start, *s = _PROCESS_VALUE.unpack(exited)
@@ -345,16 +347,15 @@ class SchedProbe(BpfProbe):
             if tid in running:
                 s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)
-        cpu = 0.0
+        cpu, starts = 0.0, []
         for (_, start), s in totals.items():
             oncpu, runq_ns, runq_waits, vol, invol = s[:5]
             labels = (str(tgid), name)
-            key = (tgid, start)
-            cpu = hold((PROCESS_CPU, key), oncpu / 1e9)
+            was = last.get(start, (None,) * (2 + kinds))
+            cpu = highest(was[0], oncpu / 1e9)
             rows[PROCESS_CPU].append((labels, cpu))
-            rows[PROCESS_RUNQ].append((labels, hold((PROCESS_RUNQ, key), runq_histogram(s[5:], runq_ns, runq_waits))))
-            for kind, n in zip(SWITCH_KINDS, (vol, invol)):
-                rows[PROCESS_SWITCHES].append((labels + (kind,), hold((PROCESS_SWITCHES, key, kind), n)))
-        for key in set(before.held).difference(held) if before else ():  # of a start the PID no longer has
-            top.pop(key, None)
-        return _Made(seen, tuple(tuple(rows[metric]) for metric in PROCESS_METRICS), tuple(held), cpu)
+            rows[PROCESS_RUNQ].append((labels, highest(was[1], runq_histogram(s[5:], runq_ns, runq_waits))))
+            for kind, n, floor in zip(SWITCH_KINDS, (vol, invol), was[2:]):
+                rows[PROCESS_SWITCHES].append((labels + (kind,), highest(floor, n)))
+            starts.append(start)
+        return _Made(seen, tuple(tuple(rows[metric]) for metric in PROCESS_METRICS), tuple(starts), cpu)
