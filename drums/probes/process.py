@@ -55,11 +55,19 @@ def _spread(pid: int) -> float:
 
 class _Read:
     """A process's values at its last read, what tells whether they may have changed since, and its
-    USS with the time and RSS it was read at."""
-    __slots__ = ("at", "values", "refresh", "cpu", "uss")
+    USS with the time and RSS it was read at; and its rows, made while its name stays (a process
+    not read again gives the same tuples, which the budget and the render compare by identity)."""
+    __slots__ = ("at", "values", "refresh", "cpu", "uss", "rows")
 
     def __init__(self, at: float, values: list, refresh: int, cpu: float | None, uss: tuple | None):
         self.at, self.values, self.refresh, self.cpu, self.uss = at, values, refresh, cpu, uss
+        self.rows: tuple = ()  # ((metric, (labels, value)), ...)
+
+    def rows_named(self, pid: int, name: str) -> tuple:
+        if not self.rows or self.rows[0][1][0][1] != name:
+            labels = (str(pid), name)
+            self.rows = tuple((metric, (labels, value)) for metric, value in self.values)
+        return self.rows
 
 
 def _allowed(read):
@@ -127,6 +135,7 @@ class ProcessProbe(Probe):
 
     def collect(self, snap: Snapshot) -> None:
         now, table = time.monotonic(), self.proctable
+        rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
         for pid in self._pids:
             cached = self._last.get(pid)
             if self._due(pid, cached, now):
@@ -141,9 +150,11 @@ class ProcessProbe(Probe):
                 # all at every fifth one (a scrape of 50 ms at the 95th percentile).
                 phase = 0.0 if cached else _spread(pid) * self.interval
                 cached = self._last[pid] = _Read(now - phase, values, table.refreshes, table.cpu(pid), uss)
-            labels = (str(pid), self.proctable.name(pid))
-            for metric, value in cached.values:
-                snap.add(metric, labels, value)
+            for metric, row in cached.rows_named(pid, table.name(pid)):
+                rows[metric].append(row)
+        for metric, made in rows.items():
+            if made:
+                snap.rows(metric).extend(made)
 
     def _read(self, pid: int, uss: tuple | None, now: float) -> tuple[list[tuple[Metric, float]], tuple | None]:
         """The process's values, leaving out those the kernel denies, and its USS as (value, when
