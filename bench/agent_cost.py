@@ -249,7 +249,8 @@ WHY = {
     "tcp": "the connections marked changed; sock_diag RTT of the kept connections every 5 s",
     "latency": "its map, empty unless the TCP latency probe is asked for",
     "rest of the collect": "process table, PIDs to read, the graph's join, the budget's ranking and folds "
-                           "(sockets, connections and threads as arrays, processes as rows), self-metrics",
+                           "(sockets, connections and threads as arrays, processes as rows; a kept row that "
+                           "did not change given again as it was), self-metrics",
     "render, gzip, HTTP": "the text of families that changed, ISA-L gzip, h11 on asyncio, and the client's gunzip",
 }
 
