@@ -256,7 +256,7 @@ class _Columnar:
     def rows_of(self, cols: Columns, entities: np.ndarray) -> np.ndarray:
         """Where the rows of these entities (ascending) are in `cols`, ascending: found among the
         few entities in the rows' sorted ids, where each row is an entity, not the other way round."""
-        if not len(entities):
+        if not len(entities) or not len(cols.ids):
             return np.empty(0, np.intp)
         if cols.entities is not None:
             return np.flatnonzero(within(cols.entities, entities))
