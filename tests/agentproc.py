@@ -69,9 +69,9 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
         assert not os.path.exists(pins), "pins left behind after shutdown"
 
 
-def serving(proc: subprocess.Popen, url: str) -> None:
-    """Wait until the agent `proc` answers at `url`, 30 s at most; kill it and fail with its log if
-    it ends or does not answer by then."""
+def serving(proc: subprocess.Popen, url: str, what: str = "agent") -> None:
+    """Wait until `proc` (the agent, or `what` it is) answers at `url`, 30 s at most; kill it and
+    fail with its log if it ends or does not answer by then."""
     deadline = time.monotonic() + 30
     while True:
         try:
@@ -80,7 +80,7 @@ def serving(proc: subprocess.Popen, url: str) -> None:
         except OSError:
             if proc.poll() is not None or time.monotonic() > deadline:
                 proc.kill()
-                pytest.fail(f"agent did not serve: {proc.stdout.read()}")
+                pytest.fail(f"{what} did not serve: {proc.stdout.read()}")
             time.sleep(0.1)
 
 

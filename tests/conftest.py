@@ -9,6 +9,7 @@ import os
 import shutil
 import socket
 import subprocess
+import threading
 import time
 
 import pytest
@@ -143,6 +144,23 @@ def wait_until(condition, what, timeout: float = 5.0) -> None:
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")
         time.sleep(0.01)
+
+
+@contextlib.contextmanager
+def every(seconds: float, step):
+    """Run `step()` every `seconds` in a thread of its own until the block ends."""
+    stop = threading.Event()
+
+    def run():
+        while not stop.wait(seconds):
+            step()
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 @contextlib.contextmanager

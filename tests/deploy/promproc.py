@@ -4,7 +4,6 @@ import contextlib
 import json
 import subprocess
 import tempfile
-import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -12,7 +11,7 @@ import urllib.request
 import pytest
 import yaml
 
-from tests.agentproc import free_port
+from tests.agentproc import free_port, serving
 
 PROMETHEUS = "/usr/bin/prometheus"
 
@@ -38,16 +37,7 @@ def running_prometheus(job: str, target: str, labels: dict[str, str], rule_files
                                  f"--web.listen-address=127.0.0.1:{port}", "--log.level=warn"],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                urllib.request.urlopen(f"{url}/-/ready", timeout=2).read()
-                break
-            except OSError:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    proc.kill()
-                    pytest.fail(f"prometheus did not start: {proc.stdout.read()}")
-                time.sleep(0.1)
+        serving(proc, f"{url}/-/ready", "prometheus")
         try:
             yield url
         finally:

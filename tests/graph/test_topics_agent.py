@@ -3,15 +3,12 @@ every ROS 2 node started after the agent in a process of its own: the path a use
 agent must find librcl in processes that load it late and name every count's node."""
 from __future__ import annotations
 
-import contextlib
-import threading
-
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from std_msgs.msg import String
 
 from tests.agentproc import running_agent, samples, scrape
-from tests.conftest import eventually, wait_until
+from tests.conftest import eventually, every, wait_until
 from tests.graph.rosnodes import payload
 from tests.graph.test_topics import UDP
 
@@ -32,21 +29,9 @@ def agent():
         yield url
 
 
-@contextlib.contextmanager
 def scraped(url: str):
     """Scrapes the agent every 0.5 s, as a Prometheus with a short interval would, until the end."""
-    stop = threading.Event()
-
-    def run():
-        while not stop.wait(0.5):
-            scrape(url)
-    thread = threading.Thread(target=run)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join()
+    return every(0.5, lambda: scrape(url))
 
 
 @pytest.fixture

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import socket
-import threading
 
 from tests.agentproc import running_agent
+from tests.conftest import every
 from tests.top.pilot import run, shown, until
 
 
@@ -23,23 +23,18 @@ def sending():
         a.bind(("127.0.0.1", 0))
         b.connect(a.getsockname())
         udp += [a, b]
-    stop = threading.Event()
 
-    def loop():
-        while not stop.wait(0.02):
-            for s, peer in zip(tcp, accepted):
-                s.send(b"x" * 64)
-                peer.recv(1 << 16)
-            for a, b in zip(udp[::2], udp[1::2]):
-                b.send(b"x" * 64)
-                a.recv(1 << 16)
-    thread = threading.Thread(target=loop, daemon=True)
-    thread.start()
+    def step():
+        for s, peer in zip(tcp, accepted):
+            s.send(b"x" * 64)
+            peer.recv(1 << 16)
+        for a, b in zip(udp[::2], udp[1::2]):
+            b.send(b"x" * 64)
+            a.recv(1 << 16)
     try:
-        yield
+        with every(0.02, step):
+            yield
     finally:
-        stop.set()
-        thread.join()
         for s in (server, *tcp, *accepted, *udp):
             s.close()
 
