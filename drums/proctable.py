@@ -155,7 +155,8 @@ class ProcessTable:
     def cpu(self, pid: int) -> float | None:
         """The process's CPU seconds as the sched probe counted them at this refresh (0: it has not
         run since the probe attached); None when no sched probe said so at this refresh."""
-        return self._cpu.get(pid, 0.0) if self._cpu_at == self.refreshes else None
+        told = self.cpu_seconds()
+        return None if told is None else told.get(pid, 0.0)
 
     def cpu_seconds(self) -> dict[int, float] | None:
         """Each process's CPU seconds as the sched probe said at this refresh (one it did not name
