@@ -15,7 +15,9 @@ after an interface came or went (a VPN, a container bridge, a new DHCP lease) ca
 than ours, though it runs beside us; one in another network namespace is another host. One of
 this host whose process no longer runs is "gone": DDS forgets a participant that was killed only
 when its lease runs out (20 s by default), /proc knows at once. So is one once mapped to a process
-of ours that no longer runs, whatever host id it carries (a test lab's veths come and go).
+of ours that no longer runs, whatever host id it carries (a test lab's veths come and go), and one
+placed by name (2, 3) before its endpoints were read, whose process no longer runs and which no
+running process claims.
 Other RMWs (Cyclone DDS, Connext, Zenoh) carry no PID in their GUIDs: their nodes go by 2 and 3.
 """
 from __future__ import annotations
@@ -46,6 +48,9 @@ class ProcScan:
         self._cmdline: dict[tuple[int, int | None], list[str]] = {}
         # Participant GUID prefix -> (pid, start) of the process of ours it was mapped to.
         self.participants: dict[bytes, tuple[int, int | None]] = {}
+        # Node -> (pid, start) of the process it was last placed in, for a node placed before its
+        # participant was known (DDS tells a node's name before its endpoints).
+        self.placed: dict[str, tuple[int, int | None]] = {}
         # The last mapping, what it was made of (the nodes with their prefixes, our own prefix) and
         # the start of each process it placed a node in, while every node in it was placed.
         self._settled: tuple[dict, bytes, dict, dict[int, int | None]] | None = None
@@ -96,14 +101,27 @@ class ProcScan:
         return self.table.alive(pid) and process_start(self.proc, pid) == start
 
     def remember(self, mapping: dict[str, tuple[int | None, str]], prefixes: dict[str, bytes | None]) -> None:
-        """Keep which participants the nodes seen now were mapped to, and forget the others."""
+        """Keep which participants and processes the nodes seen now were mapped to, and forget the
+        others."""
         seen = {prefix: self.participants.get(prefix) for prefix in prefixes.values() if prefix}
+        placed = {node: self.placed[node] for node in prefixes if node in self.placed}
         for node, (pid, how) in mapping.items():
+            if pid is None:
+                continue
+            if placed.get(node, (None,))[0] != pid:
+                placed[node] = (pid, process_start(self.proc, pid))
             prefix = prefixes[node]
             known = seen.get(prefix)
             if how in ("gid", "cmdline") and prefix and (known is None or known[0] != pid):  # not a "librcl" guess
-                seen[prefix] = (pid, process_start(self.proc, pid))
+                seen[prefix] = placed[node]
         self.participants = {prefix: owner for prefix, owner in seen.items() if owner is not None}
+        self.placed = placed
+
+    def left(self, node: str, bits: int | None = None) -> bool:
+        """Whether the node was last placed in a process that no longer runs (whose PID has these
+        low bits, when its participant's are known)."""
+        where = self.placed.get(node)
+        return where is not None and (bits is None or where[0] & 0xFFFF == bits) and not self.runs(*where)
 
     def cmdline(self, pid: int) -> list[str]:
         key = (pid, process_start(self.proc, pid))
@@ -148,7 +166,8 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
             continue
         found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid, recheck=True)]
         owner = scan.participants.get(prefix)
-        if owner is not None and owner[0] not in found and not scan.runs(*owner):
+        if not found and scan.left(node, bits) or (
+                owner is not None and owner[0] not in found and not scan.runs(*owner)):
             out[node] = (None, "gone")
             continue
         foreign = know_host and prefix[2:4] != own_prefix[2:4]
@@ -164,6 +183,7 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
             name = _node_arg(scan.cmdline(pid))
             if name in unmapped and scan.has_rcl(pid, recheck=True):
                 out[name] = (pid, "cmdline")
+        out.update((n, (None, "gone")) for n in nodes if n not in out and scan.left(n))
         unmapped = [n for n in nodes if n not in out]
     if unmapped:
         claimed = {pid for pid, _ in out.values()}

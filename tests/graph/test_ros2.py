@@ -97,6 +97,25 @@ def test_a_node_with_another_host_id_is_ours_while_its_pid_bits_are_one_of_our_p
     assert scan.table.refreshes == listed + 1
 
 
+def test_a_node_placed_before_its_endpoints_were_read_is_gone_at_once_when_killed(ros2_graph, ros_nodes):
+    """DDS tells a node's name before its endpoints: the node is placed by its command line with no
+    participant known. Killed, DDS lists it for its 20 s lease, with or without the endpoints it
+    read meanwhile; the graph says it is gone at once."""
+    from drums.graph.nodepids import FASTDDS_VENDOR, ProcScan, map_nodes
+    ours, theirs = FASTDDS_VENDOR + b"\x01\x02" + bytes(8), FASTDDS_VENDOR + b"\x03\x04"
+    early = ros_nodes("idle", "--ros-args", "-r", "__node:=early")
+    scan = ProcScan()
+    assert map_nodes({"/early": None}, scan, ours) == {"/early": (early.pid, "cmdline")}
+    early.kill()
+    assert map_nodes({"/early": None}, scan, ours) == {"/early": (None, "gone")}
+    # Its participant read since, with another host id than ours (an interface came or went).
+    late = theirs + (early.pid & 0xFFFF).to_bytes(2, "little") + bytes(6)
+    assert map_nodes({"/early": late}, scan, ours) == {"/early": (None, "gone")}
+    # The name started again in a new process is placed there.
+    again = ros_nodes("idle", "--ros-args", "-r", "__node:=early")
+    assert map_nodes({"/early": None}, scan, ours) == {"/early": (again.pid, "cmdline")}
+
+
 def test_a_process_seen_before_it_loaded_ros_is_mapped_once_its_node_appears(ros2_graph, ros_nodes):
     """A scan of every process (for a node the GIDs do not place) reads one that still imports
     rclpy: no librcl yet. Its node, when it comes, is placed by its GID all the same."""
