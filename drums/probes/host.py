@@ -1,9 +1,11 @@
-"""Host-wide CPU, memory, filesystem, disk, network and load metrics, read through psutil.
+"""Host-wide CPU, memory, filesystem, disk, network and load metrics, read through psutil (memory from
+/proc/meminfo itself).
 
 Needs no BPF and no privileges, so it is the probe that still reports when every kernel probe fails.
 """
 from __future__ import annotations
 
+import select
 import time
 
 import psutil
@@ -82,25 +84,55 @@ class Carry:
         return entry[0] + value
 
 
-def _cpu(snap: Snapshot, _carry: Carry) -> None:
+class Mounts:
+    """The filesystems mounted from a device, listed again only after the mount table changed: the
+    kernel flags an open /proc/self/mounts with POLLPRI at each mount and unmount (proc(5)), where a
+    listing reads two /proc files at every collect."""
+
+    def __init__(self):
+        self._table = None
+        self._changed = select.poll()
+        self._listed: list | None = None
+
+    def __call__(self) -> list:
+        if self._table is None:  # opened before the first listing; unreadable, it fails only this reader
+            self._table = open("/proc/self/mounts", "rb")  # kept open: the flag is on this file
+            self._changed.register(self._table, select.POLLPRI)
+        elif self._listed is not None and not self._changed.poll(0):
+            return self._listed
+        # A mountpoint mounted over is listed twice; statvfs sees the top one, listed last.
+        self._listed = list({p.mountpoint: p for p in psutil.disk_partitions(all=False)}.values())
+        return self._listed
+
+    def close(self) -> None:
+        if self._table is not None:
+            self._table.close()
+
+
+def _cpu(snap: Snapshot, _probe: HostProbe) -> None:
     times = psutil.cpu_times()
     for mode in _CPU_MODES:
         snap.add(CPU_SECONDS, (mode,), getattr(times, mode))
 
 
-def _memory(snap: Snapshot, _carry: Carry) -> None:
-    mem, swap = psutil.virtual_memory(), psutil.swap_memory()
-    snap.add(MEMORY_TOTAL, (), mem.total)
-    snap.add(MEMORY_AVAILABLE, (), mem.available)
-    snap.add(MEMORY_USED, (), mem.used)
-    snap.add(SWAP_TOTAL, (), swap.total)
-    snap.add(SWAP_USED, (), swap.used)
+def _memory(snap: Snapshot, _probe: HostProbe) -> None:
+    # One read of meminfo, where psutil's virtual and swap memory read it twice and vmstat besides.
+    with open(f"{psutil.PROCFS_PATH}/meminfo", "rb") as f:
+        kib = {line[:line.index(b":")]: int(line.split()[1]) for line in f}
+    total = kib[b"MemTotal"]
+    # Linux 3.14 added MemAvailable; above the total, a container's view is distorted (as psutil).
+    available = kib.get(b"MemAvailable", kib[b"MemFree"] + kib[b"Buffers"] + kib[b"Cached"])
+    available = kib[b"MemFree"] if available > total else available
+    snap.add(MEMORY_TOTAL, (), total * 1024)
+    snap.add(MEMORY_AVAILABLE, (), available * 1024)
+    snap.add(MEMORY_USED, (), (total - available) * 1024)
+    snap.add(SWAP_TOTAL, (), kib[b"SwapTotal"] * 1024)
+    snap.add(SWAP_USED, (), (kib[b"SwapTotal"] - kib[b"SwapFree"]) * 1024)
 
 
-def _filesystems(snap: Snapshot, _carry: Carry) -> None:
-    # all=False leaves out filesystems without a device (proc, sysfs, tmpfs, cgroup...). A mountpoint
-    # mounted over is listed twice; statvfs sees the top one, which is listed last.
-    for part in {p.mountpoint: p for p in psutil.disk_partitions(all=False)}.values():
+def _filesystems(snap: Snapshot, probe: HostProbe) -> None:
+    # all=False leaves out filesystems without a device (proc, sysfs, tmpfs, cgroup...).
+    for part in probe.mounts():
         try:
             usage = psutil.disk_usage(part.mountpoint)
         except OSError:  # e.g. a stale network mount; the other filesystems are still worth reporting
@@ -118,20 +150,20 @@ _NIC = {NET_RECEIVED_BYTES: "bytes_recv", NET_SENT_BYTES: "bytes_sent", NET_RECE
         NET_RECEIVE_DROPS: "dropin", NET_TRANSMIT_DROPS: "dropout"}
 
 
-def _disks(snap: Snapshot, carry: Carry) -> None:
+def _disks(snap: Snapshot, probe: HostProbe) -> None:
     # Partitions are listed next to their disk, so summing over devices counts their I/O twice.
     for device, io in psutil.disk_io_counters(perdisk=True).items():
         for metric, field in _DISK.items():
-            snap.add(metric, (device,), carry(metric, device, getattr(io, field)))
+            snap.add(metric, (device,), probe.carry(metric, device, getattr(io, field)))
 
 
-def _network(snap: Snapshot, carry: Carry) -> None:
+def _network(snap: Snapshot, probe: HostProbe) -> None:
     for nic, io in psutil.net_io_counters(pernic=True).items():
         for metric, field in _NIC.items():
-            snap.add(metric, (nic,), carry(metric, nic, getattr(io, field)))
+            snap.add(metric, (nic,), probe.carry(metric, nic, getattr(io, field)))
 
 
-def _load(snap: Snapshot, _carry: Carry) -> None:
+def _load(snap: Snapshot, _probe: HostProbe) -> None:
     for period, value in zip(("1m", "5m", "15m"), psutil.getloadavg()):
         snap.add(LOAD, (period,), value)
 
@@ -167,16 +199,20 @@ class HostProbe(Probe):
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
-        self._carry = Carry()
+        self.carry = Carry()
+        self.mounts = Mounts()
+
+    def stop(self) -> None:
+        self.mounts.close()
 
     def collect(self, snap: Snapshot) -> None:
         # One unreadable source (no disks, a /proc file hidden by a container) must not cost the
         # others; what was skipped is kept in status.reason so it stays visible.
         failed = []
-        self._carry.start()
+        self.carry.start()
         for read in _READERS:
             try:
-                read(snap, self._carry)
+                read(snap, self)
             except (OSError, NotImplementedError, psutil.Error) as exc:
                 failed.append(f"{read.__name__[1:]}: {exc}")
         self.status.reason = "; ".join(failed)

@@ -93,6 +93,7 @@ def test_memory_matches_meminfo(probe):
     assert total == info["MemTotal"] == psutil.virtual_memory().total
     assert 0 < snap.values(host.MEMORY_AVAILABLE)[()] <= total
     assert 0 < snap.values(host.MEMORY_USED)[()] < total
+    assert snap.values(host.MEMORY_USED)[()] == total - snap.values(host.MEMORY_AVAILABLE)[()]  # as psutil's
     swap_total = snap.values(host.SWAP_TOTAL)[()]
     assert swap_total == info["SwapTotal"]
     assert 0 <= snap.values(host.SWAP_USED)[()] <= swap_total
@@ -170,6 +171,29 @@ def test_root_filesystem_and_no_pseudo_filesystems(probe):
     assert abs(free - st.f_bavail * st.f_frsize) < 64 * MIB
     assert not {fstype for _, fstype in sizes} & {"proc", "sysfs", "tmpfs", "devtmpfs", "cgroup", "cgroup2"}
     assert set(snap.values(host.FS_FREE)) == set(sizes)
+
+
+def test_a_filesystem_mounted_or_unmounted_shows_at_the_next_collect_and_the_mounts_are_listed_only_then(
+        probe, tmp_path, monkeypatch):
+    listings = []
+    listing = psutil.disk_partitions
+    monkeypatch.setattr(psutil, "disk_partitions", lambda **kw: listings.append(kw) or listing(**kw))
+    with open("/proc/self/mounts") as f:
+        root_type = [line.split()[2] for line in f if line.split()[1] == "/"][-1]
+    mountpoint = (str(tmp_path), root_type)  # the root filesystem bound again: a device's, listed
+    assert mountpoint not in collect(probe).values(host.FS_SIZE)
+    subprocess.run(["mount", "--bind", "/", str(tmp_path)], check=True)
+    try:
+        assert collect(probe).values(host.FS_SIZE)[mountpoint] == os.statvfs("/").f_blocks * os.statvfs("/").f_frsize
+        listed = len(listings)
+        for _ in range(10):
+            collect(probe)
+        # Other tests' network namespaces (mounts of their own) may come meanwhile: a few listings.
+        assert len(listings) - listed <= 3, listings
+    finally:
+        subprocess.run(["umount", str(tmp_path)], check=True)
+    assert mountpoint not in collect(probe).values(host.FS_SIZE)
+    probe.stop()
 
 
 def test_disk_counts_direct_writes_and_reads(probe, tmp_path):
