@@ -224,9 +224,9 @@ class _Columnar:
         self.infold = np.empty(0, bool)
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
         self.entity_of = _entity_getter(labels, kind)
-        # The rows given for the kept at the last collect, by id, with the ids ascending and their
+        # The rows given for the kept at the last collect, ids ascending, with those ids and their
         # stamps (Columns.stamps), where the Columns had them
-        self.given: dict[int, tuple] = {}
+        self.given: list[tuple] = []
         self.given_ids, self.given_stamps = np.empty(0, np.int64), np.empty((0, 0), np.uint64)
 
     def none(self) -> Columns:
@@ -270,19 +270,18 @@ class _Columnar:
         if cols.stamps is None:
             return cols.rows(own.tolist())
         ids, stamps = cols.ids[own], cols.stamps(own)
-        same = np.zeros(len(own), bool)
+        at, same = np.zeros(len(own), np.intp), np.zeros(len(own), bool)
         if len(self.given_ids) and len(own):
             at = np.minimum(np.searchsorted(self.given_ids, ids), len(self.given_ids) - 1)
             same = (self.given_ids[at] == ids) & (self.given_stamps[at] == stamps).all(axis=1)
             same[np.searchsorted(own, changed[within(changed, own)])] = False
-        out = [None] * len(own)
-        for i, id_ in zip(np.flatnonzero(same).tolist(), ids[same].tolist()):
-            out[i] = self.given[id_]
-        for i, row in zip(np.flatnonzero(~same).tolist(), cols.rows(own[~same].tolist())):
-            out[i] = row
+        # Each row picked in one pass from the last rows followed by the new ones.
+        made = cols.rows(own[~same].tolist())
+        at[~same] = len(self.given) + np.arange(len(made))
+        out = list(map((self.given + made).__getitem__, at.tolist()))
         order = np.argsort(ids)
         self.given_ids, self.given_stamps = ids[order], stamps[order]
-        self.given = dict(zip(ids.tolist(), out))
+        self.given = list(map(out.__getitem__, order.tolist()))
         return out
 
     def other_labels(self, dim: int) -> tuple[str, ...]:
