@@ -23,6 +23,8 @@ Other RMWs (Cyclone DDS, Connext, Zenoh) carry no PID in their GUIDs: their node
 from __future__ import annotations
 
 import os
+from itertools import chain
+from typing import Iterable
 
 from drums.proctable import ProcessTable, mapped_libraries, netns, process_start
 
@@ -100,10 +102,11 @@ class ProcScan:
         """Whether the process that had this PID and start time still runs."""
         return self.table.alive(pid) and process_start(self.proc, pid) == start
 
-    def remember(self, mapping: dict[str, tuple[int | None, str]], prefixes: dict[str, bytes | None]) -> None:
+    def remember(self, mapping: dict[str, tuple[int | None, str]], prefixes: dict[str, bytes | None],
+                 listed: Iterable[bytes] = ()) -> None:
         """Keep which participants and processes the nodes seen now were mapped to, and forget the
-        others."""
-        seen = {prefix: self.participants.get(prefix) for prefix in prefixes.values() if prefix}
+        others; and those of the participants still `listed`."""
+        seen = {prefix: self.participants.get(prefix) for prefix in chain(prefixes.values(), listed) if prefix}
         placed = {node: self.placed[node] for node in prefixes if node in self.placed}
         for node, (pid, how) in mapping.items():
             if pid is None:
@@ -122,6 +125,14 @@ class ProcScan:
         low bits, when its participant's are known)."""
         where = self.placed.get(node)
         return where is not None and (bits is None or where[0] & 0xFFFF == bits) and not self.runs(*where)
+
+    def left_participant(self, node: str, prefix: bytes) -> bool:
+        """Whether the node's participant with this GUID prefix was in a process that no longer runs."""
+        owner = self.participants.get(prefix)
+        if owner is not None:
+            return not self.runs(*owner)
+        bits = pid_bits_from_gid(prefix)
+        return bits is not None and self.left(node, bits)
 
     def cmdline(self, pid: int) -> list[str]:
         key = (pid, process_start(self.proc, pid))
@@ -143,14 +154,15 @@ def _node_arg(args: list[str]) -> str | None:
     return f"{ns.rstrip('/')}/{name}"
 
 
-def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes = b""
+def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes = b"", listed: Iterable[bytes] = ()
               ) -> dict[str, tuple[int | None, str]]:
     """Fully qualified node name -> (pid, how), given each node's participant GUID prefix (None if
     it has no endpoint to read it from) and the prefix of our own participant: Fast DDS puts a
     host id in bytes 2-3, so a node whose host id differs from ours, and whose PID bits are those
-    of no process with librcl in our network namespace, is "remote". While the nodes and the
-    processes they were placed in stay, /proc is not listed again (at a thousand processes a look
-    took 0.8 ms, twice a second, in the reader's child)."""
+    of no process with librcl in our network namespace, is "remote". `listed`: every participant
+    DDS lists (a node's killed one beside its new one), whose owners are remembered. While the
+    nodes and the processes they were placed in stay, /proc is not listed again (at a thousand
+    processes a look took 0.8 ms, twice a second, in the reader's child)."""
     settled = scan.settled(nodes, own_prefix)
     if settled is not None:
         return settled
@@ -192,6 +204,6 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
             out.update({n: (free[0], "librcl") for n in unmapped})
     for n in nodes:
         out.setdefault(n, (None, "unmapped"))
-    scan.remember(out, nodes)
+    scan.remember(out, nodes, listed)
     scan.settle(nodes, own_prefix, out)
     return out

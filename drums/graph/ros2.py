@@ -20,6 +20,7 @@ import threading
 import time
 import uuid
 from dataclasses import asdict
+from itertools import chain
 from typing import Callable
 from urllib.parse import urlsplit
 
@@ -117,9 +118,10 @@ def discover(node, scan: ProcScan, agents: Agents) -> GraphState:
 
     host = agents.own.name
     names = [full_name(ns, n) for n, ns in node.get_node_names_and_namespaces() if n != OWN_NODE]
-    prefixes: dict[str, bytes | None] = dict.fromkeys(names)
     own = b""  # our participant's GUID prefix: its host id tells local nodes from remote ones
     state = GraphState(truncated=NOT_ROOT if os.geteuid() else "")
+    listed = []  # (topic, publishers, subscribers) of the topics nodes use
+    participants: dict[str, list[bytes]] = {name: [] for name in names}  # of each node, as listed
     for topic, types in node.get_topic_names_and_types():
         pubs = node.get_publishers_info_by_topic(topic)
         subs = node.get_subscriptions_info_by_topic(topic)
@@ -132,11 +134,27 @@ def discover(node, scan: ProcScan, agents: Agents) -> GraphState:
         state.topics.append(Topic(topic, tuple(types)))
         pubs = [e for e in pubs if e.node_name not in (OWN_NODE, UNKNOWN_NODE)]
         subs = [e for e in subs if e.node_name not in (OWN_NODE, UNKNOWN_NODE)]
+        listed.append((topic, pubs, subs))
+        for info in pubs + subs:
+            prefix, held = bytes(info.endpoint_gid)[:12], participants.setdefault(
+                full_name(info.node_namespace, info.node_name), [])
+            if prefix not in held:
+                held.append(prefix)
+    # A node started again under its name: DDS lists the killed participant's endpoints beside the
+    # new one's until its lease runs out (20 s). Those of a participant whose process is known to
+    # be gone are passed over while the node has another.
+    stale = set()
+    for name, held in participants.items():
+        left = [prefix for prefix in held if scan.left_participant(name, prefix)] if len(held) > 1 else ()
+        stale.update(left if len(left) < len(held) else ())
+    prefixes = {name: next((p for p in held if p not in stale), None) for name, held in participants.items()}
+    for topic, pubs, subs in listed:
+        pubs = [e for e in pubs if bytes(e.endpoint_gid)[:12] not in stale]
+        subs = [e for e in subs if bytes(e.endpoint_gid)[:12] not in stale]
         for info, kind in [(e, "publisher") for e in pubs] + [(e, "subscriber") for e in subs]:
-            name = full_name(info.node_namespace, info.node_name)
-            gid = bytes(info.endpoint_gid)
-            prefixes[name] = prefixes.get(name) or gid[:12]
-            state.endpoints.append(Endpoint(gid.hex(), kind, name, topic, _qos(info.qos_profile)))
+            state.endpoints.append(Endpoint(bytes(info.endpoint_gid).hex(), kind,
+                                            full_name(info.node_namespace, info.node_name), topic,
+                                            _qos(info.qos_profile)))
         for pub in pubs:
             for sub in subs:
                 verdict, reason = qos_check_compatible(pub.qos_profile, sub.qos_profile)
@@ -144,7 +162,7 @@ def discover(node, scan: ProcScan, agents: Agents) -> GraphState:
                     topic, full_name(pub.node_namespace, pub.node_name),
                     full_name(sub.node_namespace, sub.node_name), "dds",
                     qos_check="ok" if verdict == QoSCompatibility.OK else reason))
-    mapping = map_nodes(prefixes, scan, own)
+    mapping = map_nodes(prefixes, scan, own, chain.from_iterable(participants.values()))
     gone = {name for name, (_, how) in mapping.items() if how == "gone"}
     if gone:
         state.endpoints = [e for e in state.endpoints if e.node not in gone]

@@ -171,6 +171,23 @@ def test_new_node_appears_and_killed_node_leaves_within_two_seconds(ros2_graph, 
     assert left_after <= 2.0, left_after
 
 
+def test_a_node_restarted_under_its_name_shows_in_its_new_process_while_dds_still_lists_the_killed_one(
+        ros2_graph, ros_nodes):
+    """The usual way to debug a crashed node: start it again. DDS lists the killed participant's
+    endpoints under the same node name for its 20 s lease; the graph shows the new process's."""
+    for round in range(3):  # which participant's endpoints DDS lists first varies
+        first = ros_nodes("talker", "phoenix")
+        wait_until(lambda: nodes(ros2_graph).get("/phoenix") == (first.pid, "gid"), "the first phoenix", timeout=10)
+        first.kill()
+        wait_until(lambda: "/phoenix" not in nodes(ros2_graph), "the killed phoenix to leave", timeout=5)
+        again = ros_nodes("talker", "phoenix")
+        wait_until(lambda: nodes(ros2_graph).get("/phoenix") == (again.pid, "gid"),
+                   f"round {round}: the restarted phoenix, within DDS's lease of the killed one", timeout=8)
+        assert {e.node for e in ros2_graph.entities("endpoint") if e.topic == "/chatter"} == {"/phoenix"}
+        again.kill()
+        wait_until(lambda: "/phoenix" not in nodes(ros2_graph), "the restarted phoenix to leave", timeout=5)
+
+
 def test_drums_graph_exports_json(ros_nodes, tmp_path):
     talker, listener = ros_nodes("talker"), ros_nodes("listener")
     out = tmp_path / "graph.json"
