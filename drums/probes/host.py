@@ -197,10 +197,13 @@ class HostProbe(Probe):
         LOAD,
     )
 
-    def start(self) -> None:
-        self.status = ProbeStatus(attached=True, attach_type="psutil")
+    def __init__(self):
+        super().__init__()
         self.carry = Carry()
         self.mounts = Mounts()
+
+    def start(self) -> None:
+        self.status = ProbeStatus(attached=True, attach_type="psutil")
 
     def stop(self) -> None:
         self.mounts.close()
