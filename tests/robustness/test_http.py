@@ -1,14 +1,17 @@
 """The agent's HTTP front under clients that are slow, many or idle: the real `drums agent`, with
 hostile clients in processes of their own (tests.robustness.hostile) and scrapes timed beside them."""
 import contextlib
+import gzip
 import json
 import subprocess
 import sys
 import time
 import urllib.parse
 import urllib.request
+from concurrent.futures import ThreadPoolExecutor
 
 import psutil
+from prometheus_client.parser import text_string_to_metric_families
 
 from tests.agentproc import assert_monotonic, running_agent, samples, scrape
 from tests.conftest import eventually
@@ -126,3 +129,22 @@ def test_concurrent_scrapes_are_all_answered_from_shared_snapshots():
     assert len(answered) == CONCURRENT
     assert p99(answered) < 2
     assert 1 <= result["snapshots"] <= CONCURRENT // 10
+
+
+def test_concurrent_scrapes_asking_for_gzip_or_not_each_get_what_they_asked():
+    """The collector thread draws the page of the scrape that started a collect; the scrapes that
+    share its snapshot and ask otherwise (gzip or not, another query) get theirs from the workers."""
+    def get(i: int) -> tuple[str, set]:
+        zipped = i % 2 == 0
+        request = urllib.request.Request(f"{url}?n={i % 3}", headers={"Accept-Encoding": "gzip"} if zipped else {})
+        with urllib.request.urlopen(request, timeout=10) as answer:
+            body, encoding = answer.read(), answer.headers.get("Content-Encoding")
+        assert (encoding == "gzip") == zipped, (i, encoding)
+        text = (gzip.decompress(body) if zipped else body).decode()
+        return text, {family.name for family in text_string_to_metric_families(text)}
+
+    with running_agent("--graph", "auto") as url:
+        with ThreadPoolExecutor(24) as pool:
+            answers = list(pool.map(get, range(96)))
+    for text, families in answers:
+        assert text.startswith("# HELP ") and "drums_agent_collect_duration_seconds" in families
