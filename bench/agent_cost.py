@@ -241,7 +241,7 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
 
 # What each part of a scrape does, for the profile: why it costs what the run measures.
 WHY = {
-    "host": "psutil: /proc/stat, meminfo, vmstat, diskstats, net/dev, the mounts and a statvfs each",
+    "host": "/proc/meminfo; psutil: /proc/stat, diskstats, net/dev; a statvfs per mount (listed when they change)",
     "process": "psutil for the chosen processes due (stat, statm, status, io, fd; smaps_rollup when RSS moved)",
     "sched": "the thread map whole, its threads handed on as arrays (no row per thread); rows remade for "
              "processes whose threads ran, renamed or came",
