@@ -135,15 +135,25 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, st
     fresh.runs_base = base->runs;
 #if THREAD_SLOTS > 1
     t = slot_of(tid);
-    // Of two CPUs that make entries for two threads of one free slot at once, one takes it.
-    if (t && __sync_val_compare_and_swap((u64 *)t, 0, *(u64 *)&fresh) == 0) {
-        *t = fresh;
-        return t;
+    if (t) {
+        // Of two CPUs that make entries for two threads of one free slot at once, one takes it. Of
+        // two that make this thread's at once (a new task's wakeup on its parent's CPU and its
+        // first switch-in on another), the second finds it taken by this very thread: a second
+        // entry in thread_sched would be one that no event updates, counted beside the slot's.
+        u64 was = __sync_val_compare_and_swap((u64 *)t, 0, *(u64 *)&fresh);
+        if (was == 0) {
+            *t = fresh;
+            return t;
+        }
+        if (was == *(u64 *)&fresh)
+            return t;
     }
 #endif
     if (thread_sched.insert(&tid, &fresh) != 0) {
-        count_drop(DROP_THREAD);
-        return 0;
+        t = thread_sched.lookup(&tid);  // made by another CPU at this moment, or the map is full
+        if (!t)
+            count_drop(DROP_THREAD);
+        return t;
     }
     return thread_sched.lookup(&tid);
 }

@@ -178,7 +178,7 @@ def map_nodes(nodes: dict[str, bytes | None], scan: ProcScan, own_prefix: bytes 
             continue
         found = [pid for pid in by_bits.get(bits, ()) if scan.has_rcl(pid, recheck=True)]
         owner = scan.participants.get(prefix)
-        if not found and scan.left(node, bits) or (
+        if (not found and scan.left(node, bits)) or (
                 owner is not None and owner[0] not in found and not scan.runs(*owner)):
             out[node] = (None, "gone")
             continue

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drums.arrays import among, distinct
+from drums.arrays import among, distinct, within
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
@@ -192,8 +192,17 @@ class SchedProbe(BpfProbe):
         slots = slots[:len(slots) // self._threads.width * self._threads.width].reshape(-1, self._threads.width)
         taken = slots[(slots[:, 0] != 0) & (slots[:, _WORD_START] != 0)]  # a copy, now: they move on
         del slots  # no view of the mapping outlives this call (closing it needs none)
-        return (np.concatenate((np.frombuffer(keys, np.uint32).astype(np.uint64), taken[:, 0] >> 32)).tobytes(),
-                values + taken.tobytes())
+        hashed = np.frombuffer(keys, np.uint32).astype(np.uint64)
+        # A thread in its slot and in thread_sched too: two CPUs made its entry at once (a new task's
+        # wakeup and its first switch-in), which programs built before this check could. The
+        # programs update the slot's alone; the other would count the thread twice.
+        twice = within(hashed, np.sort(taken[:, 0] >> 32)) if len(hashed) else np.zeros(0, bool)
+        if twice.any():
+            for tid in hashed[twice].tolist():
+                self.opened["thread_sched"].delete(_U32.pack(tid))
+            hashed = hashed[~twice]
+            values = np.frombuffer(values, np.uint8).reshape(len(twice), -1)[~twice].tobytes()
+        return np.concatenate((hashed, taken[:, 0] >> 32)).tobytes(), values + taken.tobytes()
 
     def _running(self) -> dict[int, int]:
         """Thread id -> its runtime now, for the thread each CPU runs: a thread may keep its CPU for
