@@ -322,7 +322,7 @@ def run_agent(args) -> int:
                                     "reason": p.status.reason} for p in agent.probes}}
     rates = Rates()  # the counters of the last picture of the graph, for the rates on the next
     render = prometheus.Renderer()
-    pictures = {"/metrics": lambda snap, _query: (render(snap), prometheus.CONTENT_TYPE),
+    pictures = {"/metrics": lambda snap, _query: (render.chunks(snap), prometheus.CONTENT_TYPE),
                 "/graph": lambda snap, query: document(graph, snap, query.get("format", "json"),
                                                        query.get("all") == "1", rates)}
     pages = {"/healthz": lambda _query: health.healthz(agent.probes, graph, adapter_name),

@@ -55,6 +55,30 @@ def test_a_renderer_that_remembers_the_last_scrape_writes_what_a_fresh_one_write
     assert [parsed(renderer(s)) == parsed(render(s)) for s in scrapes] == [True] * len(scrapes)
 
 
+def test_the_page_comes_in_chunks_of_whole_families_that_gzip_one_after_the_other():
+    """A page of 3,000 processes is handed on as chunks (a block of its own pages for the page whole
+    is faulted in at each scrape): joined, they are the page; gzipped one after the other, one
+    stream that gives the page back."""
+    import gzip
+
+    from drums.exporters.http import _compressed
+    from drums.exporters.prometheus import CHUNK
+    snap = Snapshot()
+    for pid in range(3000):
+        snap.add(CPU, (str(pid), f"worker-{pid}"), pid * 0.5)
+        snap.add(MEM, (str(pid), f"worker-{pid}"), pid << 20)
+        snap.add(SENT, (str(pid), f"worker-{pid}", "tcp"), pid * 7)
+    renderer = Renderer()
+    renderer(snap)  # a second render takes the remembered texts
+    chunks = renderer.chunks(snap)
+    page = render(snap)
+    assert len(page) > 3 * CHUNK and len(chunks) == 3  # one family a chunk: each is over CHUNK
+    assert b"".join(chunks) == page
+    assert all(chunk.startswith(b"# HELP ") for chunk in chunks)
+    body, headers = _compressed(chunks, gzipped=True)
+    assert headers["Content-Encoding"] == "gzip" and gzip.decompress(body) == page
+
+
 def test_render_parses_back_with_prometheus_client_including_hostile_label_values():
     snap = Snapshot()
     snap.add(CPU, ("1", 'we"ird\\name\nx'), 1.5)
