@@ -496,13 +496,19 @@ def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
     for before, after in zip(samples, samples[1:]):
         went_back = {k: (before[k], after.get(k)) for k in before if after.get(k, -1) < before[k]}
         assert went_back == {}
-    final = samples[-1]
-    assert (final[("sent_bytes", client.pid, "tcp")], final[("send_calls", client.pid, "tcp")]) == (
-        count * size, done["calls"])
     assert served["received"] == count * size
-    assert (final[("received_bytes", server.pid, "tcp")], final[("receive_calls", server.pid, "tcp")]) == (
-        count * size, served["calls"])
-    assert final[("received_bytes", client.pid, "tcp")] == final[("sent_bytes", server.pid, "tcp")] == 0
+
+    # Exact once the sockets closed: a collect that comes while some move from the live map to their
+    # process's closed_traffic misses them (held back, never counted twice); the next has them
+    # (a fresh-clone run missed 18 of 10,000 at the collect right after the server was done).
+    def exact():
+        final = process_totals(collect(sockets_probe), pids)
+        assert (final[("sent_bytes", client.pid, "tcp")], final[("send_calls", client.pid, "tcp")]) == (
+            count * size, done["calls"])
+        assert (final[("received_bytes", server.pid, "tcp")], final[("receive_calls", server.pid, "tcp")]) == (
+            count * size, served["calls"])
+        assert final[("received_bytes", client.pid, "tcp")] == final[("sent_bytes", server.pid, "tcp")] == 0
+    eventually(exact, timeout=30)
 
     # Every connection closed, so the map holds no entry of either process: not one of the 20,000
     # sockets is left behind. (Counted per process: the whole map's size also moves with whatever
