@@ -117,8 +117,16 @@ def _cpu(snap: Snapshot, _probe: HostProbe) -> None:
 
 def _memory(snap: Snapshot, _probe: HostProbe) -> None:
     # One read of meminfo, where psutil's virtual and swap memory read it twice and vmstat besides.
+    kib = {}
     with open(f"{psutil.PROCFS_PATH}/meminfo", "rb") as f:
-        kib = {line[:line.index(b":")]: int(line.split()[1]) for line in f}
+        for line in f:
+            name, _, value = line.partition(b":")
+            words = value.split()
+            if words and words[0].isdigit():
+                kib[name] = int(words[0])
+    missing = {b"MemTotal", b"MemFree", b"Buffers", b"Cached", b"SwapTotal", b"SwapFree"} - kib.keys()
+    if missing:  # a container's stand-in: as a file that cannot be read, this reader alone fails
+        raise OSError(f"/proc/meminfo has no {', '.join(sorted(m.decode() for m in missing))}")
     total = kib[b"MemTotal"]
     # Linux 3.14 added MemAvailable; above the total, a container's view is distorted (as psutil).
     available = kib.get(b"MemAvailable", kib[b"MemFree"] + kib[b"Buffers"] + kib[b"Cached"])

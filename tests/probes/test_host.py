@@ -253,6 +253,19 @@ def test_unreadable_sources_are_skipped_and_named(probe, tmp_path, monkeypatch):
     assert failed == ["cpu", "memory", "filesystems", "network"]
 
 
+def test_a_meminfo_without_its_fields_fails_the_memory_reader_alone(probe, tmp_path, monkeypatch):
+    """A container's stand-in for /proc may give a meminfo of its own: one without the fields read
+    is said as such, and the other readers still report."""
+    for name in os.listdir("/proc"):
+        if name in ("stat", "diskstats", "filesystems", "self", "net"):
+            os.symlink(f"/proc/{name}", tmp_path / name)
+    (tmp_path / "meminfo").write_text("MemTotal:       1000 kB\ngarbage line\nMemFree: x kB\n")
+    monkeypatch.setattr(psutil, "PROCFS_PATH", str(tmp_path))
+    snap = collect(probe)
+    assert probe.status.reason == "memory: /proc/meminfo has no Buffers, Cached, MemFree, SwapFree, SwapTotal"
+    assert not snap.values(host.MEMORY_TOTAL) and snap.values(host.CPU_SECONDS) and snap.values(host.NET_SENT_BYTES)
+
+
 NS, NIC, PEER = "drums-host-test", "drumshost0", "drumshost1"
 
 
