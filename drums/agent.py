@@ -34,6 +34,9 @@ PROBE_SUCCESS = Metric("drums_probe_collect_success", GAUGE, "1 if the probe's l
                        ("probe",))
 PROBE_MAP_FILL = Metric("drums_probe_map_fill_ratio", GAUGE,
                         "Used fraction of each of the probe's BPF hash maps", ("probe", "map"))
+PROBE_MAP_MEMORY = Metric("drums_probe_map_memory_bytes", GAUGE,
+                          "Kernel memory the probe's BPF maps hold (not in drums_agent_unique_memory_bytes)",
+                          ("probe",))
 PROBE_DROPPED = Metric("drums_probe_dropped_events_total", COUNTER,
                        "Events the probe could not count because a BPF map was full", ("probe",))
 FOLDED_TOTAL = Metric("drums_budget_folded_entities_total", COUNTER,
@@ -62,8 +65,8 @@ GRAPH_TRUNCATED = Metric("drums_graph_truncated", GAUGE,
 GRAPH_ENTITIES = Metric("drums_graph_entities", GAUGE, "Entities in the graph, by kind", ("kind",))
 LOSS_SAID_EVERY = 60.0  # seconds: at most one line per probe about lost events or full maps
 NEARLY_FULL = 0.9  # a map this full is said to be, before it loses anything
-SELF_METRICS = (GRAPH_STALE, GRAPH_TRUNCATED, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL, PROBE_DROPPED, FOLDED,
-                FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
+SELF_METRICS = (GRAPH_STALE, GRAPH_TRUNCATED, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL,
+                PROBE_MAP_MEMORY, PROBE_DROPPED, FOLDED, FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
 
 @dataclass
@@ -352,6 +355,8 @@ class Agent:
                 snap.add(PROBE_MAP_FILL, (probe.name, name), fill)
             if "dropped" in getattr(probe, "maps", ()):
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
+            if st.map_memory:
+                snap.add(PROBE_MAP_MEMORY, (probe.name,), st.map_memory)
         if self.graph is not None:
             snap.add(GRAPH_STALE, (self.graph_adapter,), int(bool(self.graph.error)))
             snap.add(GRAPH_TRUNCATED, (self.graph_adapter,), int(bool(self.graph.truncated)))

@@ -187,6 +187,7 @@ class BpfProbe(Probe):
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
+        self.status.map_memory = sum(m.memory for m in self.opened.values())
 
     def _request(self, path: AttachPath, pin_dir: str) -> loader.LoadRequest:
         if self.features.btf is None:

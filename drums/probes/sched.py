@@ -188,10 +188,11 @@ class SchedProbe(BpfProbe):
         slots are read in place; one whose slot a thread is taking or giving up shows its owner but
         not yet its process's start time, and waits for the next collect."""
         keys, values, _ = self.read("thread_sched")
-        slots = np.frombuffer(self.opened["thread_slots"].mapped(), np.uint64)
-        slots = slots[:len(slots) // self._threads.width * self._threads.width].reshape(-1, self._threads.width)
-        taken = slots[(slots[:, 0] != 0) & (slots[:, _WORD_START] != 0)]  # a copy, now: they move on
-        del slots  # no view of the mapping outlives this call (closing it needs none)
+        with self.opened["thread_slots"].mapped() as mapping:
+            slots = np.frombuffer(mapping, np.uint64)
+            slots = slots[:len(slots) // self._threads.width * self._threads.width].reshape(-1, self._threads.width)
+            taken = slots[(slots[:, 0] != 0) & (slots[:, _WORD_START] != 0)]  # a copy, now: they move on
+            del slots  # no view of the mapping outlives it (closing it needs none)
         hashed = np.frombuffer(keys, np.uint32).astype(np.uint64)
         # A thread in its slot and in thread_sched too: two CPUs made its entry at once (a new task's
         # wakeup and its first switch-in), which programs built before this check could. The

@@ -134,7 +134,7 @@ def test_the_dashboards_have_the_panels_the_mixin_promises():
     assert [sorted(v["name"] for v in board["templating"]["list"]) for board in boards.values()] == [
         ["datasource", "host", "robot"], ["datasource", "robot"], ["datasource", "host", "robot"],
         ["datasource", "host", "node", "robot"], ["datasource", "robot", "topic"]]
-    assert len(panel_queries()) == 86
+    assert len(panel_queries()) == 87
 
 
 def test_template_variables_list_the_live_robot_host_nodes_and_topics(live):

@@ -711,7 +711,8 @@ def test_threads_in_slots_and_in_the_hash_count_alike(sched_probe, collect, spaw
     keys, _, _ = sched_probe.read("thread_sched")
     in_hash = {tid for (tid,) in struct.iter_unpack("<I", keys)} & set(tids)
     at = (tids[0] % slots) * _THREAD_VALUE.size  # the slot's first word: its thread's tid << 32 | tgid
-    holder = struct.unpack("<Q", sched_probe.opened["thread_slots"].mapped()[at:at + 8])[0] >> 32
+    with sched_probe.opened["thread_slots"].mapped() as slot_values:
+        holder = struct.unpack("<Q", slot_values[at:at + 8])[0] >> 32
     # The first holds the slot, the second is in the hash; unless another thread of the host held
     # the slot when the first ran (the other lanes of make test start threads by the thousand):
     # then both are in the hash, and this run counted that way alike.

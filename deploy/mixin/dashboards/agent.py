@@ -48,9 +48,11 @@ def build(cfg: Config) -> dashboard.Dashboard:
                                      "helper it started (role graph: the ROS 2 graph reader; diagnostics).", "none",
                                      query(f"rate({s('drums_agent_cpu_seconds_total')}{RATE})", legend(host, "role"))))
         .with_panel(timeseries_panel("Agent memory", "Resident memory of the agent's processes, and what only they "
-                                     "use, by role.", "bytes",
+                                     "use, by role; and the kernel memory its probes' BPF maps hold.", "bytes",
                                      query(s("drums_agent_resident_memory_bytes"), legend(host, "role") + " resident"),
-                                     query(s("drums_agent_unique_memory_bytes"), legend(host, "role") + " unique")))
+                                     query(s("drums_agent_unique_memory_bytes"), legend(host, "role") + " unique"),
+                                     query(f"sum by ({host}) ({s('drums_probe_map_memory_bytes')})",
+                                           legend(host) + " BPF maps")))
         .with_panel(timeseries_panel("Scrapes", "How long Prometheus takes to scrape the agent, and the samples it "
                                      "gets.", "s",
                                      query(s("scrape_duration_seconds"), legend(host) + " duration"),
