@@ -9,6 +9,9 @@ import os
 import socket
 import struct
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +74,7 @@ _TCP_INFO_FIELDS = (
 _TCP_INFO = tuple((name, offset, struct.Struct("=" + fmt)) for name, offset, fmt in _TCP_INFO_FIELDS)
 
 _RECV_SIZE = 1 << 16  # the kernel fills at most 32 KiB of dump per read, so one read never truncates
+_kept = threading.local()  # each thread's sock_diag socket (_diag_socket)
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,11 +114,25 @@ def own_netns() -> str:
         raise KernelError(f"cannot read /proc/self/ns/net: {e.strerror}") from None
 
 
-def _diag_socket() -> socket.socket:
+@contextmanager
+def _diag_socket() -> Iterator[socket.socket]:
+    """This thread's sock_diag socket, kept open from one request to the next: one made and closed
+    at each would be a socket that comes and goes at every poll, which the sockets probe counts
+    (and then sums the owners of all its sockets anew). A request that fails may leave replies
+    unread: the socket is then closed, and the next request opens another."""
+    sock = getattr(_kept, "sock", None)
+    if sock is None:
+        try:
+            sock = _kept.sock = socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC,
+                                              NETLINK_SOCK_DIAG)
+        except OSError as e:
+            raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
     try:
-        return socket.socket(socket.AF_NETLINK, socket.SOCK_RAW | socket.SOCK_CLOEXEC, NETLINK_SOCK_DIAG)
-    except OSError as e:
-        raise KernelError(f"netlink NETLINK_SOCK_DIAG is unavailable: {e.strerror}") from None
+        yield sock
+    except BaseException:
+        _kept.sock = None
+        sock.close()
+        raise
 
 
 def dump_tcp(states: int = ALL_STATES, info: bool = True) -> list[TcpConnection]:

@@ -10,8 +10,9 @@ import time
 import pytest
 
 from drums.errors import KernelError
+from drums.kernel import sockdiag
 from drums.kernel.sockdiag import (ALL_STATES, NETLINK_SOCK_DIAG, TCP_STATES, TcpConnection, dump_tcp, dump_tcp_table,
-                                   parse_messages)
+                                   lookup_tcp, parse_messages)
 
 ESTABLISHED, LISTEN = 1, 10
 
@@ -228,3 +229,65 @@ def test_a_dump_as_a_table_holds_what_a_dump_of_connections_does():
     finally:
         for s in held + servers:
             s.close()
+
+
+def _diag_sockets(tid: int) -> set[int]:
+    """Inodes of the sock_diag sockets open in this process (seen from thread `tid`)."""
+    with open(f"/proc/{os.getpid()}/task/{tid}/net/netlink") as f:
+        diag = {int(fields[-1]) for fields in (line.split() for line in list(f)[1:])
+                if int(fields[1]) == NETLINK_SOCK_DIAG}
+    open_sockets = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            link = os.readlink(f"/proc/self/fd/{fd}")
+        except FileNotFoundError:  # the listing's own
+            continue
+        if link.startswith("socket:["):
+            open_sockets.add(int(link[8:-1]))
+    return open_sockets & diag
+
+
+def test_each_thread_keeps_one_sock_diag_socket_and_one_whose_request_failed_is_closed(monkeypatch):
+    """One made and closed at each request would be a socket of the agent that comes and goes at
+    every poll of its graph and of the connections' RTT, which its sockets probe counts."""
+    if not _can_use(socket.AF_INET, "127.0.0.1"):
+        pytest.skip("no NETLINK_SOCK_DIAG here")
+    me = threading.get_native_id()
+
+    def in_a_thread(work):  # a thread of its own: this one may keep a socket from the tests before
+        done = []
+        thread = threading.Thread(target=lambda: done.append(work()))
+        thread.start()
+        thread.join()
+        return done[0]
+
+    before = _diag_sockets(me)
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]
+        address = (socket.AF_INET, socket.inet_aton("127.0.0.1"), port)
+
+        def three_requests():
+            dump_tcp_table()
+            kept = _diag_sockets(me) - before
+            dump_tcp()
+            assert lookup_tcp([(address, (socket.AF_INET, bytes(4), 0))])[0].local_port == port
+            return kept, _diag_sockets(me) - before
+        kept, after = in_a_thread(three_requests)
+        assert len(kept) == 1 and after == kept
+
+        def failed_then_another():
+            dump_tcp_table()
+            kept = _diag_sockets(me) - before
+            with pytest.raises(KernelError):
+                with monkeypatch.context() as patched:
+                    patched.setattr(sockdiag, "_payloads", refuse)
+                    dump_tcp_table()
+            closed = _diag_sockets(me) - before
+            dump_tcp_table()
+            return kept, closed, _diag_sockets(me) - before
+        kept, closed, another = in_a_thread(failed_then_another)
+        assert len(kept) == 1 and closed == set() and len(another) == 1 and another != kept
+
+
+def refuse(data):
+    raise KernelError("a reply that cannot be read")
