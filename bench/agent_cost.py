@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import shlex
 import subprocess
@@ -31,9 +32,10 @@ from common import (Agent, BenchError, Scraper, cpu_seconds, drums_unload, fmt, 
 GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 10, "tree_uss_mb": 60, "small_cpu": 0.1}
 SMALL = 10  # the small host: a tenth of the processes and sockets
 HOLDERS = 4  # processes that hold the sockets
-# Seconds of scrapes, unmeasured, once the crowd is ready: the agent takes it in (reads every new
-# process's name and files, and the auto graph, which polls every 5 s, dumps its sockets) before the
-# window that measures its steady cost. What taking it in cost is reported apart.
+# Seconds of scrapes, unmeasured, once the crowd is ready and the auto graph shows its socket
+# holders: the agent takes it in (reads every new process's name and files; the graph, which polls
+# every 5 s, dumps its sockets and reads their owners) before the window that measures its steady
+# cost. What taking it in cost is reported apart.
 SETTLE = 10
 
 # Holds N loopback TCP connections (2N sockets). On "send" each socket sends a few bytes and reads
@@ -135,8 +137,12 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], crowd:
         before = sum(map(cpu_seconds, processes))
         crowd.restart()
         scraper = Scraper(agent.url)
-        for _ in range(int(SETTLE / interval)):
-            scraper.get()
+        holders = set() if "ros2" in agent_args else {str(h.pid) for h in crowd.holders}
+        settled = time.monotonic() + SETTLE
+        while time.monotonic() < settled or not holders <= set(
+                re.findall(r'pid="(\d+)"', "".join(samples(scraper.get()[1], "drums_node_info")))):
+            if time.monotonic() > settled + 60:
+                raise BenchError("the auto graph did not show the crowd's socket holders within a minute")
             time.sleep(interval)
         latencies, collect, whole, sizes, per_probe = [], [], [], [], {}
         cpu0, t0 = sum(map(cpu_seconds, processes)), time.monotonic()
