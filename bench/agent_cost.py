@@ -139,8 +139,10 @@ def measure_agent(seconds: float, interval: float, agent_args: list[str], crowd:
         scraper = Scraper(agent.url)
         holders = set() if "ros2" in agent_args else {str(h.pid) for h in crowd.holders}
         settled = time.monotonic() + SETTLE
-        while time.monotonic() < settled or not holders <= set(
-                re.findall(r'pid="(\d+)"', "".join(samples(scraper.get()[1], "drums_node_info")))):
+        while True:
+            shown = set(re.findall(r'pid="(\d+)"', "".join(samples(scraper.get()[1], "drums_node_info"))))
+            if time.monotonic() >= settled and holders <= shown:
+                break
             if time.monotonic() > settled + 60:
                 raise BenchError("the auto graph did not show the crowd's socket holders within a minute")
             time.sleep(interval)
