@@ -24,6 +24,7 @@ PERCPU_TYPES = {5, 6, 10}  # BPF_MAP_TYPE_PERCPU_HASH, PERCPU_ARRAY, LRU_PERCPU_
 ARRAY_TYPES = {2, 6}  # BPF_MAP_TYPE_ARRAY, PERCPU_ARRAY
 LRU_TYPES = {9, 10}  # BPF_MAP_TYPE_LRU_HASH, LRU_PERCPU_HASH: the kernel evicts entries from them
 _BATCH = 4096  # entries of one batch read at most
+_BATCH_LEAST = 16  # and at least, whatever the last read found
 _BATCH_BYTES = 1 << 18  # and this many bytes of values: a buffer for 4,096 of 8 KiB each would be 32 MiB
 # What bpf_map_lookup_batch fails with where the map type or kernel has no batch operations.
 _NO_BATCH = {errno.EINVAL, errno.EOPNOTSUPP, 524}  # 524: the kernel's ENOTSUPP
@@ -134,6 +135,7 @@ class PinnedMap:
         self.value_stride = self.value_size * self.ncpus
         self.memory = _memlock(fd)
         self._batch_ok = True
+        self._last_count = self.max_entries  # entries the last batch read found
 
     def close(self) -> None:
         if self.fd >= 0:
@@ -182,9 +184,17 @@ class PinnedMap:
         lib = libbpf()
         batch_op = lib.bpf_map_lookup_and_delete_batch if delete else lib.bpf_map_lookup_batch
         keys, values, total = [], [], 0
-        batch = max(1, min(_BATCH, _BATCH_BYTES // self.value_stride))
-        kbuf = ctypes.create_string_buffer(self.key_size * batch)
-        vbuf = ctypes.create_string_buffer(self.value_stride * batch)
+        # Buffers for the entries the last read found, and a few more, doubled while batches come
+        # back full: a map read at every collect holds about as many as the time before, often few,
+        # and buffers for the most a batch may take (256 KiB) would be mapped, zeroed and faulted
+        # in anew at each read.
+        most = max(1, min(_BATCH, _BATCH_BYTES // self.value_stride))
+        batch = min(most, max(_BATCH_LEAST, self._last_count + self._last_count // 4))
+
+        def buffers(entries: int) -> tuple:
+            return ctypes.create_string_buffer(self.key_size * entries), ctypes.create_string_buffer(
+                self.value_stride * entries)
+        kbuf, vbuf = buffers(batch)
         token = ctypes.create_string_buffer(max(self.key_size, 8))
         token_next = ctypes.create_string_buffer(max(self.key_size, 8))
         first = True
@@ -194,8 +204,7 @@ class PinnedMap:
             err = ctypes.get_errno() if ret < 0 else 0
             if err == errno.ENOSPC and batch < _BATCH:  # a hash bucket holds more than a batch: read it whole
                 batch *= 2
-                kbuf = ctypes.create_string_buffer(self.key_size * batch)
-                vbuf = ctypes.create_string_buffer(self.value_stride * batch)
+                kbuf, vbuf = buffers(batch)
                 continue
             if ret < 0 and err != errno.ENOENT:
                 raise _BatchError(err, f"batch read of {self.path}: {os.strerror(err)}")
@@ -208,6 +217,10 @@ class PinnedMap:
                 break
             ctypes.memmove(token, token_next, len(token))
             first = False
+            if n == batch < most:
+                batch = min(most, 2 * batch)
+                kbuf, vbuf = buffers(batch)
+        self._last_count = total
         return b"".join(keys), b"".join(values), total
 
     def _read_each(self) -> tuple[bytes, bytes, int]:

@@ -48,6 +48,29 @@ def test_a_batch_read_and_a_read_entry_by_entry_return_every_entry_once(kind):
         m.close()
 
 
+@pytest.mark.parametrize("kind", [HASH, LRU_HASH])
+def test_batch_reads_sized_by_the_last_read_return_every_entry_as_the_map_grows_and_empties(kind):
+    """A batch read's buffers hold what the last read found and a little more, doubled while its
+    batches come back full: a map that grew from nothing to thousands is read whole at once, and
+    one read with delete then comes back empty."""
+    m = new_map(kind, ENTRIES * 2)
+    try:
+        for size in (0, 1, 17, ENTRIES, 3, ENTRIES, 0):  # an LRU map evicts some before it is full
+            truth = {k: k * 3 + size for k in range(size)}
+            for k, v in truth.items():
+                m.update(struct.pack("<I", k), struct.pack("<Q", v))
+            for k in range(size, ENTRIES * 2):
+                m.delete(struct.pack("<I", k))
+            keys, values, count = m.read()
+            assert count == size and contents(keys, values) == truth, size
+        for k in range(50):
+            m.update(struct.pack("<I", k), struct.pack("<Q", k))
+        keys, values, count = m.read(delete=True)
+        assert contents(keys, values) == {k: k for k in range(50)} and m.read() == (b"", b"", 0)
+    finally:
+        m.close()
+
+
 def test_a_read_entry_by_entry_under_churn_ends_and_repeats_no_key():
     """Deleting the key the walk stands on sends the kernel back to the first key: without care a
     walk repeats entries (a counter summed twice) and may never end. A walk that is sent back too
