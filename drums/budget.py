@@ -228,6 +228,10 @@ class _Columnar:
         # stamps (Columns.stamps), where the Columns had them
         self.given: list[tuple] = []
         self.given_ids, self.given_stamps = np.empty(0, np.int64), np.empty((0, 0), np.uint64)
+        # What the last collect gave: the kept rows (at `own` in its Columns, with those stamps), then
+        # the `other` ones; None while a collect that may have failed midway has not given it anew.
+        self.emitted: list[tuple] | None = None
+        self.own, self.own_stamps = np.empty(0, np.intp), None
 
     def none(self) -> Columns:
         """The group's Columns of a collect that gave it no rows."""
@@ -267,9 +271,11 @@ class _Columnar:
         """The rows at `own` (ascending): one given at the last collect, with the same id, values
         (not `changed`) and stamps, is given again as it was, its labels not asked for (the two
         hundred threads kept, few of which ran) and the same tuple for the render to compare."""
+        self.own = own
         if cols.stamps is None:
             return cols.rows(own.tolist())
         ids, stamps = cols.ids[own], cols.stamps(own)
+        self.own_stamps = stamps
         at, same = np.zeros(len(own), np.intp), np.zeros(len(own), bool)
         if len(self.given_ids) and len(own):
             at = np.minimum(np.searchsorted(self.given_ids, ids), len(self.given_ids) - 1)
@@ -283,6 +289,11 @@ class _Columnar:
         self.given_ids, self.given_stamps = ids[order], stamps[order]
         self.given = list(map(out.__getitem__, order.tolist()))
         return out
+
+    def as_before(self, cols: Columns) -> bool:
+        """Whether the kept rows of these Columns, whose ids and values are those of the last, are
+        named as they were (their stamps, where the Columns have them, are the same)."""
+        return cols.stamps is None or bool((cols.stamps(self.own) == self.own_stamps).all())
 
     def other_labels(self, dim: int) -> tuple[str, ...]:
         labels = [OTHER] * len(self.metrics[0].labels)
@@ -411,11 +422,14 @@ class Budget:
         rows kept alone."""
         seen = []  # (its _Columnar, the Columns, the rows changed)
         activity: dict = {}
+        still = True  # no row came, went or changed since the last collect, which gave every group
         for metrics, cols in given.items():
             c = st.columnar.get(metrics) or st.columnar.setdefault(metrics, _Columnar(metrics, kind, cols))
             cols = cols or c.none()
-            new = c.follow(cols.ids) if not np.array_equal(cols.ids, c.ids) else np.zeros(len(cols.ids), bool)
+            moved = not np.array_equal(cols.ids, c.ids)
+            new = c.follow(cols.ids) if moved else np.zeros(len(cols.ids), bool)
             changed = np.flatnonzero(rows_differ(cols.values, c.last) | new)
+            still = still and not moved and not len(changed) and c.emitted is not None
             # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
             grew = np.maximum(cols.values[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
             whole = grew.sum(axis=0)
@@ -423,6 +437,14 @@ class Budget:
             for entity, part in zip(cols.of()[changed[share > 0]].tolist(), share[share > 0].tolist()):
                 activity[entity] = activity.get(entity, 0.0) + part
             seen.append((c, cols, changed))
+        # The connections of a host whose connections idle: the same rows again, with no array work.
+        # Unless a slot is free that an idle entity would take, or a kept row is named anew.
+        if still and len(st.kept) in (st.limit, len(st.ids)) and all(c.as_before(cols) for c, cols, _ in seen):
+            for c, _, _ in seen:
+                out.group_rows(c.metrics).extend(c.emitted)
+            return
+        for c, _, _ in seen:
+            c.emitted = None
         if len(seen) == 1 and seen[0][1].entities is None:
             everyone = seen[0][0].sorted  # the one group's ids, ascending, are the entities
         else:
@@ -446,16 +468,16 @@ class Budget:
         for c, cols, changed in seen:
             own, left = c.rows_of(cols, held), c.rows_of(cols, demoted)
             rows = c.rows(cols, own, changed)
-            out.group_rows(c.metrics).extend(rows)
             st.named.update(map(c.entity_of, map(_LABELS, rows)))
-            self._fold_columns(c, cols, changed, own, left, out)
+            c.emitted = rows + self._fold_columns(c, cols, changed, own, left)
+            out.group_rows(c.metrics).extend(c.emitted)
 
     @staticmethod
-    def _fold_columns(c: _Columnar, cols: Columns, changed: np.ndarray, own: np.ndarray, demoted: np.ndarray,
-                      out: Snapshot) -> None:
-        """A group's `other`: what each row not kept counted since it last added to it (all of it
-        if it is new, just left its own series, or went back); one that gets its own series leaves
-        in it what it added."""
+    def _fold_columns(c: _Columnar, cols: Columns, changed: np.ndarray, own: np.ndarray,
+                      demoted: np.ndarray) -> list[tuple]:
+        """A group's `other` rows: what each row not kept counted since it last added to it (all of
+        it if it is new, just left its own series, or went back); one that gets its own series
+        leaves in it what it added."""
         vals = cols.values
         c.infold[own] = False
         enters = np.zeros(len(cols.ids), bool)  # (a mask, not setdiff1d and union1d, which import numpy.ma)
@@ -471,10 +493,10 @@ class Budget:
             c.totals[d] = c.totals.get(d, 0) + sums[d]
         c.infold[entering] = True
         c.last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
-        if c.totals:
-            dims = list(c.totals)
-            out.group_rows(c.metrics).extend(zip(map(c.other_labels, dims),
-                                                 shown(np.array([c.totals[d] for d in dims]), c.units)))
+        if not c.totals:
+            return []
+        dims = list(c.totals)
+        return list(zip(map(c.other_labels, dims), shown(np.array([c.totals[d] for d in dims]), c.units)))
 
     @staticmethod
     def _beside_columns(st: _KindState, kind: str, groups: dict, out: Snapshot) -> None:

@@ -438,6 +438,8 @@ def test_a_kept_row_whose_id_values_and_stamps_stay_is_given_again_without_its_l
                                                       (("7", "2", "renamed"), (20.0, 0.0, 0))]
     asked.clear()
     assert all(a is b for a, b in zip(collect()[:2], third[:2])) and asked == []
+    names[1] = b"idle"  # renamed while nothing ran: the rows as before, but for its name
+    assert collect()[:2] == [(("7", "1", "idle"), (31.0, 0.0, 0)), third[1]] and asked == [1]
 
 
 def test_the_rtt_of_a_connection_the_columns_lack_shows_while_a_slot_is_free():
