@@ -35,8 +35,8 @@ PROBE_SUCCESS = Metric("drums_probe_collect_success", GAUGE, "1 if the probe's l
 PROBE_MAP_FILL = Metric("drums_probe_map_fill_ratio", GAUGE,
                         "Used fraction of each of the probe's BPF hash maps", ("probe", "map"))
 PROBE_MAP_MEMORY = Metric("drums_probe_map_memory_bytes", GAUGE,
-                          "Kernel memory the probe's BPF maps hold (not in drums_agent_unique_memory_bytes)",
-                          ("probe",))
+                          f"Kernel memory the probe's BPF maps hold (read every {MEMORY_EVERY:g} s; not in "
+                          "drums_agent_unique_memory_bytes)", ("probe",))
 PROBE_DROPPED = Metric("drums_probe_dropped_events_total", COUNTER,
                        "Events the probe could not count because a BPF map was full", ("probe",))
 FOLDED_TOTAL = Metric("drums_budget_folded_entities_total", COUNTER,
@@ -135,6 +135,7 @@ class Agent:
         self._durations: dict[str, float] = {}
         self._success: dict[str, int] = {}
         self._tree = TreeCost()
+        self._maps_read_at = float("-inf")
         self._loss_said: dict[str, tuple[int, float]] = {}  # probe -> (its drops when last said, when)
         self.wanted_pids: Callable[[], set[int]] = set  # processes a client asked for (jobs): always read
 
@@ -344,6 +345,10 @@ class Agent:
         return out
 
     def _self_metrics(self, snap: Snapshot) -> None:
+        now = time.monotonic()
+        maps_due = now - self._maps_read_at >= MEMORY_EVERY
+        if maps_due:
+            self._maps_read_at = now
         for probe in self.probes:
             st = probe.status
             snap.add(PROBE_ATTACHED, (probe.name, st.attach_type if st.attached else "none"), int(st.attached))
@@ -355,6 +360,8 @@ class Agent:
                 snap.add(PROBE_MAP_FILL, (probe.name, name), fill)
             if "dropped" in getattr(probe, "maps", ()):
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
+            if maps_due:
+                probe.read_map_memory()
             if st.map_memory:
                 snap.add(PROBE_MAP_MEMORY, (probe.name,), st.map_memory)
         if self.graph is not None:

@@ -95,18 +95,6 @@ def possible_cpus() -> int:
         return count
 
 
-def _memlock(fd: int) -> int:
-    """The kernel memory a map holds, as the kernel says of the descriptor (0 if it does not)."""
-    try:
-        with open(f"/proc/self/fdinfo/{fd}", "rb") as f:
-            for line in f:
-                if line.startswith(b"memlock:"):
-                    return int(line.split()[1])
-    except (OSError, ValueError, IndexError):
-        pass
-    return 0
-
-
 class PinnedMap:
     """A BPF map opened from its pin; iterated in batches of raw (key, value) bytes."""
 
@@ -133,9 +121,20 @@ class PinnedMap:
         # The kernel rounds each per-CPU value up to 8 bytes.
         self.value_size = (info.value_size + 7) // 8 * 8 if self.ncpus > 1 else info.value_size
         self.value_stride = self.value_size * self.ncpus
-        self.memory = _memlock(fd)
         self._batch_ok = True
         self._last_count = self.max_entries  # entries the last batch read found
+
+    def memory(self) -> int:
+        """The kernel memory the map holds now, as the kernel says of its descriptor (0 if it does
+        not): a hash map made without preallocation grows with its entries."""
+        try:
+            with open(f"/proc/self/fdinfo/{self.fd}", "rb") as f:
+                for line in f:
+                    if line.startswith(b"memlock:"):
+                        return int(line.split()[1])
+        except (OSError, ValueError, IndexError):
+            pass
+        return 0
 
     def close(self) -> None:
         if self.fd >= 0:

@@ -33,5 +33,8 @@ class Probe:
     def collect(self, snap: Snapshot) -> None:
         raise NotImplementedError
 
+    def read_map_memory(self) -> None:
+        """Bring status.map_memory up to date (a probe without BPF maps has none)."""
+
     def stop(self) -> None:
         pass

@@ -187,7 +187,6 @@ class BpfProbe(Probe):
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
-        self.status.map_memory = sum(m.memory for m in self.opened.values())
 
     def _request(self, path: AttachPath, pin_dir: str) -> loader.LoadRequest:
         if self.features.btf is None:
@@ -221,6 +220,9 @@ class BpfProbe(Probe):
         m = entries.read(*got[:2]) if isinstance(got, tuple) else entries.update(got)
         self.status.map_fill[name] = len(m.keys) / marked.map.max_entries
         return m
+
+    def read_map_memory(self) -> None:
+        self.status.map_memory = sum(m.memory() for m in self.opened.values())
 
     def read_dropped(self) -> None:
         """Events lost to full maps: every program counts them in its `dropped` array."""
