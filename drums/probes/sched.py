@@ -197,7 +197,7 @@ class SchedProbe(BpfProbe):
         # A thread in its slot and in thread_sched too: two CPUs made its entry at once (a new task's
         # wakeup and its first switch-in), which programs built before this check could. The
         # programs update the slot's alone; the other would count the thread twice.
-        twice = within(hashed, np.sort(taken[:, 0] >> 32)) if len(hashed) else np.zeros(0, bool)
+        twice = within(hashed, np.sort(taken[:, 0] >> 32))
         if twice.any():
             for tid in hashed[twice].tolist():
                 self.opened["thread_sched"].delete(_U32.pack(tid))
