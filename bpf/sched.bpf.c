@@ -8,8 +8,9 @@
 // only written by the CPU that switches it in or out (the waker's CPU writes enqueued_at alone).
 // The entry is in the thread's slot of an array (by thread ID) when that is free, else in a hash:
 // an array lookup is a few instructions, a hash lookup a function call (half the cost of a switch).
-// With tp_btf a context switch looks up one entry (the thread switched out) and reads no clock, and
-// only new tasks' wakeups have a program; raw tracepoint programs time the waits themselves.
+// With tp_btf a context switch looks up one entry (the thread switched out) and the generation of
+// the marks (an array's: a few instructions), and reads no clock, and only new tasks' wakeups have
+// a program; raw tracepoint programs time the waits themselves.
 //
 // Task offsets (TASK_*_OFF) come from BTF.
 #include "drums.h"
@@ -44,6 +45,7 @@ struct thread_sched_t {
     u64 runs_base;
     char comm[16];
     struct sched_t s;
+    u64 marked;  // the generation in which the entry was last marked changed (see mark_changed)
 };
 
 // Exited threads of one process. The PID of a process that was just reaped can go to a new process
@@ -82,6 +84,13 @@ BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 // while none came or went, it does not list /proc at all.
 BPF_HASH(renamed, u32, u64, 16384);
 
+// Which threads' entries changed (counted, renamed, made or freed) since the agent last read
+// them, so that a scrape looks those up and not the thousands that slept: the generations of
+// bpf/sockets.bpf.c's marks, keyed by thread ID. [0]: the generation; [1]: marks lost to a full set.
+BPF_ARRAY(generation, u64, 2);
+BPF_HASH(changed_even, u32, u8, 16384);
+BPF_HASH(changed_odd, u32, u8, 16384);
+
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
 // main file, so each program declares this map and its helper itself.)
 BPF_ARRAY(dropped, u64, 3);
@@ -98,6 +107,27 @@ static __always_inline void mark_renamed(u32 tgid)
     u64 now = bpf_ktime_get_ns();
     if (renamed.update(&tgid, &now) != 0)
         count_drop(DROP_RENAMED);  // the agent then reads every name again
+}
+
+// Marked once per generation (an entry made with marked 0 is not yet marked in generation 0);
+// `t` 0: the entry is gone.
+static __always_inline void mark_changed(u32 tid, struct thread_sched_t *t)
+{
+    int zero = 0;
+    u64 *g = generation.lookup(&zero);
+    if (!g || (t && t->marked == *g + 1))
+        return;
+    u64 gen = *g;
+    if (t)
+        t->marked = gen + 1;
+    u8 yes = 1;
+    int err = gen & 1 ? changed_odd.update(&tid, &yes) : changed_even.update(&tid, &yes);
+    if (err) {
+        int lost = 1;
+        u64 *n = generation.lookup(&lost);
+        if (n)
+            __sync_fetch_and_add(n, 1);
+    }
 }
 
 #if THREAD_SLOTS > 1
@@ -143,6 +173,7 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, st
         u64 was = __sync_val_compare_and_swap((u64 *)t, 0, *(u64 *)&fresh);
         if (was == 0) {
             *t = fresh;
+            mark_changed(tid, t);
             return t;
         }
         if (was == *(u64 *)&fresh)
@@ -155,7 +186,10 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, st
             count_drop(DROP_THREAD);
         return t;
     }
-    return thread_sched.lookup(&tid);
+    t = thread_sched.lookup(&tid);
+    if (t)
+        mark_changed(tid, t);
+    return t;
 }
 
 // Atomic: threads of one process can exit on several CPUs at once (a slow path: once per thread).
@@ -198,10 +232,12 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
         u64 owner = *(u64 *)own;
         __builtin_memset((u8 *)own + 8, 0, sizeof(*own) - 8);
         __sync_val_compare_and_swap((u64 *)own, owner, 0);
+        mark_changed(tid, 0);  // marked once it is gone: a look at the mark finds it gone
         return;
     }
 #endif
     thread_sched.delete(&tid);
+    mark_changed(tid, 0);
 }
 
 // The histogram slot of a wait: [2^slot, 2^(slot+1)) us; slot 0 is [0, 2).
@@ -304,6 +340,8 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
 #endif
             if (state & TASK_DEAD)
                 thread_died(prev_tid, t, false);
+            else
+                mark_changed(prev_tid, t);  // after its counts: a look at the mark sees them
         } else if (state & TASK_DEAD) {
             // Folded at exit: the slice it ran since then joins its process's totals.
             u32 tgid = 0;
@@ -322,6 +360,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         if (t && t->enqueued_at) {
             count_wait(t, now - t->enqueued_at);
             t->enqueued_at = 0;
+            mark_changed(next_tid, t);
         }
     }
 #endif
@@ -398,8 +437,10 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
     if (tid == tgid)
         mark_renamed(tgid);  // the process's name is its leader's
     struct thread_sched_t *t = thread_of(tid);
-    if (t)
+    if (t) {
         bpf_probe_read_kernel_str(t->comm, sizeof(t->comm), (void *)ctx->args[1]);
+        mark_changed(tid, t);
+    }
     return 0;
 }
 

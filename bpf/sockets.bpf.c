@@ -241,7 +241,6 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send)
     struct socket_traffic_t *s = socket_entry(sk, ret, is_send);
     if (!s)
         return;
-    mark_changed(sk, s);
     // Atomic: the threads of a process, and processes that share a socket, call at once.
     if (ret < 0) {
         __sync_fetch_and_add(is_send ? &s->t.send_errors : &s->t.recv_errors, 1);
@@ -252,6 +251,9 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send)
         __sync_fetch_and_add(&s->t.recv_bytes, ret);
         __sync_fetch_and_add(&s->t.recv_calls, 1);
     }
+    // Marked after its counts: the agent may take the mark and look the entry up at any moment, and
+    // a count made after that look would wait for the socket's next call to be marked again.
+    mark_changed(sk, s);
 }
 
 #if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT || DRUMS_ATTACH == ATTACH_TP_BTF

@@ -167,14 +167,14 @@ class Marked:
     count into or delete, once per generation, in one of two sets (by the generation's parity);
     a read moves the generation on, takes the set of the one before and looks up those keys only
     (a lookup costs about four times what an entry of a whole read does, so past an eighth of the
-    entries the map is read whole). Ten thousand idle sockets cost a scrape three small calls.
-    An LRU map evicts its oldest entries, unmarked, to make room once it is nearly full: past half
-    full it is read whole."""
+    entries the map is read whole: `whole_above`). Ten thousand idle sockets cost a scrape three
+    small calls. An LRU map evicts its oldest entries, unmarked, to make room once it is nearly
+    full: past half full it is read whole."""
 
-    WHOLE_ABOVE = 8  # read whole when more than 1/WHOLE_ABOVE of the entries were marked
-
-    def __init__(self, entries: PinnedMap, generation: PinnedMap, marks: tuple[PinnedMap, PinnedMap]):
+    def __init__(self, entries: PinnedMap, generation: PinnedMap, marks: tuple[PinnedMap, PinnedMap],
+                 whole_above: int = 8):
         self.map, self._generation, self._marks = entries, generation, marks
+        self.whole_above = whole_above  # read whole when more than 1/whole_above of the entries were marked
         self._gen = self._lost = -1
         self.whole_reads = 0
 
@@ -182,17 +182,24 @@ class Marked:
         """The whole map, as PinnedMap.read gives it; or, to a caller who holds the `known`
         entries of the last read, what changed since: (key, its value, None if it is gone).
         `whole`: the caller does not hold them (its last collect failed, after the marks were taken)."""
+        keys = self.changed(known, whole)
+        if keys is None:
+            return self.map.read()
+        return [(key, self.map.lookup(key)) for key in keys]
+
+    def changed(self, known: int, whole: bool = False) -> list[bytes] | None:
+        """The keys marked since the last call, to be looked up; None where the map is to be read
+        whole (as read() says when)."""
         gen, lost = _GENERATION.unpack_from(self._generation.read()[1])
         self._generation.update(_FIRST, struct.pack("<Q", gen + 1))
         marked, _, n = self._marks[gen & 1].read(delete=True)
         # Whole: when asked, at first, when marks were lost to a full set, or when the generation is
         # not the one this reader left (another reader of the pins moved it).
-        whole = (whole or (gen, lost) != (self._gen, self._lost) or n * self.WHOLE_ABOVE > max(known, 64)
+        whole = (whole or (gen, lost) != (self._gen, self._lost) or n * self.whole_above > max(known, 64)
                  or (self.map.type in LRU_TYPES and 2 * known > self.map.max_entries))
         self._gen, self._lost = gen + 1, lost
         if whole:
             self.whole_reads += 1
-            return self.map.read()
-        size = self.map.key_size
-        keys = [marked[i * size:(i + 1) * size] for i in range(n)]
-        return [(key, self.map.lookup(key)) for key in keys]
+            return None
+        size = self._marks[0].key_size
+        return [marked[i * size:(i + 1) * size] for i in range(n)]

@@ -15,7 +15,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries, Matched, Remembered
+from drums.probes.entries import Entries, Marked, Matched, Remembered
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -48,7 +48,7 @@ SWITCH_KINDS = ("voluntary", "involuntary")
 PROCESS_METRICS = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES)  # those made as rows, a process at a time
 
 _SCHED = "5Q24I"  # struct sched_t
-_THREAD_VALUE = struct.Struct("<IIQQQQQ16s" + _SCHED)
+_THREAD_VALUE = struct.Struct("<IIQQQQQ16s" + _SCHED + "Q")  # ... and the generation it was last marked in
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -57,6 +57,9 @@ _ONCPU = struct.Struct("<QIIQQ")  # struct oncpu_t
 # Slots of the threads' array (bpf/sched.bpf.c), a power of two: 8,192 hold a host's threads but
 # for those whose slot another thread holds (a hash lookup more per switch), in 1.6 MB.
 THREAD_SLOTS = 8192
+# A whole read maps the slots (1.6 MB) and reads thread_sched; a thread marked changed is looked up
+# in its slot (and in thread_sched, one call each): a whole read only when most threads were marked.
+MARKED_WHOLE_ABOVE = 2
 # A thread's value as 8-byte words: its process's start time, its runtime when its slot was taken,
 # its name, and its counts (on-CPU ns, run-queue ns, waits, voluntary and involuntary switches).
 _WORD_START, _WORD_BASE, _WORDS_COMM, _WORDS_COUNTS = 2, 3, slice(6, 8), slice(8, 13)
@@ -129,7 +132,8 @@ def _thread_labels(id_: int, comm: bytes) -> tuple[tuple[str, ...], ...]:
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
-    maps = ("thread_sched", "thread_slots", "exited_sched", "oncpu", "renamed", "dropped")
+    maps = ("thread_sched", "thread_slots", "exited_sched", "oncpu", "renamed", "dropped", "generation",
+            "changed_even", "changed_odd")
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
     paths = (typed(_RAW, without=("sched_wakeup",),
@@ -145,6 +149,9 @@ class SchedProbe(BpfProbe):
         self._cpu: dict[int, float] = {}  # tgid -> CPU seconds of every process made, for the process table
         self._refreshed = -1  # the process table's refresh at the last collect
         self._threads = Entries(_THREAD_VALUE.size, 0)  # rows: each thread's tgid
+        self._marks: Marked | None = None  # which threads changed since the last collect
+        self._waiting: set[int] = set()  # threads marked whose slot was being taken or given up
+        self._hashed: set[int] = set()  # threads whose entry is in thread_sched, for its fill
         # Each thread's CPU time as last shown, by thread ID, ascending, with its process's start:
         # the running slice is estimated, and a thread's time never goes below what it showed.
         self._shown = (np.empty(0, np.uint64), np.empty(0, np.uint64), np.empty(0, np.int64))
@@ -203,7 +210,45 @@ class SchedProbe(BpfProbe):
                 self.opened["thread_sched"].delete(_U32.pack(tid))
             hashed = hashed[~twice]
             values = np.frombuffer(values, np.uint8).reshape(len(twice), -1)[~twice].tobytes()
+        self._hashed = set(hashed.tolist())
         return np.concatenate((hashed, taken[:, 0] >> 32)).tobytes(), values + taken.tobytes()
+
+    def _read_threads(self) -> Matched:
+        """The threads' entries matched against the last collect's: those the programs marked
+        changed looked up, or all read when most were (or the last collect was not kept)."""
+        marks = self._marks
+        if marks is None or marks.map is not self.opened["thread_sched"]:
+            marks = self._marks = Marked(self.opened["thread_sched"], self.opened["generation"],
+                                         (self.opened["changed_even"], self.opened["changed_odd"]), MARKED_WHOLE_ABOVE)
+        marked = marks.changed(len(self._threads), whole=not self._threads.kept)
+        if marked is None:
+            self._waiting = set()
+            return self._threads.read(*self.thread_entries())
+        tids = self._waiting.union(_U32.unpack(key)[0] for key in marked)
+        changes = self._looked_up(sorted(tids))
+        self.status.map_fill["thread_sched"] = len(self._hashed) / marks.map.max_entries
+        return self._threads.update(changes)
+
+    def _looked_up(self, tids: list[int]) -> list[tuple[bytes, bytes | None]]:
+        """(thread ID as 8 bytes, its entry or None if it has none) of each thread: in its slot,
+        else in thread_sched. One whose slot is being taken or given up (its owner shown, its
+        process's start not yet) waits for the next collect, as a whole read has it."""
+        slots, hashed = self.opened["thread_slots"], self.opened["thread_sched"]
+        changes, self._waiting = [], set()
+        for tid in tids:
+            key = _U32.pack(tid)
+            value = slots.lookup(_U32.pack(tid % slots.max_entries))
+            if value is not None and _U32.unpack_from(value, 4)[0] == tid:
+                if not _U64.unpack_from(value, _WORD_START * 8)[0]:
+                    self._waiting.add(tid)
+                    continue
+                hashed.delete(key)  # a twin in thread_sched, if any (see thread_entries), goes
+                self._hashed.discard(tid)
+            else:
+                value = hashed.lookup(key)
+                (self._hashed.discard if value is None else self._hashed.add)(tid)
+            changes.append((_U64.pack(tid), value))
+        return changes
 
     def _running(self) -> dict[int, int]:
         """Thread id -> its runtime now, for the thread each CPU runs: a thread may keep its CPU for
@@ -250,11 +295,10 @@ class SchedProbe(BpfProbe):
                 # of one of its threads may come after it and fold into a new one: the process is
                 # gone, so is its entry.
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
-        keys, values = self.thread_entries()
-        running = self._running()
         # The thread entries matched against the last read in bulk: only processes with a thread
         # new, changed, gone or on a CPU now are made again.
-        m = self._threads.read(keys, values)
+        m = self._read_threads()
+        running = self._running()
         tgids = m.words[:, 0] & 0xFFFFFFFF
         dirty = set(tgids[~m.same].tolist())
         dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)
@@ -353,7 +397,7 @@ class SchedProbe(BpfProbe):
             totals.add_exited(tgid, start, s)
         rows: dict[Metric, list] = {metric: [] for metric in PROCESS_METRICS}
         for tid, raw in live:
-            _, _pad, _enqueued, start, base, _delay_base, _runs_base, _comm, *s = _THREAD_VALUE.unpack(raw)
+            _, _pad, _enqueued, start, base, _delay_base, _runs_base, _comm, *s, _marked = _THREAD_VALUE.unpack(raw)
             if tid in running:
                 s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)

@@ -463,6 +463,36 @@ def test_a_collect_makes_again_only_the_rows_of_processes_whose_threads_ran(sche
     assert 0.2 <= cpu and abs(cpu - (k_after - k_before) / 1e9) <= 1e-6, (cpu, k_after - k_before)
 
 
+def test_a_collect_looks_up_the_threads_marked_changed_and_finds_an_ended_one_gone(sched_probe, collect, spawn):
+    """After the first, a collect looks up the threads the programs marked changed (they ran, came,
+    were renamed or ended) instead of reading every thread's entry: a burner's time is the kernel's
+    to the nanosecond and a thread that ended is gone, in collects that read nothing whole. Steps
+    are taken until three were such (a busy host may mark most of its threads between two)."""
+    looked_up = 0
+    for _ in range(20):
+        burner, leaver = spawn(BURN_IN_THREAD, 0.05), spawn(LEAVING_THREAD)
+        pid, tid = burner.pid, burner.read()["tid"]
+        left = leaver.read()["tid"]
+        settle(pid)
+        settle(leaver.pid)
+        before, k_before = collect(sched_probe), schedstat(pid, tid)[0]
+        assert series(before, THREAD_CPU, pid=leaver.pid, tid=left)
+        whole = sched_probe._marks.whole_reads
+        burner.go()
+        burner.read()
+        leaver.go()
+        leaver.read()  # once the kernel let the thread go
+        settle(pid)
+        after, k_after = collect(sched_probe), schedstat(pid, tid)[0]
+        cpu = value(after, THREAD_CPU, pid=pid, tid=tid) - value(before, THREAD_CPU, pid=pid, tid=tid)
+        assert abs(cpu - (k_after - k_before) / 1e9) <= 1e-6, (cpu, k_after - k_before)
+        assert series(after, THREAD_CPU, pid=leaver.pid, tid=left) == {}
+        looked_up += sched_probe._marks.whole_reads == whole
+        if looked_up == 3:
+            break
+    assert looked_up == 3
+
+
 def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sched_probe, collect, spawn):
     """What the budget applies instead of comparing every row: per metric, the rows of the last
     collect, less those told gone, with those told changed, are this collect's rows. Children
