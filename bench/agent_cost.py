@@ -259,8 +259,8 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
 WHY = {
     "host": "/proc/meminfo; psutil: /proc/stat, diskstats, net/dev; a statvfs per mount (listed when they change)",
     "process": "psutil for the chosen processes due (stat, statm, status, io, fd; smaps_rollup when RSS moved)",
-    "sched": "the thread map whole, its threads handed on as arrays (no row per thread); rows remade for "
-             "processes whose threads ran, renamed or came",
+    "sched": "the threads marked changed looked up (the thread map whole when most were), all handed on "
+             "as arrays (no row per thread); rows remade for processes whose threads ran, renamed or came",
     "sockets": "the sockets marked changed since the last collect, all handed on as arrays (no row per socket)",
     "tcp": "the connections marked changed; sock_diag RTT of the kept connections every 5 s",
     "latency": "its map, empty unless the TCP latency probe is asked for",
