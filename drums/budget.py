@@ -421,7 +421,7 @@ class Budget:
         for those that changed (found with one comparison of the arrays), and labels made for the
         rows kept alone."""
         seen = []  # (its _Columnar, the Columns, the rows changed)
-        activity: dict = {}
+        active, parts = [], []  # per group: the entities of the rows that grew, and their shares
         still = True  # no row came, went or changed since the last collect, which gave every group
         for metrics, cols in given.items():
             c = st.columnar.get(metrics) or st.columnar.setdefault(metrics, _Columnar(metrics, kind, cols))
@@ -434,9 +434,11 @@ class Budget:
             grew = np.maximum(cols.values[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
             whole = grew.sum(axis=0)
             share = (grew / np.where(whole > 0, whole, 1)).sum(axis=1)
-            for entity, part in zip(cols.of()[changed[share > 0]].tolist(), share[share > 0].tolist()):
-                activity[entity] = activity.get(entity, 0.0) + part
+            active.append(cols.of()[changed[share > 0]])
+            parts.append(share[share > 0])
             seen.append((c, cols, changed))
+        entities, at = np.unique(np.concatenate(active), return_inverse=True)
+        activity = dict(zip(entities.tolist(), np.bincount(at, np.concatenate(parts), len(entities)).tolist()))
         # The connections of a host whose connections idle: the same rows again, with no array work.
         # Unless a slot is free that an idle entity would take, or a kept row is named anew.
         if still and len(st.kept) in (st.limit, len(st.ids)) and all(c.as_before(cols) for c, cols, _ in seen):
