@@ -48,7 +48,7 @@ SWITCH_KINDS = ("voluntary", "involuntary")
 PROCESS_METRICS = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES)  # those made as rows, a process at a time
 
 _SCHED = "5Q24I"  # struct sched_t
-_THREAD_VALUE = struct.Struct("<IIQQQQQ16s" + _SCHED + "Q")  # ... and the generation it was last marked in
+_THREAD_VALUE = struct.Struct("<IIQQQQQQ" + _SCHED + "16s")  # struct thread_sched_t
 _PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -62,7 +62,7 @@ THREAD_SLOTS = 8192
 MARKED_WHOLE_ABOVE = 2
 # A thread's value as 8-byte words: its process's start time, its runtime when its slot was taken,
 # its name, and its counts (on-CPU ns, run-queue ns, waits, voluntary and involuntary switches).
-_WORD_START, _WORD_BASE, _WORDS_COMM, _WORDS_COUNTS = 2, 3, slice(6, 8), slice(8, 13)
+_WORD_START, _WORD_BASE, _WORDS_COMM, _WORDS_COUNTS = 2, 3, slice(24, 26), slice(7, 12)
 
 
 def runq_histogram(slots: list[int], total_ns: int, waits: int) -> Histogram:
@@ -397,7 +397,7 @@ class SchedProbe(BpfProbe):
             totals.add_exited(tgid, start, s)
         rows: dict[Metric, list] = {metric: [] for metric in PROCESS_METRICS}
         for tid, raw in live:
-            _, _pad, _enqueued, start, base, _delay_base, _runs_base, _comm, *s, _marked = _THREAD_VALUE.unpack(raw)
+            _, _pad, _enqueued, start, base, _delay_base, _runs_base, _marked, *s, _comm = _THREAD_VALUE.unpack(raw)
             if tid in running:
                 s[0] = max(s[0], running[tid] - base)
             totals.add_thread(tgid, start, s)

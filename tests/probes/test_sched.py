@@ -318,8 +318,8 @@ def value(snap, metric: str, **labels):
 
 
 def thread_entries(probe) -> dict[int, tuple]:
-    """tid -> (tgid, tid, enqueued_at, process_start, runtime_base, delay_base, runs_base, comm,
-    oncpu_ns, ...) straight from the maps: the threads' slots and thread_sched."""
+    """tid -> (tgid, tid, enqueued_at, process_start, runtime_base, delay_base, runs_base, marked,
+    oncpu_ns, ..., comm) straight from the maps: the threads' slots and thread_sched."""
     keys, values = probe.thread_entries()
     return {tid: v for (tid,), v in zip(struct.iter_unpack("<Q", keys), _THREAD_VALUE.iter_unpack(values))}
 
