@@ -482,6 +482,9 @@ def test_a_collect_looks_up_the_threads_marked_changed_and_finds_an_ended_one_go
         burner.read()
         leaver.go()
         leaver.read()  # once the kernel let the thread go
+        # Its last switch can come a little after (an exiting thread preempted after its exit was
+        # counted has its entry made again, until that switch frees it).
+        wait_until(lambda: left not in thread_entries(sched_probe), "last switch of the thread", timeout=1)
         settle(pid)
         after, k_after = collect(sched_probe), schedstat(pid, tid)[0]
         cpu = value(after, THREAD_CPU, pid=pid, tid=tid) - value(before, THREAD_CPU, pid=pid, tid=tid)
