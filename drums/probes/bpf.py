@@ -7,6 +7,7 @@ boot: an agent that restarts finds its pins and starts without compiling anythin
 """
 from __future__ import annotations
 
+import fcntl
 import glob
 import hashlib
 import logging
@@ -135,6 +136,7 @@ class BpfProbe(Probe):
         self.pin_dir = ""
         self._in_process = None  # the bcc object, for paths the kernel cannot pin
         self._marked: dict[str, Marked] = {}  # maps read as far as their programs marked them changed
+        self._reader: int | None = None  # the pins' directory, locked while this process reads their marks
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         """-D definitions for the C code: kernel struct offsets and tracepoint shapes."""
@@ -208,10 +210,34 @@ class BpfProbe(Probe):
             self.status.map_fill[name] = count / m.max_entries
         return keys, values, count
 
+    def marks_ours(self) -> bool:
+        """Whether this process reads the marks of the probe's maps (see Marked). They are one set
+        per set of pins, and each read takes them: of two readers of the pins (two agents on one
+        host), each would miss what the other took, and show counts a collect late. The first to
+        read holds a lock on the pins' directory while it runs; another reads the maps whole, and
+        takes the marks over once the lock is free."""
+        if self._in_process is not None:
+            return True  # maps of this process alone
+        if self._reader is None:
+            try:
+                fd = os.open(self.pin_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+            except OSError:
+                return False  # the pins went (unloaded): the whole read says so
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                return False
+            self._reader = fd
+        return True
+
     def read_marked(self, name: str, entries: Entries) -> Matched:
         """The map `name`, whose programs mark the keys they change (in the maps `generation`,
         `changed_even` and `changed_odd`), matched against `entries`: looked up as far as it
-        changed, read whole when much did."""
+        changed, read whole when much did (and always, while another process reads the marks)."""
+        if not self.marks_ours():
+            self._marked.pop(name, None)  # its generation is the other reader's now
+            return entries.read(*self.read(name)[:2])
         marked = self._marked.get(name)
         if marked is None or marked.map is not self.opened[name]:
             marked = self._marked[name] = Marked(self.opened[name], self.opened["generation"],
@@ -233,6 +259,9 @@ class BpfProbe(Probe):
         for m in self.opened.values():
             m.close()
         self.opened = {}
+        if self._reader is not None:
+            os.close(self._reader)  # another reader of the pins may take the marks over
+            self._reader = None
         if self._in_process is not None:
             self._in_process.cleanup()
             self._in_process = None

@@ -215,18 +215,24 @@ class SchedProbe(BpfProbe):
 
     def _read_threads(self) -> Matched:
         """The threads' entries matched against the last collect's: those the programs marked
-        changed looked up, or all read when most were (or the last collect was not kept)."""
-        marks = self._marks
-        if marks is None or marks.map is not self.opened["thread_sched"]:
-            marks = self._marks = Marked(self.opened["thread_sched"], self.opened["generation"],
-                                         (self.opened["changed_even"], self.opened["changed_odd"]), MARKED_WHOLE_ABOVE)
-        marked = marks.changed(len(self._threads), whole=not self._threads.kept)
+        changed looked up, or all read when most were, when the last collect was not kept, or
+        while another process reads the marks."""
+        marked = None
+        if self.marks_ours():
+            marks = self._marks
+            if marks is None or marks.map is not self.opened["thread_sched"]:
+                marks = self._marks = Marked(self.opened["thread_sched"], self.opened["generation"],
+                                             (self.opened["changed_even"], self.opened["changed_odd"]),
+                                             MARKED_WHOLE_ABOVE)
+            marked = marks.changed(len(self._threads), whole=not self._threads.kept)
+        else:
+            self._marks = None  # their generation is the other reader's now
         if marked is None:
             self._waiting = set()
             return self._threads.read(*self.thread_entries())
         tids = self._waiting.union(_U32.unpack(key)[0] for key in marked)
         changes = self._looked_up(sorted(tids))
-        self.status.map_fill["thread_sched"] = len(self._hashed) / marks.map.max_entries
+        self.status.map_fill["thread_sched"] = len(self._hashed) / self._marks.map.max_entries
         return self._threads.update(changes)
 
     def _looked_up(self, tids: list[int]) -> list[tuple[bytes, bytes | None]]:

@@ -496,6 +496,51 @@ def test_a_collect_looks_up_the_threads_marked_changed_and_finds_an_ended_one_go
     assert looked_up == 3
 
 
+def test_a_second_reader_of_the_pins_reads_them_whole_and_leaves_the_marks_to_the_first(sched_probe, collect, spawn):
+    """Two agents on one host open the same pins, and the marks are one set: a reader that took
+    them from the other made it show counts a collect late (`drums top` read 193% for a one-thread
+    burner on a fresh-clone run). The second reader reads the threads whole and moves no
+    generation, so the first goes on looking up what was marked; both show the burner's time
+    exactly; once the first stops, the second takes the marks over."""
+    def reader() -> sched.SchedProbe:
+        probe = sched.SchedProbe(sched_probe.features, sched_probe.proctable, pin_root=sched_probe.pin_root)
+        probe.paths = tuple(p for p in probe.paths if p.name == sched_probe.status.attach_type)
+        probe.start()
+        assert probe.pin_dir == sched_probe.pin_dir
+        return probe
+
+    def burner_cpu(snaps) -> list[float]:
+        return [value(snap, THREAD_CPU, pid=pid, tid=tid) for snap in snaps]
+    child = spawn(BURN_IN_THREAD, 0.05)
+    pid, tid = child.pid, child.read()["tid"]
+    settle(pid)
+    collect(sched_probe)
+    second = reader()
+    try:
+        whole = sched_probe._marks.whole_reads
+        before, k_before = burner_cpu([collect(sched_probe), collect(second)]), schedstat(pid, tid)[0]
+        child.go()
+        child.read()
+        settle(pid)
+        after, k_after = burner_cpu([collect(sched_probe), collect(second)]), schedstat(pid, tid)[0]
+        for was, now in zip(before, after):
+            assert abs(now - was - (k_after - k_before) / 1e9) <= 1e-6, (was, now, k_after - k_before)
+        assert sched_probe._marks.whole_reads == whole and second._marks is None
+    finally:
+        second.stop()  # its pins are the first's: they stay
+    taker = reader()
+    try:
+        collect(taker)
+        assert taker._marks is None  # the first holds the marks
+        sched_probe.stop()
+        collect(taker)
+        collect(taker)
+        assert taker._marks is not None and taker._marks.whole_reads == 1  # the first read whole, then marks
+    finally:
+        taker.stop()
+        sched_probe.start()  # the module's probe again, on its pins
+
+
 def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sched_probe, collect, spawn):
     """What the budget applies instead of comparing every row: per metric, the rows of the last
     collect, less those told gone, with those told changed, are this collect's rows. Children
