@@ -282,7 +282,11 @@ def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, coll
             # Off the CPU, every switch out was followed by one wait on a run queue that ended in
             # running, and the first run followed one too: pcount counts exactly those waits.
             assert runs[labels] == vol + invol
-            assert snap.values(THREAD_RUNQ)[labels] > 0
+            # Their time, as the kernel summed it (a wait can take 0 ns on an idle host: the run
+            # queue's clock need not move between a thread's wakeup and its run).
+            with open(f"/proc/{pid}/task/{t}/schedstat") as f:
+                waited = int(f.read().split()[1]) / 1e9
+            assert abs(snap.values(THREAD_RUNQ)[labels] - waited) <= 1e-9, (labels, waited)
         process = snap.values(PROCESS_SWITCHES)
         assert process[pid, name, "voluntary"] == sum(v for v, _ in truth.values())
         assert process[pid, name, "involuntary"] == sum(i for _, i in truth.values())
