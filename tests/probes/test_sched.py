@@ -499,9 +499,9 @@ def test_a_collect_looks_up_the_threads_marked_changed_and_finds_an_ended_one_go
 def test_a_second_reader_of_the_pins_reads_them_whole_and_leaves_the_marks_to_the_first(sched_probe, collect, spawn):
     """Two agents on one host open the same pins, and the marks are one set: a reader that took
     them from the other made it show counts a collect late (`drums top` read 193% for a one-thread
-    burner on a fresh-clone run). The second reader reads the threads whole and moves no
-    generation, so the first goes on looking up what was marked; both show the burner's time
-    exactly; once the first stops, the second takes the marks over."""
+    burner on a fresh-clone run). The second reader reads the threads whole and never moves the
+    generation; both show the burner's time exactly; once the first stops, the second takes the
+    marks over."""
     def reader() -> sched.SchedProbe:
         probe = sched.SchedProbe(sched_probe.features, sched_probe.proctable, pin_root=sched_probe.pin_root)
         probe.paths = tuple(p for p in probe.paths if p.name == sched_probe.status.attach_type)
@@ -509,33 +509,38 @@ def test_a_second_reader_of_the_pins_reads_them_whole_and_leaves_the_marks_to_th
         assert probe.pin_dir == sched_probe.pin_dir
         return probe
 
-    def burner_cpu(snaps) -> list[float]:
-        return [value(snap, THREAD_CPU, pid=pid, tid=tid) for snap in snaps]
+    def moved(probe) -> tuple[int, float]:
+        """How far a collect of `probe` moved the generation of the pins' marks, and the burner's
+        time it showed."""
+        def generation() -> int:
+            return struct.unpack_from("<Q", probe.opened["generation"].lookup(struct.pack("<I", 0)))[0]
+        was = generation()
+        snap = collect(probe)
+        return generation() - was, value(snap, THREAD_CPU, pid=pid, tid=tid)
     child = spawn(BURN_IN_THREAD, 0.05)
     pid, tid = child.pid, child.read()["tid"]
     settle(pid)
     collect(sched_probe)
     second = reader()
     try:
-        whole = sched_probe._marks.whole_reads
-        before, k_before = burner_cpu([collect(sched_probe), collect(second)]), schedstat(pid, tid)[0]
+        (first_moved, first_before), (second_moved, second_before) = moved(sched_probe), moved(second)
+        k_before = schedstat(pid, tid)[0]
         child.go()
         child.read()
         settle(pid)
-        after, k_after = burner_cpu([collect(sched_probe), collect(second)]), schedstat(pid, tid)[0]
-        for was, now in zip(before, after):
+        shown = [moved(sched_probe), moved(second)]
+        k_after = schedstat(pid, tid)[0]
+        assert (first_moved, second_moved) == (1, 0) and [m for m, _ in shown] == [1, 0]
+        for was, (_, now) in zip((first_before, second_before), shown):
             assert abs(now - was - (k_after - k_before) / 1e9) <= 1e-6, (was, now, k_after - k_before)
-        assert sched_probe._marks.whole_reads == whole and second._marks is None
+        assert second._marks is None
     finally:
         second.stop()  # its pins are the first's: they stay
     taker = reader()
     try:
-        collect(taker)
-        assert taker._marks is None  # the first holds the marks
+        assert moved(taker)[0] == 0  # the first holds the marks
         sched_probe.stop()
-        collect(taker)
-        collect(taker)
-        assert taker._marks is not None and taker._marks.whole_reads == 1  # the first read whole, then marks
+        assert moved(taker)[0] == 1 and taker._marks is not None
     finally:
         taker.stop()
         sched_probe.start()  # the module's probe again, on its pins
