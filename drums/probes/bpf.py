@@ -210,7 +210,7 @@ class BpfProbe(Probe):
             self.status.map_fill[name] = count / m.max_entries
         return keys, values, count
 
-    def marks_ours(self) -> bool:
+    def _marks_ours(self) -> bool:
         """Whether this process reads the marks of the probe's maps (see Marked). They are one set
         per set of pins, and each read takes them: of two readers of the pins (two agents on one
         host), each would miss what the other took, and show counts a collect late. The first to
@@ -231,17 +231,25 @@ class BpfProbe(Probe):
             self._reader = fd
         return True
 
-    def read_marked(self, name: str, entries: Entries) -> Matched:
-        """The map `name`, whose programs mark the keys they change (in the maps `generation`,
-        `changed_even` and `changed_odd`), matched against `entries`: looked up as far as it
-        changed, read whole when much did (and always, while another process reads the marks)."""
-        if not self.marks_ours():
-            self._marked.pop(name, None)  # its generation is the other reader's now
-            return entries.read(*self.read(name)[:2])
+    def marks(self, name: str, whole_above: int = 8) -> Marked | None:
+        """The marks of the map `name`, whose programs mark the keys they change (in the maps
+        `generation`, `changed_even` and `changed_odd`); None while another process reads them."""
+        if not self._marks_ours():
+            self._marked.pop(name, None)  # their generation is the other reader's now
+            return None
         marked = self._marked.get(name)
         if marked is None or marked.map is not self.opened[name]:
             marked = self._marked[name] = Marked(self.opened[name], self.opened["generation"],
-                                                 (self.opened["changed_even"], self.opened["changed_odd"]))
+                                                 (self.opened["changed_even"], self.opened["changed_odd"]), whole_above)
+        return marked
+
+    def read_marked(self, name: str, entries: Entries) -> Matched:
+        """The map `name`, whose programs mark the keys they change, matched against `entries`:
+        looked up as far as it changed, read whole when much did (and always, while another process
+        reads the marks)."""
+        marked = self.marks(name)
+        if marked is None:
+            return entries.read(*self.read(name)[:2])
         got = marked.read(len(entries), whole=not entries.kept)
         m = entries.read(*got[:2]) if isinstance(got, tuple) else entries.update(got)
         self.status.map_fill[name] = len(m.keys) / marked.map.max_entries

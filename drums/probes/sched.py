@@ -15,7 +15,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
 from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
                               offset_defines, typed)
-from drums.probes.entries import Entries, Marked, Matched, Remembered
+from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
 RUNQ_SLOTS = 24
@@ -149,7 +149,6 @@ class SchedProbe(BpfProbe):
         self._cpu: dict[int, float] = {}  # tgid -> CPU seconds of every process made, for the process table
         self._refreshed = -1  # the process table's refresh at the last collect
         self._threads = Entries(_THREAD_VALUE.size, 0)  # rows: each thread's tgid
-        self._marks: Marked | None = None  # which threads changed since the last collect
         self._waiting: set[int] = set()  # threads marked whose slot was being taken or given up
         self._hashed: set[int] = set()  # threads whose entry is in thread_sched, for its fill
         # Each thread's CPU time as last shown, by thread ID, ascending, with its process's start:
@@ -217,22 +216,14 @@ class SchedProbe(BpfProbe):
         """The threads' entries matched against the last collect's: those the programs marked
         changed looked up, or all read when most were, when the last collect was not kept, or
         while another process reads the marks."""
-        marked = None
-        if self.marks_ours():
-            marks = self._marks
-            if marks is None or marks.map is not self.opened["thread_sched"]:
-                marks = self._marks = Marked(self.opened["thread_sched"], self.opened["generation"],
-                                             (self.opened["changed_even"], self.opened["changed_odd"]),
-                                             MARKED_WHOLE_ABOVE)
-            marked = marks.changed(len(self._threads), whole=not self._threads.kept)
-        else:
-            self._marks = None  # their generation is the other reader's now
+        marks = self.marks("thread_sched", MARKED_WHOLE_ABOVE)
+        marked = None if marks is None else marks.changed(len(self._threads), whole=not self._threads.kept)
         if marked is None:
             self._waiting = set()
             return self._threads.read(*self.thread_entries())
         tids = self._waiting.union(_U32.unpack(key)[0] for key in marked)
         changes = self._looked_up(sorted(tids))
-        self.status.map_fill["thread_sched"] = len(self._hashed) / self._marks.map.max_entries
+        self.status.map_fill["thread_sched"] = len(self._hashed) / marks.map.max_entries
         return self._threads.update(changes)
 
     def _looked_up(self, tids: list[int]) -> list[tuple[bytes, bytes | None]]:

@@ -477,7 +477,7 @@ def test_a_collect_looks_up_the_threads_marked_changed_and_finds_an_ended_one_go
         settle(leaver.pid)
         before, k_before = collect(sched_probe), schedstat(pid, tid)[0]
         assert series(before, THREAD_CPU, pid=leaver.pid, tid=left)
-        whole = sched_probe._marks.whole_reads
+        whole = sched_probe._marked["thread_sched"].whole_reads
         burner.go()
         burner.read()
         leaver.go()
@@ -490,7 +490,7 @@ def test_a_collect_looks_up_the_threads_marked_changed_and_finds_an_ended_one_go
         cpu = value(after, THREAD_CPU, pid=pid, tid=tid) - value(before, THREAD_CPU, pid=pid, tid=tid)
         assert abs(cpu - (k_after - k_before) / 1e9) <= 1e-6, (cpu, k_after - k_before)
         assert series(after, THREAD_CPU, pid=leaver.pid, tid=left) == {}
-        looked_up += sched_probe._marks.whole_reads == whole
+        looked_up += sched_probe._marked["thread_sched"].whole_reads == whole
         if looked_up == 3:
             break
     assert looked_up == 3
@@ -533,14 +533,14 @@ def test_a_second_reader_of_the_pins_reads_them_whole_and_leaves_the_marks_to_th
         assert (first_moved, second_moved) == (1, 0) and [m for m, _ in shown] == [1, 0]
         for was, (_, now) in zip((first_before, second_before), shown):
             assert abs(now - was - (k_after - k_before) / 1e9) <= 1e-6, (was, now, k_after - k_before)
-        assert second._marks is None
+        assert second._marked.get("thread_sched") is None
     finally:
         second.stop()  # its pins are the first's: they stay
     taker = reader()
     try:
         assert moved(taker)[0] == 0  # the first holds the marks
         sched_probe.stop()
-        assert moved(taker)[0] == 1 and taker._marks is not None
+        assert moved(taker)[0] == 1 and taker._marked.get("thread_sched") is not None
     finally:
         taker.stop()
         sched_probe.start()  # the module's probe again, on its pins
