@@ -43,6 +43,22 @@ class _MapInfo(ctypes.Structure):
     ]
 
 
+class _TestRunOpts(ctypes.Structure):
+    # struct bpf_test_run_opts of libbpf 1.1, up to what a raw tracepoint program's run uses.
+    _fields_ = [
+        ("sz", ctypes.c_size_t),
+        ("data_in", ctypes.c_void_p),
+        ("data_out", ctypes.c_void_p),
+        ("data_size_in", ctypes.c_uint32),
+        ("data_size_out", ctypes.c_uint32),
+        ("ctx_in", ctypes.c_void_p),
+        ("ctx_out", ctypes.c_void_p),
+        ("ctx_size_in", ctypes.c_uint32),
+        ("ctx_size_out", ctypes.c_uint32),
+        ("retval", ctypes.c_uint32),
+    ]
+
+
 @lru_cache(maxsize=1)
 def libbpf() -> ctypes.CDLL:
     path = ctypes.util.find_library("bpf") or "libbpf.so.1"
@@ -60,6 +76,7 @@ def libbpf() -> ctypes.CDLL:
         batch.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
                           ctypes.POINTER(ctypes.c_uint32), ctypes.c_void_p]
     lib.bpf_obj_get_info_by_fd.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32)]
+    lib.bpf_prog_test_run_opts.argtypes = [ctypes.c_int, ctypes.POINTER(_TestRunOpts)]
     return lib
 
 
@@ -83,6 +100,15 @@ def obj_get(path: str) -> int:
 
 def pin(fd: int, path: str) -> None:
     _check(libbpf().bpf_obj_pin(fd, path.encode()), f"pin {path}")
+
+
+def run_program(fd: int, *args: int) -> int:
+    """Run a raw tracepoint program once, as if its tracepoint had passed it `args`
+    (BPF_PROG_TEST_RUN, Linux >= 5.10); what it returned."""
+    ctx = (ctypes.c_uint64 * len(args))(*args)
+    opts = _TestRunOpts(sz=ctypes.sizeof(_TestRunOpts), ctx_in=ctypes.addressof(ctx), ctx_size_in=ctypes.sizeof(ctx))
+    _check(libbpf().bpf_prog_test_run_opts(fd, ctypes.byref(opts)), "run a BPF program")
+    return opts.retval
 
 
 def possible_cpus() -> int:

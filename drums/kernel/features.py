@@ -101,6 +101,11 @@ class Features:
         return release_version(self.kernel_release) >= (5, 12)
 
     @cached_property
+    def bpf_test_run(self) -> bool:
+        """The agent may run a raw tracepoint program itself (BPF_PROG_TEST_RUN, Linux >= 5.10)."""
+        return release_version(self.kernel_release) >= (5, 10)
+
+    @cached_property
     def uprobes(self) -> bool:
         return os.path.isdir("/sys/bus/event_source/devices/uprobe")
 

@@ -19,6 +19,7 @@ from drums.kernel import bpffs
 
 BPF_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bpf")
 PINNABLE = {"tp_btf", "raw_tracepoint", "fentry", "tracepoint", "uprobe"}
+PROGRAMS = {"program", "run"}  # attachment kinds that load a program for the agent, pinned as prog_<function>
 
 
 @dataclass
@@ -47,7 +48,8 @@ def _compile(req: LoadRequest):
 
 def attach(req: LoadRequest):
     """Compile and attach in this process; returns the bcc object and the fds to pin by name:
-    links, and programs loaded for later attachment ("program", e.g. uprobes)."""
+    links, and programs loaded for later attachment ("program", e.g. uprobes) or for the agent to
+    run ("run")."""
     from drums.kernel import perflink, tracing
 
     b = _compile(req)
@@ -58,6 +60,8 @@ def attach(req: LoadRequest):
                 fds.append(perflink.tracepoint(b.load_func(fn.encode(), b.TRACEPOINT).fd, target))
             elif kind == "program":
                 programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.KPROBE).fd  # uprobes are kprobe programs
+            elif kind == "run":  # a raw tracepoint program the agent runs itself (bpffs.run_program)
+                programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.RAW_TRACEPOINT).fd
             elif kind == "tp_btf":
                 fds.append(tracing.attach(b.module, fn, target)[1])
             elif kind == "raw_tracepoint":

@@ -135,6 +135,7 @@ class BpfProbe(Probe):
         self.opened: dict[str, bpffs.PinnedMap] = {}
         self.pin_dir = ""
         self._in_process = None  # the bcc object, for paths the kernel cannot pin
+        self.programs: dict[str, int] = {}  # fds of the programs the agent attaches or runs itself, by name
         self._marked: dict[str, Marked] = {}  # maps read as far as their programs marked them changed
         self._reader: int | None = None  # the pins' directory, locked while this process reads their marks
 
@@ -176,16 +177,21 @@ class BpfProbe(Probe):
             if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):
                 self._remove_pins()
                 loader.load_in_child(self._request(path, pin_dir))
-            for m in self.maps:
-                try:
+            try:
+                for m in self.maps:
                     self.opened[m] = bpffs.PinnedMap(os.path.join(pin_dir, m))
-                except ProbeError:
-                    self.stop()
-                    raise
+                for kind, _, fn in path.attachments:
+                    if kind in loader.PROGRAMS:
+                        self.programs[fn] = bpffs.obj_get(os.path.join(pin_dir, f"prog_{fn}"))
+            except ProbeError:
+                self.stop()
+                raise
         else:
-            self._in_process, _ = loader.attach(self._request(path, pin_dir))
+            self._in_process, fds = loader.attach(self._request(path, pin_dir))
             self.opened = {m: bpffs.PinnedMap.from_fd(self._in_process[m.encode()].map_fd, m)
                            for m in self.maps}
+            self.programs = {fn: os.dup(fds[f"prog_{fn}"]) for kind, _, fn in path.attachments
+                             if kind in loader.PROGRAMS}
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
@@ -267,6 +273,9 @@ class BpfProbe(Probe):
         for m in self.opened.values():
             m.close()
         self.opened = {}
+        for fd in self.programs.values():
+            os.close(fd)
+        self.programs = {}
         if self._reader is not None:
             os.close(self._reader)  # another reader of the pins may take the marks over
             self._reader = None

@@ -44,7 +44,6 @@ class LoadsProbe(BpfProbe):
         super().__init__(features, **kw)
         self.libraries = libraries
         libraries.listeners.append(self._found)
-        self._program = -1
         self._ring: RingBuffer | None = None
         self._linkers: dict[tuple[int, int], str] = {}  # dynamic linker files -> why not uprobed, or ""
         self._stopping = threading.Event()
@@ -57,7 +56,6 @@ class LoadsProbe(BpfProbe):
     def start(self) -> None:
         super().start()
         try:
-            self._program = bpffs.obj_get(os.path.join(self.pin_dir, "prog_on_debug_state"))
             self._ring = RingBuffer(os.path.join(self.pin_dir, "loads"))
         except ProbeError:
             self.stop()
@@ -74,16 +72,13 @@ class LoadsProbe(BpfProbe):
         if self._ring is not None:
             self._ring.close()
             self._ring = None
-        if self._program >= 0:
-            os.close(self._program)
-            self._program = -1
         self._linkers = {}
         super().stop()
 
     def _found(self, pid: int, libs: dict[str, str]) -> None:
         """A process maps a dynamic linker: uprobe it if it is a file not seen before."""
         for prefix in LINKERS:
-            if prefix in libs and self._program >= 0:
+            if prefix in libs and "on_debug_state" in self.programs:
                 self._attach(pid, libs[prefix])
 
     def _attach(self, pid: int, path: str) -> None:
@@ -97,7 +92,7 @@ class LoadsProbe(BpfProbe):
                 offset = elf.symbol_offsets(host_path, (HOOK,)).get(HOOK)
                 if offset is None:
                     raise ProbeError(f"{path}: no {HOOK} symbol")
-                link = perflink.uprobe(self._program, host_path, offset)
+                link = perflink.uprobe(self.programs["on_debug_state"], host_path, offset)
                 bpffs.pin(link, pin)
                 os.close(link)
             self._linkers[key] = ""

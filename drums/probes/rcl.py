@@ -209,7 +209,6 @@ class RclProbe(BpfProbe):
         self.proctable = proctable
         self.libraries = libraries or MappedLibraries(proctable, (LIBRARY,))  # may follow more libraries
         self.libraries.listeners.append(self._found)
-        self._programs: dict[str, int] = {}
         self._files: dict[tuple[int, int], str] = {}  # librcl files with uprobes -> why not, or ""
         self._endpoints: dict[tuple[int, int], tuple[str, str]] = {}  # (pid, handle) -> (topic, GID)
         self._periods: dict[tuple[int, int], tuple[int, Histogram]] = {}  # (pid, handle) -> (count, histogram)
@@ -224,11 +223,6 @@ class RclProbe(BpfProbe):
 
     def start(self) -> None:
         super().start()
-        try:
-            self._programs = {p: bpffs.obj_get(os.path.join(self.pin_dir, f"prog_{p}")) for p in PROGRAMS}
-        except ProbeError:
-            self.stop()
-            raise
         self._say_clock()
         keys, _, _ = self.read("deadlines")  # an agent's before this one (--keep-loaded): their handles are old
         for i in range(0, len(keys), _KEY.size):
@@ -239,13 +233,10 @@ class RclProbe(BpfProbe):
 
     def _found(self, pid: int, libs: dict[str, str]) -> None:
         """A process maps libraries it did not before (under the libraries' lock)."""
-        if LIBRARY in libs and self._programs:
+        if LIBRARY in libs and self.programs:
             self._attach(pid, libs[LIBRARY])
 
     def stop(self) -> None:
-        for fd in self._programs.values():
-            os.close(fd)
-        self._programs = {}
         self._files = {}
         super().stop()
 
@@ -264,7 +255,7 @@ class RclProbe(BpfProbe):
             offsets = elf.symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
             for i, (fn, program, ret) in enumerate(UPROBES):
                 if fn in offsets and (self.timing or program != "on_idle"):  # idle ends a reaction
-                    link = perflink.uprobe(self._programs[program], host_path, offsets[fn], ret)
+                    link = perflink.uprobe(self.programs[program], host_path, offsets[fn], ret)
                     bpffs.pin(link, f"{prefix}{i}")
                     os.close(link)
             self._files[key] = "" if "rcl_publish" in offsets else f"{path}: no rcl_publish symbol"

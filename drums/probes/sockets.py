@@ -13,12 +13,13 @@ from sys import intern
 
 import numpy as np
 
-from drums.arrays import among, distinct
+from drums.arrays import among, distinct, within
+from drums.kernel import bpffs
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_fentry,
-                              needs_kprobes, needs_tracepoints, offset_defines, typed)
+from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
+                              needs_fentry, needs_kprobes, needs_tracepoints, offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
@@ -42,8 +43,9 @@ PROCESS = {c: Metric(f"drums_process_socket_{c}_total", COUNTER,
                      f"{_HELP[c]} on the sockets of this protocol that this process used first, closed ones "
                      "included", PROCESS_LABELS) for c in _COUNTS}
 
-# Map layouts, as in bpf/sockets.bpf.c.
-_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQQ")  # the counts, the generation marked in, the owner's start
+# Map layouts, as in bpf/sockets.bpf.c. A socket's: its identity, counts, the generation marked in,
+# the owner's start, and in a slot the slot's owner.
+_SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQQQ")
 _IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
 _PROCESS_VALUE = struct.Struct("<Q24Q")
 _U64 = struct.Struct("<Q")
@@ -54,23 +56,36 @@ _U32 = struct.Struct("<I")
 # checked for having closed at most this often (seconds).
 FD_CHECK_INTERVAL = 10.0
 
+# Slots of socket entries (bpf/sockets.bpf.c, whose slot_of() hashes a socket's id as slot_index() does).
+SOCKET_SLOTS = 16384
+_SLOT_HASH = np.uint64(0x9E3779B97F4A7C15)
+
 SEND_RECV = ("sock_send_length", "sock_recv_length")
-LIFECYCLE = (
-    ("raw_tracepoint", "inet_sock_set_state", "on_tcp_state"),
-    ("raw_tracepoint", "sched_process_free", "on_task_free"),
+_LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_free")
+LIFECYCLE = tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(_LIFECYCLE_EVENTS, ("on_tcp_state", "on_task_free"))) + (
+    ("run", "", "forget_gone"),  # the agent's, for sockets freed without a tracepoint (see _forget)
 )
-_LIFECYCLE_EVENTS = tuple(event for _, event, _ in LIFECYCLE)
+
+
+def _needs_lifecycle(f) -> str | None:
+    if not f.bpf_test_run:
+        return "the agent cannot run BPF programs itself (BPF_PROG_TEST_RUN, Linux >= 5.10)"
+    return needs_tracepoints(*_LIFECYCLE_EVENTS)(f)
+
+
 _RAW = AttachPath("raw_tracepoint",
                   tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv"))) + LIFECYCLE,
-                  needs_tracepoints(*SEND_RECV, *_LIFECYCLE_EVENTS),
+                  needs_all(needs_tracepoints(*SEND_RECV), _needs_lifecycle),
                   "Linux >= 6.6: every socket family, one event per send and receive call")
 
 
 # The map value as 8-byte words (bpf/sockets.bpf.c): the identity (inode, process, addresses) in
-# the first 8, the six counts after it, then the generation marked in and the owner's start.
+# the first 8, the six counts after it, then the generation marked in, the owner's start and the
+# owner of a slot.
 _WORDS_IDENTITY = _IDENTITY.size // 8
 _WORDS_COUNTS = _WORDS_IDENTITY + len(_COUNTS)  # the end of the counts
 _WORD_START = _WORDS_COUNTS + 1
+_WORD_ID = _WORD_START + 1
 _TCP = PROTOCOLS.index("tcp")
 
 
@@ -107,6 +122,18 @@ def _add(totals: dict, key: tuple, counts) -> None:
 def _ports(words: np.ndarray) -> np.ndarray:
     """Each socket's local port << 16 | remote port, from its value as 8-byte words."""
     return ((words[:, 2] >> 48) << 16 | (words[:, 3] & 0xFFFF)).astype(np.int64)
+
+
+def slot_index(keys: np.ndarray, slots: int) -> np.ndarray:
+    """The slot of each socket, by its key (its id: bpf/sockets.bpf.c's socket_id), as slot_of() there."""
+    return ((keys * _SLOT_HASH) >> np.uint64(32) & np.uint64(slots - 1)).astype(np.intp)
+
+
+def _rows(mapping) -> np.ndarray:
+    """The slots' entries in place, as rows of 8-byte words (the mapping's pages may hold more)."""
+    words = np.frombuffer(mapping, np.uint64)
+    width = _SOCKET_VALUE.size // 8
+    return words[:len(words) // width * width].reshape(-1, width)
 
 
 def _owner(words: list[int]) -> tuple[int, int, int]:
@@ -167,14 +194,14 @@ class _Labels:
 class SocketsProbe(BpfProbe):
     name = "sockets"
     source = "sockets.bpf.c"
-    maps = ("socket_traffic", "generation", "changed_even", "changed_odd", "closed_traffic", "dropped")
+    maps = ("socket_traffic", "socket_slots", "generation", "changed_even", "changed_odd", "closed_traffic", "dropped")
     metrics = tuple(SOCKET.values()) + tuple(PROCESS.values())
     paths = (
         typed(_RAW),
         _RAW,
         AttachPath("fentry", (("fentry", "", ""),) + LIFECYCLE,
-                   lambda f: needs_fentry(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
-                   "Linux 5.7 to 6.5 with BPF trampolines (Ubuntu 22.04): TCP and UDP only"),
+                   needs_all(needs_fentry, _needs_lifecycle),
+                   "Linux 5.10 to 6.5 with BPF trampolines (Ubuntu 22.04): TCP and UDP only"),
         AttachPath("kprobe",
                    (("kprobe", "tcp_sendmsg", "enter_tcp_sendmsg"),
                     ("kretprobe", "tcp_sendmsg", "exit_tcp_sendmsg"),
@@ -183,8 +210,8 @@ class SocketsProbe(BpfProbe):
                     ("kretprobe", "udp_sendmsg", "exit_udp_sendmsg"),
                     ("kprobe", "udp_recvmsg", "enter_udp_recvmsg"),
                     ("kretprobe", "udp_recvmsg", "exit_udp_recvmsg")) + LIFECYCLE,
-                   lambda f: needs_kprobes(f) or needs_tracepoints(*_LIFECYCLE_EVENTS)(f),
-                   "Linux 5.7 to 6.5 with kprobes but no BPF trampolines: TCP and UDP only, loaded in the agent"),
+                   needs_all(needs_kprobes, _needs_lifecycle),
+                   "Linux 5.10 to 6.5 with kprobes but no BPF trampolines: TCP and UDP only, loaded in the agent"),
     )
 
     def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix", **kw):
@@ -194,12 +221,10 @@ class SocketsProbe(BpfProbe):
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)
-        # (pid, start, class) -> the counts of sockets whose entries this probe deleted (they had
-        # closed) while their owner lives on: closed_traffic's counterpart in user space.
-        self._forgotten: dict[tuple[int, int, int], list[int]] = {}
         self._live_totals: dict = {}  # _owned() of the live entries, as of the last collect
         self._entries_summed = False  # whether _live_totals is that of the entries the last collect kept
         self._labelled = Remembered()  # the labels the last collect's sockets were asked for
+        self._waiting = np.empty(0, np.uint64)  # sockets whose slot was being taken or given up at the last look
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -214,7 +239,57 @@ class SocketsProbe(BpfProbe):
                                + btf.field("inode", "i_ino").offset)
         d.update(offset_defines(btf, {"SOCKET_FILE_OFF": ("socket", "file"), "FILE_INODE_OFF": ("file", "f_inode"),
                                       "INODE_INO_OFF": ("inode", "i_ino")}))
+        d["SOCKET_SLOTS"] = SOCKET_SLOTS if self.features.bpf_atomics else 1  # slots are taken by compare-and-swap
         return d
+
+    def socket_entries(self) -> tuple[bytes, bytes]:
+        """Every socket's entry, as (keys, values): those in slots read in place. One whose slot
+        is being taken or given up (its owner shown, its owner's start not) waits for the next
+        collect; a socket with an entry in its slot and one in socket_traffic (made at once by two
+        CPUs) is read from its slot, which its calls count into."""
+        keys, values, _ = self.read("socket_traffic")
+        with self.opened["socket_slots"].mapped() as mapping:
+            slots = _rows(mapping)
+            owned = slots[:, _WORD_ID] != 0
+            made = owned & (slots[:, _WORD_START] != 0)
+            taken = slots[made]  # a copy, now: they move on
+            self._waiting = slots[owned & ~made, _WORD_ID]
+            del slots, owned, made  # no view of the mapping outlives it (closing it needs none)
+        hashed = np.frombuffer(keys, np.uint64)
+        twice = within(hashed, np.sort(taken[:, _WORD_ID]))
+        if twice.any():
+            hashed = hashed[~twice]
+            values = np.frombuffer(values, np.uint64).reshape(len(twice), -1)[~twice].tobytes()
+        return np.concatenate((hashed, taken[:, _WORD_ID])).tobytes(), values + taken.tobytes()
+
+    def _looked_up(self, keys: np.ndarray) -> list[tuple[bytes, bytes | None]]:
+        """(key, its entry or None if it has none) of each socket: in its slot, else in socket_traffic.
+        One whose slot is being taken or given up waits for the next collect, as in socket_entries()."""
+        with self.opened["socket_slots"].mapped() as mapping:
+            slots = _rows(mapping)
+            rows = slots[slot_index(keys, len(slots))]  # a copy
+            del slots  # as in socket_entries()
+        in_slot = rows[:, _WORD_ID] == keys
+        waiting = in_slot & (rows[:, _WORD_START] == 0)
+        self._waiting = keys[waiting]
+        hashed = self.opened["socket_traffic"]
+        return [(_U64.pack(key), row.tobytes() if in_slot[i] else hashed.lookup(_U64.pack(key)))
+                for i, (key, row) in enumerate(zip(keys.tolist(), rows)) if not waiting[i]]
+
+    def _read_sockets(self) -> Matched:
+        """The sockets' entries matched against the last collect's: those the programs marked
+        changed looked up, or all read when many were, when the last collect was not kept, or while
+        another process reads the marks."""
+        marks = self.marks("socket_traffic")
+        marked = None if marks is None else marks.changed(len(self._entries), whole=not self._entries.kept)
+        if marked is None:
+            m = self._entries.read(*self.socket_entries())
+        else:
+            keys = distinct(np.concatenate((np.frombuffer(b"".join(marked), np.uint64), self._waiting)))
+            m = self._entries.update(self._looked_up(keys))
+        hashed = int(np.count_nonzero(m.words[:, _WORD_ID] == 0))
+        self.status.map_fill["socket_traffic"] = hashed / self.opened["socket_traffic"].max_entries
+        return m
 
     def collect(self, snap: Snapshot) -> None:
         pt = self.proctable
@@ -223,7 +298,7 @@ class SocketsProbe(BpfProbe):
         # Before the sockets: an entry the kernel deletes between the two reads is then missing
         # from both for this collect (which Monotonic holds back), never counted twice.
         closed_keys, closed_values, _ = self.read("closed_traffic")
-        m = self.read_marked("socket_traffic", self._entries)
+        m = self._read_sockets()
         words = m.words
         pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
         klass = (words[:, 3] >> 16) & 0xFFFF
@@ -235,8 +310,7 @@ class SocketsProbe(BpfProbe):
             else:
                 dead.append(pid)
         stale = among(pids, dead) | self._closed(m, pids, klass)
-        if stale.any():
-            self._forget(m, np.flatnonzero(stale))
+        forgotten = self._forget(m, np.flatnonzero(stale)) if stale.any() else {}
         live = ~stale
         self._entries.keep(m, live)
         # The entries' own arrays as a rule (no socket went): a copy a scrape of ten thousand sockets'
@@ -244,8 +318,8 @@ class SocketsProbe(BpfProbe):
         # so what a reader keeps of the columns it copies.
         w = words if live.all() else words[live]
         # Each socket by its inode; one without (it had no struct socket when first counted) by its
-        # entry's key, a kernel address, which as an int64 is below 0 and so no inode.
-        ino, key = w[:, 0].astype(np.int64), m.keys[live].astype(np.int64)
+        # entry's key with the top bit set, which as an int64 is below 0 and so no inode.
+        ino, key = w[:, 0].astype(np.int64), (m.keys[live] | np.uint64(1 << 63)).astype(np.int64)
         labels = _Labels(w, names, self.proc_net_unix, self._labelled.turn())
         snap.groups[SOCKET_GROUP] = Columns(
             np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
@@ -261,14 +335,16 @@ class SocketsProbe(BpfProbe):
                 _add(self._live_totals, _owner(now), [a - b for a, b in zip(now[_WORDS_IDENTITY:_WORDS_COUNTS],
                                                                             was[_WORDS_IDENTITY:_WORDS_COUNTS])])
         self._entries_summed = True
-        self._process_totals(snap, closed_keys, closed_values)
+        self._process_totals(snap, closed_keys, closed_values, forgotten)
         self.read_dropped()
 
-    def _process_totals(self, snap: Snapshot, closed_keys: bytes, closed_values: bytes) -> None:
-        """Per process and protocol: its live sockets' counts (_live_totals) and what its closed sockets
-        left in closed_traffic and in this probe's _forgotten."""
+    def _process_totals(self, snap: Snapshot, closed_keys: bytes, closed_values: bytes, forgotten: dict) -> None:
+        """Per process and protocol: its live sockets' counts (_live_totals), what its closed sockets
+        left in closed_traffic, and what this collect forgot since it read that."""
         pt = self.proctable
         totals = dict(self._live_totals)
+        for key, row in forgotten.items():
+            _add(totals, key, row)
         # A process's closed_traffic goes when the kernel reaps it, unless a socket it owned (and
         # handed on) closes after that: such are deleted here.
         ended = []
@@ -282,9 +358,6 @@ class SocketsProbe(BpfProbe):
                 _add(totals, (tgid, start, klass), flat[6 * klass: 6 * klass + 6])
         if ended:
             self.opened["closed_traffic"].delete_unchanged(ended)
-        self._forgotten = {k: v for k, v in self._forgotten.items() if pt.alive(k[0])}
-        for key, row in self._forgotten.items():
-            _add(totals, key, row)
         # A PID's counts are those of its latest process (the highest start): what an earlier one
         # left is gone with it.
         latest: dict[int, int] = {}
@@ -299,16 +372,16 @@ class SocketsProbe(BpfProbe):
                 snap.add(PROCESS[c], labels, m((c, tgid, start, klass), value))
         m.next_collect()
 
-    def _forget(self, m: Matched, stale: np.ndarray) -> None:
-        """Delete the entries of sockets that are gone (their process ended, or it holds them no
-        more); the counts of those that the deletion took go to _forgotten."""
-        words = m.words[stale]
-        entries = [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[stale].tolist(), words)]
-        deleted = self.opened["socket_traffic"].delete_unchanged(entries)  # one that changed comes back marked
-        for w in words[np.array(deleted, bool)].tolist():
-            owner = _owner(w)
-            if self.proctable.alive(owner[0]):
-                _add(self._forgotten, owner, w[_WORDS_IDENTITY:_WORDS_COUNTS])
+    def _forget(self, m: Matched, stale: np.ndarray) -> dict:
+        """Forget the sockets that are gone (their process ended, or it holds them no more) as the
+        kernel forgets a closed TCP socket: by a program of bpf/sockets.bpf.c, which folds their
+        counts into their owners' closed_traffic, if their entries are still theirs. What it folded,
+        as _owned() gives it: the closed_traffic this collect read has it not."""
+        run, forgotten = self.programs["forget_gone"], {}
+        for key, w in zip(m.keys[stale].tolist(), m.words[stale].tolist()):
+            if bpffs.run_program(run, key, w[0], w[1] & 0xFFFFFFFF, w[_WORD_START]):
+                _add(forgotten, _owner(w), w[_WORDS_IDENTITY:_WORDS_COUNTS])
+        return forgotten
 
     def _closed(self, m: Matched, pids: np.ndarray, klass: np.ndarray) -> np.ndarray:
         """Entries of sockets the kernel freed without a tracepoint (all but TCP): the process no
