@@ -129,13 +129,6 @@ def slot_index(keys: np.ndarray, slots: int) -> np.ndarray:
     return ((keys * _SLOT_HASH) >> np.uint64(32) & np.uint64(slots - 1)).astype(np.intp)
 
 
-def _rows(mapping) -> np.ndarray:
-    """The slots' entries in place, as rows of 8-byte words (the mapping's pages may hold more)."""
-    words = np.frombuffer(mapping, np.uint64)
-    width = _SOCKET_VALUE.size // 8
-    return words[:len(words) // width * width].reshape(-1, width)
-
-
 def _owner(words: list[int]) -> tuple[int, int, int]:
     """(pid, start, class) of a socket's entry, from its value as 8-byte words."""
     return words[1] & 0xFFFFFFFF, words[_WORD_START], (words[3] >> 16) & 0xFFFF
@@ -225,6 +218,7 @@ class SocketsProbe(BpfProbe):
         self._entries_summed = False  # whether _live_totals is that of the entries the last collect kept
         self._labelled = Remembered()  # the labels the last collect's sockets were asked for
         self._waiting = np.empty(0, np.uint64)  # sockets whose slot was being taken or given up at the last look
+        self._hashed: set[int] = set()  # sockets whose entry is in socket_traffic, for its fill
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -248,8 +242,10 @@ class SocketsProbe(BpfProbe):
         collect; a socket with an entry in its slot and one in socket_traffic (made at once by two
         CPUs) is read from its slot, which its calls count into."""
         keys, values, _ = self.read("socket_traffic")
+        width = _SOCKET_VALUE.size // 8
         with self.opened["socket_slots"].mapped() as mapping:
-            slots = _rows(mapping)
+            slots = np.frombuffer(mapping, np.uint64)
+            slots = slots[:len(slots) // width * width].reshape(-1, width)  # the pages may hold more
             owned = slots[:, _WORD_ID] != 0
             made = owned & (slots[:, _WORD_START] != 0)
             taken = slots[made]  # a copy, now: they move on
@@ -260,21 +256,29 @@ class SocketsProbe(BpfProbe):
         if twice.any():
             hashed = hashed[~twice]
             values = np.frombuffer(values, np.uint64).reshape(len(twice), -1)[~twice].tobytes()
+        self._hashed = set(hashed.tolist())
         return np.concatenate((hashed, taken[:, _WORD_ID])).tobytes(), values + taken.tobytes()
 
     def _looked_up(self, keys: np.ndarray) -> list[tuple[bytes, bytes | None]]:
         """(key, its entry or None if it has none) of each socket: in its slot, else in socket_traffic.
-        One whose slot is being taken or given up waits for the next collect, as in socket_entries()."""
-        with self.opened["socket_slots"].mapped() as mapping:
-            slots = _rows(mapping)
-            rows = slots[slot_index(keys, len(slots))]  # a copy
-            del slots  # as in socket_entries()
-        in_slot = rows[:, _WORD_ID] == keys
-        waiting = in_slot & (rows[:, _WORD_START] == 0)
-        self._waiting = keys[waiting]
-        hashed = self.opened["socket_traffic"]
-        return [(_U64.pack(key), row.tobytes() if in_slot[i] else hashed.lookup(_U64.pack(key)))
-                for i, (key, row) in enumerate(zip(keys.tolist(), rows)) if not waiting[i]]
+        One whose slot is being taken or given up waits for the next collect, as in socket_entries().
+        A lookup each (a few hundred at most: past that the map is read whole); mapping the slots
+        would cost more, in page faults."""
+        slots, hashed = self.opened["socket_slots"], self.opened["socket_traffic"]
+        changes, waiting = [], []
+        for key, slot in zip(keys.tolist(), slot_index(keys, slots.max_entries).tolist()):
+            value = slots.lookup(_U32.pack(slot))
+            if value is not None and _U64.unpack_from(value, _WORD_ID * 8)[0] == key:
+                if not _U64.unpack_from(value, _WORD_START * 8)[0]:
+                    waiting.append(key)
+                    continue
+                self._hashed.discard(key)  # an entry there was another socket's, at this address before
+            else:
+                value = hashed.lookup(_U64.pack(key))
+                (self._hashed.discard if value is None else self._hashed.add)(key)
+            changes.append((_U64.pack(key), value))
+        self._waiting = np.array(waiting, np.uint64)
+        return changes
 
     def _read_sockets(self) -> Matched:
         """The sockets' entries matched against the last collect's: those the programs marked
@@ -285,10 +289,11 @@ class SocketsProbe(BpfProbe):
         if marked is None:
             m = self._entries.read(*self.socket_entries())
         else:
-            keys = distinct(np.concatenate((np.frombuffer(b"".join(marked), np.uint64), self._waiting)))
+            keys = np.frombuffer(b"".join(marked), np.uint64)  # each once: a set's
+            if len(self._waiting):
+                keys = distinct(np.concatenate((keys, self._waiting)))
             m = self._entries.update(self._looked_up(keys))
-        hashed = int(np.count_nonzero(m.words[:, _WORD_ID] == 0))
-        self.status.map_fill["socket_traffic"] = hashed / self.opened["socket_traffic"].max_entries
+        self.status.map_fill["socket_traffic"] = len(self._hashed) / self.opened["socket_traffic"].max_entries
         return m
 
     def collect(self, snap: Snapshot) -> None:
