@@ -476,10 +476,7 @@ int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
-// Run by the agent (BPF_PROG_TEST_RUN; args: the socket's id, inode, owner's PID and start) for
-// a socket that it found gone (its owner ended, or holds it no more) but the kernel freed without a
-// tracepoint: forgotten as a closed TCP socket is, if its entry is still that socket's. Returns 1 if
-// this run folded its counts into its owner's closed_traffic.
+// The entry goes if it still holds the socket the agent named (see forget_gone).
 static __always_inline int forget_if(u64 id, struct socket_traffic_t *s, struct bpf_raw_tracepoint_args *ctx)
 {
     if (s && s->ino == ctx->args[1] && s->tgid == (u32)ctx->args[2] && s->process_start == ctx->args[3])
@@ -487,6 +484,10 @@ static __always_inline int forget_if(u64 id, struct socket_traffic_t *s, struct 
     return 0;
 }
 
+// Run by the agent (BPF_PROG_TEST_RUN; args: the socket's id, inode, owner's PID and start) for
+// a socket that it found gone (its owner ended, or holds it no more) but the kernel freed without a
+// tracepoint: forgotten as a closed TCP socket is, if its entry is still that socket's. Returns 1 if
+// this run folded its counts into its owner's closed_traffic.
 int forget_gone(struct bpf_raw_tracepoint_args *ctx)
 {
     u64 id = ctx->args[0];
