@@ -44,6 +44,18 @@ def test_ubuntu_22_04_uses_fentry_then_kprobes():
     assert chosen(Kernel(LIFECYCLE, kprobes=True, fentry=False))[0] == "kprobe"
 
 
+def test_before_linux_5_10_the_sockets_probe_has_no_ebpf_path():
+    """The agent forgets a socket freed without a tracepoint by running a program itself
+    (BPF_PROG_TEST_RUN of a raw tracepoint program, Linux >= 5.10): Ubuntu 20.04's 5.8 kernel has
+    fentry and kprobes, and the sockets probe falls back to sock_diag there, saying why."""
+    kernel = Kernel(LIFECYCLE, kprobes=True, fentry=True)
+    kernel.__dict__["kernel_release"] = "5.8.0-63-generic"
+    name, reasons = chosen(kernel)
+    assert name is None
+    assert reasons[2:] == [f"{path}: the agent cannot run BPF programs itself (BPF_PROG_TEST_RUN, Linux >= 5.10)"
+                           for path in ("fentry", "kprobe")]
+
+
 def test_no_path_says_why_for_each():
     name, reasons = chosen(Kernel(LIFECYCLE))
     assert name is None
