@@ -2,12 +2,13 @@
 programs where the agent's run on every send, receive and context switch (the floor of any monitor
 that sees each call, bench/floor.py), with the Drums agent (all probes, scraped every second), and
 with tcpdump capturing headers (the paper's pcap socket monitor). Conditions are interleaved round by round so that drift of the host hits all
-of them alike; the table gives the median of the rounds. Beside throughput it gives iperf3's own
+of them alike; the table gives the median of seven rounds (of three, one fast round put tcpdump
+11% above no monitor at all). Beside throughput it gives iperf3's own
 CPU time per KiB, where the probes' per-event work is charged: on a host shared with other work,
 throughput swings from run to run and that figure is the steadier one. Goal: the agent costs at
 most 3%.
 
-    .venv/bin/python bench/workload_overhead.py [--rounds 3] [--seconds 5]
+    .venv/bin/python bench/workload_overhead.py [--rounds 7] [--seconds 5]
 """
 from __future__ import annotations
 
@@ -236,7 +237,7 @@ def _cost(with_monitor: float, without: float) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rounds", type=int, default=3, help="rounds of every condition (default 3)")
+    parser.add_argument("--rounds", type=int, default=7, help="rounds of every condition (default 7)")
     parser.add_argument("--seconds", type=int, default=5, help="length of each iperf3 run (default 5)")
     parser.add_argument("--pause", type=float, default=0.5, help="seconds between runs (default 0.5)")
     parser.add_argument("--scrape-interval", type=float, default=1.0,
