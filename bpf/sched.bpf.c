@@ -242,10 +242,17 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
     mark_changed(tid, 0);
 }
 
-// The histogram slot of a wait: [2^slot, 2^(slot+1)) us; slot 0 is [0, 2).
+// The histogram slot of a wait: [2^slot, 2^(slot+1)) us; slot 0 is [0, 2). Microseconds without
+// a division (a BPF division is the CPU's, tens of cycles, on every switch): the multiply-shift is
+// at most one over below 2^33 ns (8.6 s, already the last slot's), which the check takes back.
 static __always_inline u32 runq_slot(u64 ns)
 {
-    u32 slot = bpf_log2l(ns / 1000) - 1;
+    if (ns >= (1ULL << 33))
+        return RUNQ_SLOTS - 1;
+    u64 us = ns * 1099511628ULL >> 40;  // 2^40 / 1000, rounded up
+    if (us * 1000 > ns)
+        us--;
+    u32 slot = bpf_log2l(us) - 1;
     return slot >= RUNQ_SLOTS ? RUNQ_SLOTS - 1 : slot;
 }
 
@@ -263,7 +270,9 @@ static __always_inline void count_waits(struct thread_sched_t *t, u64 run_delay,
     if (run_delay < t->delay_base || runs < t->runs_base + t->s.runq_waits + 1)
         return;
     u64 waited = run_delay - t->delay_base, n = runs - t->runs_base;
-    u64 mean = (waited > t->s.runq_ns ? waited - t->s.runq_ns : 0) / (n - t->s.runq_waits);
+    u64 mean = waited > t->s.runq_ns ? waited - t->s.runq_ns : 0;
+    if (n - t->s.runq_waits > 1)  // as a rule one run since the last switch-out: no division
+        mean /= n - t->s.runq_waits;
     t->s.runq_hist[runq_slot(mean)] += n - t->s.runq_waits;
     t->s.runq_ns = waited;
     t->s.runq_waits = n;

@@ -56,7 +56,7 @@ _U32 = struct.Struct("<I")
 # checked for having closed at most this often (seconds).
 FD_CHECK_INTERVAL = 10.0
 
-# Slots of socket entries (bpf/sockets.bpf.c, whose slot_of() hashes a socket's id as slot_index() does).
+# Slots of socket entries (bpf/sockets.bpf.c, whose slot_of() hashes a socket's id as _slot_index() does).
 SOCKET_SLOTS = 16384
 _SLOT_HASH = np.uint64(0x9E3779B97F4A7C15)
 
@@ -124,7 +124,7 @@ def _ports(words: np.ndarray) -> np.ndarray:
     return ((words[:, 2] >> 48) << 16 | (words[:, 3] & 0xFFFF)).astype(np.int64)
 
 
-def slot_index(keys: np.ndarray, slots: int) -> np.ndarray:
+def _slot_index(keys: np.ndarray, slots: int) -> np.ndarray:
     """The slot of each socket, by its key (its id: bpf/sockets.bpf.c's socket_id), as slot_of() there."""
     return ((keys * _SLOT_HASH) >> np.uint64(32) & np.uint64(slots - 1)).astype(np.intp)
 
@@ -266,7 +266,7 @@ class SocketsProbe(BpfProbe):
         would cost more, in page faults."""
         slots, hashed = self.opened["socket_slots"], self.opened["socket_traffic"]
         changes, waiting = [], []
-        for key, slot in zip(keys.tolist(), slot_index(keys, slots.max_entries).tolist()):
+        for key, slot in zip(keys.tolist(), _slot_index(keys, slots.max_entries).tolist()):
             value = slots.lookup(_U32.pack(slot))
             if value is not None and _U64.unpack_from(value, _WORD_ID * 8)[0] == key:
                 if not _U64.unpack_from(value, _WORD_START * 8)[0]:
