@@ -301,7 +301,8 @@ class SchedProbe(BpfProbe):
         dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)
         if running:
             dirty.update(tgids[among(m.keys, running)].tolist())
-        m.rows[:] = tgids.tolist()  # kept with each thread, for the collect that finds it gone
+        new = ~m.same_head  # the others keep the process they had
+        m.rows[new] = tgids[new].tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
         made, cpu = self._made, self._cpu
         alive = pt.alive_among(distinct(tgids).tolist()) | exited.keys()
