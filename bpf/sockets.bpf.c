@@ -216,18 +216,28 @@ static __always_inline int forget(u64 id, struct socket_traffic_t *s)
     return 1;
 }
 
-// Every entry of the socket goes: two CPUs that made its first entry at once, as its slot was
-// given up, may have made one in the slot and one in socket_traffic.
-static __always_inline void forget_socket(u64 id)
+// Whether the entry still holds the socket the agent named (see forget_gone); any, if it named none.
+static __always_inline bool holds(struct socket_traffic_t *s, struct bpf_raw_tracepoint_args *named)
 {
+    return !named || (s->ino == named->args[1] && s->tgid == (u32)named->args[2]
+                      && s->process_start == named->args[3]);
+}
+
+// Every entry of the socket goes (that `named` names, if any): two CPUs that made its first entry
+// at once, as its slot was given up, may have made one in the slot and one in socket_traffic.
+// 1 if this call folded counts into the owner's closed_traffic.
+static __always_inline int forget_socket(u64 id, struct bpf_raw_tracepoint_args *named)
+{
+    int n = 0;
 #if SOCKET_SLOTS > 1
     struct socket_traffic_t *s = slot_of(id);
-    if (s && s->id == id)
-        forget(id, s);
+    if (s && s->id == id && holds(s, named))
+        n |= forget(id, s);
 #endif
     struct socket_traffic_t *h = socket_traffic.lookup(&id);
-    if (h)
-        forget(id, h);
+    if (h && holds(h, named))
+        n |= forget(id, h);
+    return n;
 }
 
 static __always_inline u64 socket_ino(u64 sk)
@@ -285,7 +295,7 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int
         u64 ino = socket_ino(sk);
         if (ino == s->ino)
             return s;
-        forget_socket(id);  // whether or not a fresh entry takes its place
+        forget_socket(id, 0);  // whether or not a fresh entry takes its place
     }
     struct socket_traffic_t fresh = {};
     fresh.tgid = bpf_get_current_pid_tgid() >> 32;
@@ -472,15 +482,7 @@ int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
         return 0;
     u64 id = socket_id(ctx->args[0]);
     if (id)
-        forget_socket(id);
-    return 0;
-}
-
-// The entry goes if it still holds the socket the agent named (see forget_gone).
-static __always_inline int forget_if(u64 id, struct socket_traffic_t *s, struct bpf_raw_tracepoint_args *ctx)
-{
-    if (s && s->ino == ctx->args[1] && s->tgid == (u32)ctx->args[2] && s->process_start == ctx->args[3])
-        return forget(id, s);
+        forget_socket(id, 0);
     return 0;
 }
 
@@ -490,14 +492,7 @@ static __always_inline int forget_if(u64 id, struct socket_traffic_t *s, struct 
 // this run folded its counts into its owner's closed_traffic.
 int forget_gone(struct bpf_raw_tracepoint_args *ctx)
 {
-    u64 id = ctx->args[0];
-    int n = forget_if(id, socket_traffic.lookup(&id), ctx);  // a twin (see forget_socket) first
-#if SOCKET_SLOTS > 1
-    struct socket_traffic_t *s = slot_of(id);
-    if (s && s->id == id)
-        n |= forget_if(id, s, ctx);
-#endif
-    return n;
+    return forget_socket(ctx->args[0], ctx);
 }
 
 // sched:sched_process_free (task): a reaped process leader takes its closed sockets' counts with it.

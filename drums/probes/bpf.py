@@ -53,6 +53,10 @@ def needs_fentry(f: Features) -> str | None:
     return None if f.fentry else "the kernel refuses BPF trampolines (fentry/fexit)"
 
 
+def needs_test_run(f: Features) -> str | None:
+    return None if f.bpf_test_run else "the agent cannot run BPF programs itself (BPF_PROG_TEST_RUN, Linux >= 5.10)"
+
+
 def needs_kprobes(f: Features) -> str | None:
     return None if f.kprobes else "kprobes are not available (CONFIG_KPROBES unset)"
 

@@ -19,7 +19,8 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
-                              needs_fentry, needs_kprobes, needs_tracepoints, offset_defines, typed)
+                              needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints, offset_defines,
+                              typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
@@ -65,17 +66,10 @@ _LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_free")
 LIFECYCLE = tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(_LIFECYCLE_EVENTS, ("on_tcp_state", "on_task_free"))) + (
     ("run", "", "forget_gone"),  # the agent's, for sockets freed without a tracepoint (see _forget)
 )
-
-
-def _needs_lifecycle(f) -> str | None:
-    if not f.bpf_test_run:
-        return "the agent cannot run BPF programs itself (BPF_PROG_TEST_RUN, Linux >= 5.10)"
-    return needs_tracepoints(*_LIFECYCLE_EVENTS)(f)
-
-
+_NEEDS_LIFECYCLE = needs_all(needs_test_run, needs_tracepoints(*_LIFECYCLE_EVENTS))
 _RAW = AttachPath("raw_tracepoint",
                   tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv"))) + LIFECYCLE,
-                  needs_all(needs_tracepoints(*SEND_RECV), _needs_lifecycle),
+                  needs_all(needs_tracepoints(*SEND_RECV), _NEEDS_LIFECYCLE),
                   "Linux >= 6.6: every socket family, one event per send and receive call")
 
 
@@ -193,7 +187,7 @@ class SocketsProbe(BpfProbe):
         typed(_RAW),
         _RAW,
         AttachPath("fentry", (("fentry", "", ""),) + LIFECYCLE,
-                   needs_all(needs_fentry, _needs_lifecycle),
+                   needs_all(needs_fentry, _NEEDS_LIFECYCLE),
                    "Linux 5.10 to 6.5 with BPF trampolines (Ubuntu 22.04): TCP and UDP only"),
         AttachPath("kprobe",
                    (("kprobe", "tcp_sendmsg", "enter_tcp_sendmsg"),
@@ -203,7 +197,7 @@ class SocketsProbe(BpfProbe):
                     ("kretprobe", "udp_sendmsg", "exit_udp_sendmsg"),
                     ("kprobe", "udp_recvmsg", "enter_udp_recvmsg"),
                     ("kretprobe", "udp_recvmsg", "exit_udp_recvmsg")) + LIFECYCLE,
-                   needs_all(needs_kprobes, _needs_lifecycle),
+                   needs_all(needs_kprobes, _NEEDS_LIFECYCLE),
                    "Linux 5.10 to 6.5 with kprobes but no BPF trampolines: TCP and UDP only, loaded in the agent"),
     )
 
