@@ -21,7 +21,7 @@ from drums.metrics import COUNTER, GAUGE, Columns, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
 from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
-from drums.probes.entries import Entries, Remembered
+from drums.probes.entries import Entries, Matched, Remembered
 
 CONN_LABELS = ("local", "remote", "netns")
 CONN_RETRANSMITS = Metric("drums_tcp_connection_retransmits_total", COUNTER,
@@ -148,6 +148,20 @@ class TcpProbe(BpfProbe):
         self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)
         self._labelled = Remembered()  # the labels the last collect's connections were asked for
         self._wanted: set[tuple[str, str]] | None = None
+        self._last_ids = (np.empty(0, np.uint64), np.empty(0, np.int64))  # (the entries' keys, their ids)
+
+    def _ids(self, m: Matched) -> np.ndarray:
+        """connection_ids of the entries: where they are those of the last collect (the same keys
+        array: no connection came or went), made again only for the entries whose head changed."""
+        keys, ids = self._last_ids
+        if m.keys is not keys:
+            ids = connection_ids(m.words[:, :_HEAD_WORDS])
+        elif not m.same_head.all():  # a new array: the budget keeps the last one it was given
+            fresh = np.flatnonzero(~m.same_head)
+            ids = ids.copy()
+            ids[fresh] = connection_ids(m.words[fresh, :_HEAD_WORDS])
+        self._last_ids = m.keys, ids
+        return ids
 
     def want_rtt(self, connections: set[tuple[str, str]]) -> None:
         """Read RTT for these (local, remote) connections only (the agent's: those with series of
@@ -171,8 +185,7 @@ class TcpProbe(BpfProbe):
         words = m.words
         closed = (words[:, _STATE_WORD] >> _STATE_SHIFT & 0xFFFF) == TCP_CLOSE
         ids, counts, first, self._carried = merged(
-            connection_ids(words[:, :_HEAD_WORDS]), words[:, _HEAD_WORDS:_COUNT_WORDS].view(np.int64), closed,
-            self._carried)
+            self._ids(m), words[:, _HEAD_WORDS:_COUNT_WORDS].view(np.int64), closed, self._carried)
         # The entries' own arrays as a rule (no connection closed, none summed): the next collect
         # writes over them in place, so what a reader keeps of the columns it copies.
         heads = words if first is None else words[first]

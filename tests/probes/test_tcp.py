@@ -20,7 +20,7 @@ import pytest
 from drums.budget import Budget
 from drums.metrics import Columns
 from drums.probes import tcp
-from drums.probes.entries import Remembered
+from drums.probes.entries import Matched, Remembered
 from drums.probes.tcp import CONN_GROUP, merged
 from tests.conftest import connected_pairs, eventually, ip, peer_namespace, series, wait_until
 
@@ -323,6 +323,34 @@ def test_rows_of_one_connection_name_are_summed_and_a_closed_ones_counts_carried
     rows, _, carried = step([7], [[1, 3]], [False], carried)  # no 5: its series ends, nothing carried
     assert rows == {7: (1, 3)} and carried == {}
 
+
+
+def test_connection_ids_are_made_again_only_for_heads_that_changed():
+    """TcpProbe._ids, on its own: over the same keys (no connection came or went) the ids of the
+    entries whose head changed are made again and the others taken as they were; over other keys
+    all are made. Each time they equal connection_ids of every head, in a new array where any changed
+    (the budget keeps the array it was given)."""
+    rng = np.random.default_rng(7)
+    probe = tcp.TcpProbe.__new__(tcp.TcpProbe)
+    probe._last_ids = (np.empty(0, np.uint64), np.empty(0, np.int64))
+    keys = np.arange(1, 7, dtype=np.uint64)
+    words = rng.integers(0, 1 << 62, (6, tcp._CONN_VALUE.size // 8), dtype=np.uint64)
+
+    def matched(keys, words, same_head):
+        none = np.empty(0, object)
+        return Matched(keys, words, same_head, same_head, none, none, np.empty(0, np.intp), words[:0])
+    first = probe._ids(matched(keys, words, np.zeros(6, bool)))
+    assert first.tolist() == tcp.connection_ids(words[:, :tcp._HEAD_WORDS]).tolist()
+    assert probe._ids(matched(keys, words, np.ones(6, bool))) is first  # all idle: the same array
+    words[2, 0] ^= 1  # a key reused for another connection before the collect saw the first end
+    same_head = np.ones(6, bool)
+    same_head[2] = False
+    again = probe._ids(matched(keys, words, same_head))
+    assert again is not first and again.tolist() == tcp.connection_ids(words[:, :tcp._HEAD_WORDS]).tolist()
+    assert again[2] != first[2] and (np.delete(again, 2) == np.delete(first, 2)).all()
+    fewer = keys[1:]  # one went: the keys are another array, every id is made
+    assert probe._ids(matched(fewer, words[1:], np.ones(5, bool))).tolist() == \
+        tcp.connection_ids(words[1:, :tcp._HEAD_WORDS]).tolist()
 
 # ---- RTT ----------------------------------------------------------------------------------------
 
