@@ -231,6 +231,7 @@ class _Columnar:
         # What the last collect gave: the kept rows (at `own` in its Columns, with those stamps), then
         # the `other` ones; None while a collect that may have failed midway has not given it anew.
         self.emitted: list[tuple] | None = None
+        self.mark: int | None = None  # the probe's collect whose values `last` holds, where it said (Columns.told)
         self.own, self.own_stamps = np.empty(0, np.intp), None
 
     def none(self) -> Columns:
@@ -422,14 +423,19 @@ class Budget:
         rows kept alone."""
         seen = []  # (its _Columnar, the Columns, the rows changed)
         active, parts = [], []  # per group: the entities of the rows that grew, and their shares
-        still = True  # no row came, went or changed since the last collect, which gave every group
+        steady = True  # no row came or went since the last collect, which gave every group
+        still = True  # nor changed
         for metrics, cols in given.items():
             c = st.columnar.get(metrics) or st.columnar.setdefault(metrics, _Columnar(metrics, kind, cols))
             cols = cols or c.none()
             moved = not np.array_equal(cols.ids, c.ids)
-            new = c.follow(cols.ids) if moved else np.zeros(len(cols.ids), bool)
-            changed = np.flatnonzero(rows_differ(cols.values, c.last) | new)
-            still = still and not moved and not len(changed) and c.emitted is not None
+            if not moved and cols.told is not None and cols.told[0] == c.mark:
+                changed = cols.told[2]  # the probe said which rows changed since the values `last` holds
+            else:
+                new = c.follow(cols.ids) if moved else np.zeros(len(cols.ids), bool)
+                changed = np.flatnonzero(rows_differ(cols.values, c.last) | new)
+            steady = steady and not moved and c.emitted is not None
+            still = still and steady and not len(changed)
             # Activity: what each entity's ranking counters grew by, as a share of what the kind's did.
             grew = np.maximum(cols.values[changed][:, c.rank] - c.last[changed][:, c.rank], 0)
             whole = grew.sum(axis=0)
@@ -439,14 +445,21 @@ class Budget:
             seen.append((c, cols, changed))
         entities, at = np.unique(np.concatenate(active), return_inverse=True)
         activity = dict(zip(entities.tolist(), np.bincount(at, np.concatenate(parts), len(entities)).tolist()))
+        full = len(st.kept) in (st.limit, len(st.ids))  # no slot free that an idle entity would take
         # The connections of a host whose connections idle: the same rows again, with no array work.
         # Unless a slot is free that an idle entity would take, or a kept row is named anew.
-        if still and len(st.kept) in (st.limit, len(st.ids)) and all(c.as_before(cols) for c, cols, _ in seen):
-            for c, _, _ in seen:
+        if still and full and all(c.as_before(cols) for c, cols, _ in seen):
+            for c, cols, _ in seen:
                 out.group_rows(c.metrics).extend(c.emitted)
+                c.mark = cols.told[1] if cols.told else None
             return
         for c, _, _ in seen:
             c.emitted = None
+        # No entity came or went, and none gets or loses its slot (as a rule, between two scrapes):
+        # the kept rows are where they were, and the kind's entities are not sorted and searched again.
+        if steady and full and self._keep_slots(st, activity):
+            self._emit_columns(st, [(c, cols, changed, c.own) for c, cols, changed in seen], np.empty(0, np.int64), out)
+            return
         if len(seen) == 1 and seen[0][1].entities is None:
             everyone = seen[0][0].sorted  # the one group's ids, ascending, are the entities
         else:
@@ -466,13 +479,30 @@ class Budget:
         held = kept()
         demoted = np.array(sorted(was_kept - st.kept), np.int64)
         st.folded_total += int((~within(fresh, held)).sum()) + len(demoted)
+        self._emit_columns(st, [(c, cols, changed, c.rows_of(cols, held)) for c, cols, changed in seen], demoted, out)
+
+    def _emit_columns(self, st: _KindState, seen: list[tuple], demoted: np.ndarray, out: Snapshot) -> None:
+        """Each group's rows: those kept (at `own` in its Columns), then its `other` ones, which the rows
+        not kept that changed, and those of the entities `demoted`, add to. `seen`: (its _Columnar, the
+        Columns, the rows changed, own) of each."""
         st.named = set()
-        for c, cols, changed in seen:
-            own, left = c.rows_of(cols, held), c.rows_of(cols, demoted)
+        for c, cols, changed, own in seen:
             rows = c.rows(cols, own, changed)
             st.named.update(map(c.entity_of, map(_LABELS, rows)))
-            c.emitted = rows + self._fold_columns(c, cols, changed, own, left)
+            c.emitted = rows + self._fold_columns(c, cols, changed, own, c.rows_of(cols, demoted))
             out.group_rows(c.metrics).extend(c.emitted)
+            c.mark = cols.told[1] if cols.told else None
+
+    @classmethod
+    def _keep_slots(cls, st: _KindState, activity: dict) -> bool:
+        """Whether by this activity every entity kept keeps its slot and no other takes one, where
+        no slot is free that an idle entity would take; if not, the kept are left as they were."""
+        was = set(st.kept)
+        cls._choose(st, lambda n: [], activity)
+        if st.kept == was:
+            return True
+        st.kept = was
+        return False
 
     @staticmethod
     def _fold_columns(c: _Columnar, cols: Columns, changed: np.ndarray, own: np.ndarray,

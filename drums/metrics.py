@@ -103,6 +103,10 @@ class Columns:
     # from beside its id (a thread's name); a reader may take a row's labels again while its id and
     # stamps are the same. None: it may not.
     stamps: Callable[[np.ndarray], np.ndarray] | None = None
+    # What changed since the probe's collect `since`, this being collect `mark`: (since, mark, the
+    # indices of the rows whose values may differ from those that collect gave, over the same ids).
+    # A reader that holds the values of collect `since` compares only those. None: not told.
+    told: tuple[int, int, np.ndarray] | None = None
 
     def rows(self, at: list[int] | None = None) -> list[tuple[tuple[str, ...], tuple]]:
         """(labels, values) rows, as a group's rows are: all, or those at these indices."""

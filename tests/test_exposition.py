@@ -7,7 +7,7 @@ import pytest
 
 from prometheus_client.parser import text_string_to_metric_families
 
-from drums import docs
+from drums import budget as budget_module, docs
 from drums.budget import Budget
 from drums.exporters.prometheus import Renderer, render
 from drums.metrics import COUNTER, GAUGE, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot
@@ -271,6 +271,67 @@ def test_a_budget_given_sockets_as_columns_gives_what_one_given_rows_gives():
         assert by_columns.kept("socket") == by_rows.kept("socket"), step
         assert by_columns.folded() == by_rows.folded() and by_columns.folded_total() == by_rows.folded_total()
     assert by_rows.folded_total()["socket"] > 100  # sockets were folded, promoted and demoted alike
+
+
+
+def test_a_budget_told_which_columns_changed_gives_what_one_that_compares_and_ranks_every_row_gives(monkeypatch):
+    """Sockets handed on as a probe does, in the same order while none come or go, a few counting at
+    each collect; now and then some come or go, or one outdoes a kept one. One budget is told which
+    rows changed since the probe's last collect (Columns.told; some collects it never sees, so that
+    the next is told against another than its last; some not told; some told of rows that did not
+    change) and keeps its kept rows in place while no entity
+    comes, goes or changes slot; the other compares every row and ranks every entity at every
+    collect. Both give the same series, keep the same sockets and fold the same."""
+    class Compares(Budget):
+        @classmethod
+        def _keep_slots(cls, st, activity):  # never the steady path
+            return False
+    rng = random.Random(19)
+    told, compared = Budget({"socket": 5}), Compares({"socket": 5})
+    steady, compares = [], []  # what each _keep_slots of the told budget said; the rows each comparison took
+    keep_slots = Budget._keep_slots.__func__
+    monkeypatch.setattr(Budget, "_keep_slots", classmethod(
+        lambda cls, st, activity: steady.append(keep_slots(cls, st, activity)) or steady[-1]))
+    rows_differ = budget_module.rows_differ
+    applying = [None]
+    monkeypatch.setattr(budget_module, "rows_differ",
+                        lambda a, b: (applying[0] is told and compares.append(len(a))) or rows_differ(a, b))
+    counts: dict[int, list[int]] = {i: [i % 2, 10 * i, i] for i in range(1, 31)}  # inode -> protocol, sent, received
+    order, busy = list(counts), {1, 2, 3}
+    protocols = ("tcp", "udp")
+    for step in range(1, 200):
+        before = {i: list(c) for i, c in counts.items()}
+        if rng.random() < 0.1:  # some go, some come: the order is another
+            for inode in rng.sample(order, 2):
+                del counts[inode]
+                busy.discard(inode)
+            for _ in range(rng.randint(0, 3)):
+                counts[rng.randint(100, 10**6)] = [rng.randint(0, 1), 0, 0]
+            order = list(counts)
+            rng.shuffle(order)
+        for inode in order:  # the busy few count at every collect, the others now and then; one by a lot
+            if inode in busy or rng.random() < 0.02:
+                counts[inode][1] += rng.randint(1, 10**3 if rng.random() < 0.99 else 10**8)
+                counts[inode][2] += rng.randint(0, 9)
+        changed = [at for at, i in enumerate(order) if before.get(i) != counts[i]] + rng.sample(range(len(order)), 1)
+        if rng.random() < 0.05:  # a collect the budgets never see (the agent's failed after the probe's)
+            continue
+        outs = []
+        for budget, hint in ((told, (step - 1, step, np.array(sorted(set(changed)), np.intp))), (compared, None)):
+            def labels(at: list[int]) -> list[tuple]:
+                return [("1", str(order[i]), protocols[counts[order[i]][0]]) for i in at]
+            snap = Snapshot()
+            snap.groups[(SOCKET_SENT, SOCKET_RECEIVED)] = Columns(
+                np.array(order, np.int64), np.array([counts[i][1:] for i in order], np.int64).reshape(-1, 2),
+                np.array([counts[i][0] for i in order], np.intp), protocols, np.ones(len(order), np.int64), labels,
+                told=hint if rng.random() < 0.95 else None)
+            applying[0] = budget
+            outs.append({m.name: sorted(r) for m, r in budget.apply(snap).series.items()})
+        assert outs[0] == outs[1], step
+        assert told.kept("socket") == compared.kept("socket"), step
+        assert told.folded() == compared.folded() and told.folded_total() == compared.folded_total(), step
+    assert steady.count(True) > 80 and steady.count(False) > 5  # the steady path, and slots that changed
+    assert len(compares) < 70  # the told budget compared rows only where it was not told, or they moved
 
 
 def test_a_socket_that_loses_its_series_while_idle_goes_into_other_whole():

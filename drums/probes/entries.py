@@ -30,6 +30,12 @@ class Matched:
     gone: np.ndarray  # object: what the caller kept for the keys of the previous read that are gone
     grown: np.ndarray  # (g,) intp: the entries counted on (same head, another value), ascending
     before: np.ndarray  # (g, width) uint64: their values at the previous read
+    since: int | None = None  # the read `same` is told against (the one kept), None: against none
+    mark: int = 0  # this read
+
+    def told(self) -> tuple[int, int, np.ndarray] | None:
+        """Columns.told of columns of these entries' values, in their order."""
+        return None if self.since is None else (self.since, self.mark, np.flatnonzero(~self.same))
 
 
 class Entries:
@@ -51,11 +57,13 @@ class Entries:
         # left values written in place (update) beside rows that do not show them: the next read
         # must be of the whole map, and makes every row anew.
         self.kept = True
+        self.reads = 0
+        self._kept_read = 0  # the read kept last (0: none yet, the entries empty)
 
     def read(self, keys: bytes, values: bytes) -> Matched:
-        if not self.kept:
+        since = self._next_read()
+        if since is None:
             self._keys, self._words, self._rows = self._keys[:0], self._words[:0], self._rows[:0]
-        self.kept = False
         k = np.frombuffer(keys, np.uint64)
         w = np.frombuffer(values, np.uint64).reshape(len(k), self.width)
         if not np.array_equal(k, self._read_keys):
@@ -64,7 +72,7 @@ class Entries:
         rows = np.full(len(k), None, object)
         if not len(self._keys):
             new = np.zeros(len(k), bool)
-            return Matched(k, w, new, new, rows, self._rows, np.empty(0, np.intp), self._words[:0])
+            return Matched(k, w, new, new, rows, self._rows, np.empty(0, np.intp), self._words[:0], since, self.reads)
         at = np.minimum(np.searchsorted(self._keys, k), len(self._keys) - 1)
         known = self._keys[at] == k
         head, value = self._compare(self._words[at], w)
@@ -73,16 +81,16 @@ class Entries:
         rows[known] = self._rows[at[known]]
         grown = np.flatnonzero(same_head & ~same)
         return Matched(k, w, same_head, same, rows, self._rows[~within(self._keys, k)], grown,
-                       self._words[at[grown]])
+                       self._words[at[grown]], since, self.reads)
 
     def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
         """The entries of the last read (as kept) with these changes: a key's value, or None if the
         key is gone; each key at most once. Matched as read() matches a whole map, at the cost of
         the changes: values are written in place, and the arrays are copied only when keys come
         or go. Only after a read that was kept."""
-        if not self.kept:
+        since = self._next_read()
+        if since is None:
             raise ValueError("the last read was not kept: read the whole map")
-        self.kept = False
         keys, words, rows = self._keys, self._words, self._rows
         changed = np.frombuffer(b"".join(k for k, _ in changes), np.uint64)
         present = np.fromiter((v is not None for _, v in changes), bool, len(changes))
@@ -115,7 +123,13 @@ class Entries:
             same_head, same = np.insert(same_head, pos, False), np.insert(same, pos, False)
         order = np.argsort(grown_keys)  # as the changes came: ascending, as the entries are
         return Matched(keys, words, same_head, same, rows, gone, np.searchsorted(keys, grown_keys[order]),
-                       before[order])
+                       before[order], since, self.reads)
+
+    def _next_read(self) -> int | None:
+        """Count a read in: the read it is matched against (the last, kept), None if that was not kept."""
+        since = self._kept_read if self.kept else None
+        self.kept, self.reads = False, self.reads + 1
+        return since
 
     def _compare(self, old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per entry: whether the head is the same, and whether the whole value is."""
@@ -129,7 +143,7 @@ class Entries:
     def keep(self, matched: Matched, mask: np.ndarray) -> None:
         """What the next read is matched against: the entries of `matched` under `mask`, with the
         rows the caller put in matched.rows."""
-        self.kept = True
+        self.kept, self._kept_read = True, matched.mark
         if mask.all():  # as a rule: no copies
             self._keys, self._words, self._rows = matched.keys, matched.words, matched.rows
         else:

@@ -323,7 +323,7 @@ class SocketsProbe(BpfProbe):
         snap.groups[SOCKET_GROUP] = Columns(
             np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
             klass[live].astype(np.intp), PROTOCOLS, pids[live],
-            labels, _ports(w), stamps=labels.stamps)
+            labels, _ports(w), stamps=labels.stamps, told=m.told() if live.all() else None)
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:

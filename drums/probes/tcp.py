@@ -192,7 +192,8 @@ class TcpProbe(BpfProbe):
         snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None,
                                           _Labels(heads, self._labelled.turn()),
                                           ((heads[:, 0] >> 48) << 16 | (heads[:, 1] & 0xFFFF)).astype(np.int64),
-                                          stamps=lambda at: heads[at, :_HEAD_WORDS] & _NAME_MASK)
+                                          stamps=lambda at: heads[at, :_HEAD_WORDS] & _NAME_MASK,
+                                          told=m.told() if first is None else None)
         if closed.any():
             self.opened["tcp_conns"].delete_unchanged(  # one that changed instead comes back marked
                 [(_U64.pack(k), w.tobytes()) for k, w in zip(m.keys[closed].tolist(), words[closed])])

@@ -72,6 +72,9 @@ def test_changes_applied_to_the_last_read_match_as_a_whole_read_does():
         assert part.keys.tolist() == whole.keys.tolist(), step
         assert (part.words == whole.words).all() and part.same.tolist() == whole.same.tolist(), step
         assert part.same_head.tolist() == whole.same_head.tolist() and part.rows.tolist() == whole.rows.tolist()
+        # told against the last read, which was kept: the rows whose values are not those it had
+        assert part.told()[:2] == whole.told()[:2] == (step, step + 1), step
+        assert part.told()[2].tolist() == [at for at, k in enumerate(part.keys.tolist()) if kept.get(k) != state[k]]
         assert sorted(part.gone.tolist()) == sorted(whole.gone.tolist()), step  # the rows of keys gone
         on = sorted(k for k, (h, c) in state.items() if k in kept and kept[k][0] == h and kept[k][1] != c)
         for m in (whole, part):
@@ -100,6 +103,7 @@ def test_a_read_the_caller_did_not_keep_makes_the_next_read_make_every_row_anew(
         e.update([])
     m = e.read(*entries((10, 1, 6), (20, 1, 5)))
     assert m.rows.tolist() == [None, None] and not m.same_head.any() and not m.same.any()
+    assert m.told() is None  # told against no read: a reader compares every row
     assert m.words[:, 1].tolist() == [6, 5]
     e.keep(m, m.keys > 0)
     assert e.kept
