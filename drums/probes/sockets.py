@@ -178,6 +178,37 @@ class _Labels:
         return (intern(str(pid)), name, protocol, intern(local), intern(remote), intern(str(netns)), str(ino))
 
 
+class _Identity:
+    """What the entries' identity words give: each socket's process, class, id and ports, and the
+    processes that hold them. Made again only when an entry came, went or names another socket:
+    between two scrapes of ten thousand idle sockets, as a rule none did."""
+
+    def __init__(self, m: Matched):
+        w = m.words
+        self.keys = m.keys
+        self.pids = (w[:, 1] & 0xFFFFFFFF).astype(np.int64)
+        self.klass = (w[:, 3] >> 16) & 0xFFFF
+        self.owners = distinct(self.pids).tolist()
+        # Each socket by its inode; one without (it had no struct socket when first counted) by its
+        # entry's key with the top bit set, which as an int64 is below 0 and so no inode.
+        ino = w[:, 0].astype(np.int64)
+        self.ids = np.where(ino != 0, ino, (m.keys | np.uint64(1 << 63)).astype(np.int64))
+        self.dims = self.klass.astype(np.intp)
+        self.ports = _ports(w)
+
+    def holds(self, m: Matched) -> bool:
+        """Whether these are the identities of m's entries: the same keys (the very array the entries
+        kept, which a read of what changed hands back while no entry came or went) naming the same
+        sockets."""
+        return m.keys is self.keys and bool(m.same_head.all())
+
+    def of(self, live: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, dims, pids, ports) of the entries under `live`: these arrays themselves when all are."""
+        if live.all():
+            return self.ids, self.dims, self.pids, self.ports
+        return self.ids[live], self.dims[live], self.pids[live], self.ports[live]
+
+
 class SocketsProbe(BpfProbe):
     name = "sockets"
     source = "sockets.bpf.c"
@@ -213,6 +244,7 @@ class SocketsProbe(BpfProbe):
         self._labelled = Remembered()  # the labels the last collect's sockets were asked for
         self._waiting = np.empty(0, np.uint64)  # sockets whose slot was being taken or given up at the last look
         self._hashed: set[int] = set()  # sockets whose entry is in socket_traffic, for its fill
+        self._identity: _Identity | None = None  # of the entries the last collect kept
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,
@@ -299,11 +331,13 @@ class SocketsProbe(BpfProbe):
         closed_keys, closed_values, _ = self.read("closed_traffic")
         m = self._read_sockets()
         words = m.words
-        pids = (words[:, 1] & 0xFFFFFFFF).astype(np.int64)
-        klass = (words[:, 3] >> 16) & 0xFFFF
+        if self._identity is None or not self._identity.holds(m):
+            self._identity = _Identity(m)
+        ident = self._identity
+        pids, klass = ident.pids, ident.klass
         # Per process, not per socket: which are gone, and the names of the others.
         names, dead = {}, []
-        for pid in distinct(pids).tolist():
+        for pid in ident.owners:
             if pt.alive(pid):
                 names[pid] = pt.name(pid)
             else:
@@ -316,14 +350,11 @@ class SocketsProbe(BpfProbe):
         # words costs page faults more than it saves. The next collect writes over them in place,
         # so what a reader keeps of the columns it copies.
         w = words if live.all() else words[live]
-        # Each socket by its inode; one without (it had no struct socket when first counted) by its
-        # entry's key with the top bit set, which as an int64 is below 0 and so no inode.
-        ino, key = w[:, 0].astype(np.int64), (m.keys[live] | np.uint64(1 << 63)).astype(np.int64)
         labels = _Labels(w, names, self.proc_net_unix, self._labelled.turn())
+        ids, dims, owners, ports = ident.of(live)
         snap.groups[SOCKET_GROUP] = Columns(
-            np.where(ino != 0, ino, key), w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64),
-            klass[live].astype(np.intp), PROTOCOLS, pids[live],
-            labels, _ports(w), stamps=labels.stamps, told=m.told() if live.all() else None)
+            ids, w[:, _WORDS_IDENTITY:_WORDS_COUNTS].view(np.int64), dims, PROTOCOLS, owners, labels, ports,
+            stamps=labels.stamps, told=m.told() if live.all() else None)
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:
