@@ -250,8 +250,10 @@ class SchedProbe(BpfProbe):
     def _running(self) -> dict[int, int]:
         """Thread id -> its runtime now, for the thread each CPU runs: a thread may keep its CPU for
         seconds without a switch to count it. From /proc/TID/schedstat (one file a CPU, up to date
-        at the last tick; the exact CPU clock of a thread is its own process's alone). Read after
-        the threads' entries, so it is never behind them. Without CONFIG_SCHED_INFO the running
+        at the last tick; the exact CPU clock of a thread is its own process's alone). Read before
+        the threads' entries: a thread that leaves its CPU in between has its slice in its entry,
+        where read the other way round its slice was in neither (a real-time thread throttled then
+        lagged by the hundreds of milliseconds it had run). Without CONFIG_SCHED_INFO the running
         slice waits for the thread's next switch."""
         _, values, _ = self.read("oncpu")
         stride = self.opened["oncpu"].value_size
@@ -294,8 +296,8 @@ class SchedProbe(BpfProbe):
                 self.opened["exited_sched"].delete(_U32.pack(tgid))
         # The thread entries matched against the last read in bulk: only processes with a thread
         # new, changed, gone or on a CPU now are made again.
-        m = self._read_threads()
         running = self._running()
+        m = self._read_threads()
         tgids = m.words[:, 0] & 0xFFFFFFFF
         dirty = set(tgids[~m.same].tolist())
         dirty.update(tgid for tgid in m.gone.tolist() if tgid is not None)
