@@ -57,7 +57,7 @@ class Entries:
         # left values written in place (update) beside rows that do not show them: the next read
         # must be of the whole map, and makes every row anew.
         self.kept = True
-        self.reads = 0
+        self._reads = 0
         self._kept_read = 0  # the read kept last (0: none yet, the entries empty)
 
     def read(self, keys: bytes, values: bytes) -> Matched:
@@ -72,7 +72,7 @@ class Entries:
         rows = np.full(len(k), None, object)
         if not len(self._keys):
             new = np.zeros(len(k), bool)
-            return Matched(k, w, new, new, rows, self._rows, np.empty(0, np.intp), self._words[:0], since, self.reads)
+            return Matched(k, w, new, new, rows, self._rows, np.empty(0, np.intp), self._words[:0], since, self._reads)
         at = np.minimum(np.searchsorted(self._keys, k), len(self._keys) - 1)
         known = self._keys[at] == k
         head, value = self._compare(self._words[at], w)
@@ -81,7 +81,7 @@ class Entries:
         rows[known] = self._rows[at[known]]
         grown = np.flatnonzero(same_head & ~same)
         return Matched(k, w, same_head, same, rows, self._rows[~within(self._keys, k)], grown,
-                       self._words[at[grown]], since, self.reads)
+                       self._words[at[grown]], since, self._reads)
 
     def update(self, changes: list[tuple[bytes, bytes | None]]) -> Matched:
         """The entries of the last read (as kept) with these changes: a key's value, or None if the
@@ -123,12 +123,12 @@ class Entries:
             same_head, same = np.insert(same_head, pos, False), np.insert(same, pos, False)
         order = np.argsort(grown_keys)  # as the changes came: ascending, as the entries are
         return Matched(keys, words, same_head, same, rows, gone, np.searchsorted(keys, grown_keys[order]),
-                       before[order], since, self.reads)
+                       before[order], since, self._reads)
 
     def _next_read(self) -> int | None:
         """Count a read in: the read it is matched against (the last, kept), None if that was not kept."""
         since = self._kept_read if self.kept else None
-        self.kept, self.reads = False, self.reads + 1
+        self.kept, self._reads = False, self._reads + 1
         return since
 
     def _compare(self, old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

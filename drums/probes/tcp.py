@@ -64,6 +64,11 @@ _NAME_MASK[_STATE_WORD] = ~np.uint64(0xFFFF << _STATE_SHIFT)
 _NAME_MASK[-1] = np.uint64(0xFFFFFFFF)
 
 
+def _ports(heads: np.ndarray) -> np.ndarray:
+    """Each connection's local port << 16 | remote port, from the words of its head."""
+    return ((heads[:, 0] >> 48) << 16 | (heads[:, 1] & 0xFFFF)).astype(np.int64)
+
+
 def connection_ids(heads: np.ndarray) -> np.ndarray:
     """An int64 per connection from the words of its head: its addresses, ports and network
     namespace mixed (the rounds of splitmix64), so that the connections a series is named by are
@@ -148,20 +153,23 @@ class TcpProbe(BpfProbe):
         self._entries = Entries(_CONN_VALUE.size, _CONN_HEAD.size)
         self._labelled = Remembered()  # the labels the last collect's connections were asked for
         self._wanted: set[tuple[str, str]] | None = None
-        self._last_ids = (np.empty(0, np.uint64), np.empty(0, np.int64))  # (the entries' keys, their ids)
+        # The entries' keys at the last collect, with each connection's id and ports
+        self._identity = (np.empty(0, np.uint64), np.empty(0, np.int64), np.empty(0, np.int64))
 
-    def _ids(self, m: Matched) -> np.ndarray:
-        """connection_ids of the entries: where they are those of the last collect (the same keys
-        array: no connection came or went), made again only for the entries whose head changed."""
-        keys, ids = self._last_ids
+    def _identities(self, m: Matched) -> tuple[np.ndarray, np.ndarray]:
+        """Each entry's connection id and its ports (local << 16 | remote): where the entries are
+        those of the last collect (the same keys array: no connection came or went), made again only
+        for those whose head changed; of ten thousand idle connections, none."""
+        keys, ids, ports = self._identity
         if m.keys is not keys:
-            ids = connection_ids(m.words[:, :_HEAD_WORDS])
-        elif not m.same_head.all():  # a new array: the budget keeps the last one it was given
+            heads = m.words[:, :_HEAD_WORDS]
+            ids, ports = connection_ids(heads), _ports(heads)
+        elif not m.same_head.all():  # new arrays: the budget keeps the ids it was given last
             fresh = np.flatnonzero(~m.same_head)
-            ids = ids.copy()
-            ids[fresh] = connection_ids(m.words[fresh, :_HEAD_WORDS])
-        self._last_ids = m.keys, ids
-        return ids
+            ids, ports = ids.copy(), ports.copy()
+            ids[fresh], ports[fresh] = connection_ids(m.words[fresh, :_HEAD_WORDS]), _ports(m.words[fresh])
+        self._identity = m.keys, ids, ports
+        return ids, ports
 
     def want_rtt(self, connections: set[tuple[str, str]]) -> None:
         """Read RTT for these (local, remote) connections only (the agent's: those with series of
@@ -184,14 +192,14 @@ class TcpProbe(BpfProbe):
         m = self.read_marked("tcp_conns", self._entries)
         words = m.words
         closed = (words[:, _STATE_WORD] >> _STATE_SHIFT & 0xFFFF) == TCP_CLOSE
+        ids, ports = self._identities(m)
         ids, counts, first, self._carried = merged(
-            self._ids(m), words[:, _HEAD_WORDS:_COUNT_WORDS].view(np.int64), closed, self._carried)
+            ids, words[:, _HEAD_WORDS:_COUNT_WORDS].view(np.int64), closed, self._carried)
         # The entries' own arrays as a rule (no connection closed, none summed): the next collect
         # writes over them in place, so what a reader keeps of the columns it copies.
-        heads = words if first is None else words[first]
+        heads, ports = (words, ports) if first is None else (words[first], ports[first])
         snap.groups[CONN_GROUP] = Columns(ids, counts, np.zeros(len(ids), np.intp), ("",), None,
-                                          _Labels(heads, self._labelled.turn()),
-                                          ((heads[:, 0] >> 48) << 16 | (heads[:, 1] & 0xFFFF)).astype(np.int64),
+                                          _Labels(heads, self._labelled.turn()), ports,
                                           stamps=lambda at: heads[at, :_HEAD_WORDS] & _NAME_MASK,
                                           told=m.told() if first is None else None)
         if closed.any():

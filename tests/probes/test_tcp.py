@@ -325,32 +325,37 @@ def test_rows_of_one_connection_name_are_summed_and_a_closed_ones_counts_carried
 
 
 
-def test_connection_ids_are_made_again_only_for_heads_that_changed():
-    """TcpProbe._ids, on its own: over the same keys (no connection came or went) the ids of the
-    entries whose head changed are made again and the others taken as they were; over other keys
-    all are made. Each time they equal connection_ids of every head, in a new array where any changed
-    (the budget keeps the array it was given)."""
+def test_connection_ids_and_ports_are_made_again_only_for_heads_that_changed():
+    """TcpProbe._identities, on its own: over the same keys (no connection came or went) the ids and
+    ports of the entries whose head changed are made again and the others taken as they were; over
+    other keys all are made. Each time they equal those made of every head, in new arrays where any
+    changed (the budget keeps the ids it was given)."""
     rng = np.random.default_rng(7)
     probe = tcp.TcpProbe.__new__(tcp.TcpProbe)
-    probe._last_ids = (np.empty(0, np.uint64), np.empty(0, np.int64))
+    probe._identity = (np.empty(0, np.uint64), np.empty(0, np.int64), np.empty(0, np.int64))
     keys = np.arange(1, 7, dtype=np.uint64)
     words = rng.integers(0, 1 << 62, (6, tcp._CONN_VALUE.size // 8), dtype=np.uint64)
 
     def matched(keys, words, same_head):
         none = np.empty(0, object)
         return Matched(keys, words, same_head, same_head, none, none, np.empty(0, np.intp), words[:0])
-    first = probe._ids(matched(keys, words, np.zeros(6, bool)))
-    assert first.tolist() == tcp.connection_ids(words[:, :tcp._HEAD_WORDS]).tolist()
-    assert probe._ids(matched(keys, words, np.ones(6, bool))) is first  # all idle: the same array
-    words[2, 0] ^= 1  # a key reused for another connection before the collect saw the first end
+
+    def made(words):
+        return (tcp.connection_ids(words[:, :tcp._HEAD_WORDS]).tolist(),
+                ((words[:, 0] >> 48) << 16 | (words[:, 1] & 0xFFFF)).astype(np.int64).tolist())
+    first = probe._identities(matched(keys, words, np.zeros(6, bool)))
+    assert (first[0].tolist(), first[1].tolist()) == made(words)
+    idle = probe._identities(matched(keys, words, np.ones(6, bool)))
+    assert idle[0] is first[0] and idle[1] is first[1]  # all idle: the same arrays
+    words[2, 0] ^= 1 << 50  # its key reused for another connection (another local port) unseen
     same_head = np.ones(6, bool)
     same_head[2] = False
-    again = probe._ids(matched(keys, words, same_head))
-    assert again is not first and again.tolist() == tcp.connection_ids(words[:, :tcp._HEAD_WORDS]).tolist()
-    assert again[2] != first[2] and (np.delete(again, 2) == np.delete(first, 2)).all()
-    fewer = keys[1:]  # one went: the keys are another array, every id is made
-    assert probe._ids(matched(fewer, words[1:], np.ones(5, bool))).tolist() == \
-        tcp.connection_ids(words[1:, :tcp._HEAD_WORDS]).tolist()
+    again = probe._identities(matched(keys, words, same_head))
+    assert again[0] is not first[0] and (again[0].tolist(), again[1].tolist()) == made(words)
+    assert again[0][2] != first[0][2] and again[1][2] != first[1][2]
+    assert (np.delete(again[0], 2) == np.delete(first[0], 2)).all()
+    fewer = probe._identities(matched(keys[1:], words[1:], np.ones(5, bool)))  # one went: every one is made
+    assert (fewer[0].tolist(), fewer[1].tolist()) == made(words[1:])
 
 # ---- RTT ----------------------------------------------------------------------------------------
 
