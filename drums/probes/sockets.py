@@ -358,8 +358,7 @@ class SocketsProbe(BpfProbe):
         # The owners' sums: brought up to date by what the sockets counted since the last collect
         # when no socket came or went, else summed anew.
         if (live & ~m.same_head).any() or stale.any() or len(m.gone) or not summed:
-            self._live_totals = _owned(w[:, 1] & 0xFFFFFFFF, w[:, _WORD_START], (w[:, 3] >> 16) & 0xFFFF,
-                                       w[:, _WORDS_IDENTITY:_WORDS_COUNTS])
+            self._live_totals = _owned(owners, w[:, _WORD_START], dims, w[:, _WORDS_IDENTITY:_WORDS_COUNTS])
         else:
             for now, was in zip(words[m.grown].tolist(), m.before.tolist()):
                 _add(self._live_totals, _owner(now), [a - b for a, b in zip(now[_WORDS_IDENTITY:_WORDS_COUNTS],
