@@ -6,6 +6,7 @@ import contextlib
 import fcntl
 import glob
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -211,7 +212,8 @@ def pytest_sessionstart(session):
     if os.geteuid() != 0:
         raise pytest.UsageError("Drums tests load BPF programs: run them as root (make test)")
     for old in glob.glob("/sys/fs/bpf/drums_test_*"):  # left by sessions that were killed
-        if not os.path.exists(f"/proc/{old.rsplit('_', 1)[1]}"):
+        pid = re.match(r"/sys/fs/bpf/drums_test_(\d+)", old)  # drums_test_<pid>, or with _<path> after it
+        if pid and not os.path.exists(f"/proc/{pid[1]}"):
             shutil.rmtree(old, ignore_errors=True)
 
 
