@@ -50,8 +50,17 @@
 #ifndef MSG_PEEK
 #define MSG_PEEK 2
 #endif
+#ifndef TCP_SYN_SENT
+#define TCP_SYN_SENT 2
+#endif
+#ifndef TCP_SYN_RECV
+#define TCP_SYN_RECV 3
+#endif
 #ifndef TCP_CLOSE
 #define TCP_CLOSE 7
+#endif
+#ifndef TCP_LISTEN
+#define TCP_LISTEN 10
 #endif
 
 struct sock;

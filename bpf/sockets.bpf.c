@@ -282,13 +282,40 @@ static __always_inline void one_call(struct traffic_t *t, int ret, int is_send)
     }
 }
 
+// A new entry for the socket, in its slot if that is free, else in socket_traffic; 0 if the map is full.
+static __always_inline struct socket_traffic_t *make_entry(u64 id, struct socket_traffic_t *fresh)
+{
+#if SOCKET_SLOTS > 1
+    struct socket_traffic_t *s = slot_of(id);
+    if (s) {
+        // Of two CPUs that make entries for two sockets of one free slot at once, one takes it.
+        // Its counts are zero already: a CPU that makes this socket's entry at the same moment
+        // finds the slot taken by this very socket and counts into it, which no write here undoes.
+        u64 was = __sync_val_compare_and_swap(&s->id, 0, id);
+        if (was == 0) {
+            __builtin_memcpy(s, fresh, __builtin_offsetof(struct socket_traffic_t, t));
+            // Made, for the agent, when its start shows (an atomic: after the rest).
+            __sync_val_compare_and_swap(&s->process_start, 0, fresh->process_start);
+            return s;
+        }
+        if (was == id)
+            return s;
+    }
+#endif
+    if (socket_traffic.insert(&id, fresh) == 0)
+        return socket_traffic.lookup(&id);
+    count_drop(DROP_SOCKET);
+    return 0;
+}
+
 // The socket's entry, created at first use. A call on a socket that gets none (see below) is
 // folded into the calling process's closed_traffic here.
 static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int ret, int is_send)
 {
     struct socket_traffic_t *s = socket_of(id);
     if (s) {
-        // TCP entries are deleted when the connection closes; other sockets are freed without a
+        // TCP entries are deleted when the connection closes, and any at the address of a socket
+        // that connects, listens or is accepted (on_tcp_state); other sockets are freed without a
         // tracepoint, so a recycled struct sock is recognised by its new inode.
         if (s->klass == CLASS_TCP)
             return s;
@@ -308,26 +335,15 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int
     if (fresh.klass == CLASS_TCP)
         KREAD(state, sk + SK_STATE_OFF);
     if (state != TCP_CLOSE) {
-#if SOCKET_SLOTS > 1
-        s = slot_of(id);
-        if (s) {
-            // Of two CPUs that make entries for two sockets of one free slot at once, one takes it.
-            // Its counts are zero already: a CPU that makes this socket's entry at the same moment
-            // finds the slot taken by this very socket and counts into it, which no write here undoes.
-            u64 was = __sync_val_compare_and_swap(&s->id, 0, id);
-            if (was == 0) {
-                __builtin_memcpy(s, &fresh, __builtin_offsetof(struct socket_traffic_t, t));
-                // Made, for the agent, when its start shows (an atomic: after the rest).
-                __sync_val_compare_and_swap(&s->process_start, 0, fresh.process_start);
-                return s;
-            }
-            if (was == id)
-                return s;
-        }
-#endif
-        if (socket_traffic.insert(&id, &fresh) == 0)
-            return socket_traffic.lookup(&id);
-        count_drop(DROP_SOCKET);
+        s = make_entry(id, &fresh);
+        if (s && fresh.klass == CLASS_TCP)
+            KREAD(state, sk + SK_STATE_OFF);
+        if (s && state != TCP_CLOSE)
+            return s;
+        // A CLOSE that came on another CPU after the state was read found no entry to forget: this
+        // one goes now, as it would have then, and the call's counts with it.
+        if (s)
+            forget_socket(id, 0);
     }
     one_call(&fresh.t, ret, is_send);
     fold(fresh.tgid, fresh.process_start, fresh.klass, &fresh.t);
@@ -475,10 +491,16 @@ int exit_udp_recvmsg(struct pt_regs *ctx)
 #endif
 
 // sock:inet_sock_set_state (sk, oldstate, newstate): a TCP socket that reaches CLOSE is done;
-// its entry goes before the struct sock can be reused, and its counts to its owner.
+// its entry goes before the struct sock can be reused, and its counts to its owner. One that
+// connects, listens or is made by a listener for a new connection (SYN_RECV from LISTEN; not a
+// simultaneous open, from SYN_SENT) begins anew: an entry at its address is an earlier socket's,
+// which lost no CLOSE (its first call raced with it, say), and whose calls a TCP socket would take
+// for its own (socket_entry does not check a TCP socket's inode).
 int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
 {
-    if ((int)ctx->args[2] != TCP_CLOSE)
+    int old = (int)ctx->args[1], state = (int)ctx->args[2];
+    if (state != TCP_CLOSE && state != TCP_SYN_SENT && state != TCP_LISTEN
+        && !(state == TCP_SYN_RECV && old != TCP_SYN_SENT))
         return 0;
     u64 id = socket_id(ctx->args[0]);
     if (id)

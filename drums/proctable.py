@@ -176,6 +176,8 @@ class ProcessTable:
         listing: alive, and in this agent's network namespace where it reports only its own."""
         if pid in self._names:
             return True
+        if pid in self._elsewhere:
+            return False
         if self.netns is None:
             return os.path.exists(f"{self.proc}/{pid}")
         return netns(self.proc, pid) == self.netns

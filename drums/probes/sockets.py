@@ -22,7 +22,7 @@ from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, Attach
                               needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints, offset_defines,
                               typed)
 from drums.probes.entries import Entries, Matched, Remembered
-from drums.proctable import ProcessTable
+from drums.proctable import ProcessTable, comm
 
 PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
 _COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
@@ -335,11 +335,14 @@ class SocketsProbe(BpfProbe):
             self._identity = _Identity(m)
         ident = self._identity
         pids, klass = ident.pids, ident.klass
-        # Per process, not per socket: which are gone, and the names of the others.
+        # Per process, not per socket: which are gone, and the names of the others. One that started
+        # after the table's listing is not gone: forgetting its sockets would lose what they counted.
         names, dead = {}, []
         for pid in ident.owners:
             if pt.alive(pid):
                 names[pid] = pt.name(pid)
+            elif pt.belongs(pid):
+                names[pid] = comm(pt.proc, pid)
             else:
                 dead.append(pid)
         stale = among(pids, dead) | self._closed(m, pids, klass)
@@ -381,7 +384,8 @@ class SocketsProbe(BpfProbe):
         for i, ((tgid,), (start, *flat)) in enumerate(zip(_U32.iter_unpack(closed_keys),
                                                            _PROCESS_VALUE.iter_unpack(closed_values))):
             if not pt.alive(tgid):
-                ended.append((closed_keys[4 * i: 4 * i + 4], closed_values[size * i: size * (i + 1)]))
+                if not pt.belongs(tgid):  # not one that started after the table's listing
+                    ended.append((closed_keys[4 * i: 4 * i + 4], closed_values[size * i: size * (i + 1)]))
                 continue
             for klass in range(len(PROTOCOLS)):
                 _add(totals, (tgid, start, klass), flat[6 * klass: 6 * klass + 6])

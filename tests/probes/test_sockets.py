@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from drums.budget import Budget
-from drums.metrics import Columns
+from drums.metrics import Columns, Snapshot
 from drums.probes import sockets
 from drums.probes.sockets import _SOCKET_VALUE
 from tests.conftest import TRACEPOINT_PATHS, connected_pairs, eventually, series, started_on_path, wait_until
@@ -162,6 +162,11 @@ def process_counts(snap, pid: int, protocol: str) -> dict[str, int]:
     return out
 
 
+def own_tcp_rows(snap) -> dict[int, dict[str, int]]:
+    """Per-socket counts of this process's TCP sockets, by inode."""
+    return {int(lv[-1]): counts for lv, counts in socket_rows(snap, pid=os.getpid(), protocol="tcp").items()}
+
+
 def recv_exactly(sock: socket.socket, size: int) -> int:
     """Receive `size` bytes; return the number of recv calls it took."""
     calls = 0
@@ -171,6 +176,16 @@ def recv_exactly(sock: socket.socket, size: int) -> int:
         size -= got
         calls += 1
     return calls
+
+
+def sent_over(pairs: list[tuple[socket.socket, socket.socket]]) -> dict[int, dict[str, int]]:
+    """Send i bytes over the i-th connection (from 1): what each socket then counted, by inode."""
+    expected = {}
+    for i, (client, server) in enumerate(pairs, 1):
+        client.sendall(b"s" * i)
+        expected[inode(client)] = dict(ZERO, sent_bytes=i, send_calls=1)
+        expected[inode(server)] = dict(ZERO, received_bytes=i, receive_calls=recv_exactly(server, i))
+    return expected
 
 
 def recv_to_eof(sock: socket.socket) -> tuple[int, int]:
@@ -320,15 +335,21 @@ command()
 """
 
 
-def test_closed_connections_fold_into_process_totals(sockets_probe, collect, spawn):
-    count, size, chunk = 7, 200_003, 40_009
+def many_sent(spawn, count: int, size: int, chunk: int) -> tuple[Child, dict]:
+    """A child that sent `size` bytes over each of `count` connections, one after the other, all
+    closed now by both ends; and what it said it sent."""
     with tcp_listener() as lst:
         child = spawn(MANY_SENDER, lst.getsockname()[1], count, size, chunk)
         for _ in range(count):
             conn, _ = lst.accept()
             with conn:
                 assert recv_to_eof(conn)[0] == size
-    sent = child.expect()
+    return child, child.expect()
+
+
+def test_closed_connections_fold_into_process_totals(sockets_probe, collect, spawn):
+    count, size, chunk = 7, 200_003, 40_009
+    child, sent = many_sent(spawn, count, size, chunk)
     assert len(set(sent["local"])) == count
 
     def folded():
@@ -340,6 +361,25 @@ def test_closed_connections_fold_into_process_totals(sockets_probe, collect, spa
 
     snap = eventually(folded)
     assert process_counts(snap, child.pid, "tcp") == dict(ZERO, sent_bytes=count * size, send_calls=sent["calls"])
+
+
+def test_a_process_that_started_after_the_listing_keeps_what_its_closed_sockets_counted(sockets_probe, collect,
+                                                                                         spawn, proctable):
+    """The agent lists the processes, then reads the sockets: one that started in between is not in
+    the table, yet alive. What its closed sockets left in closed_traffic is not deleted as a dead
+    process's: the next collect, which knows the process, has every byte."""
+    count, size = 3, 100_003
+    proctable.refresh()
+    child, sent = many_sent(spawn, count, size, size)
+
+    def folded():  # by the kernel: the child's sockets have no entries left
+        _, values = sockets_probe.socket_entries()
+        assert [v for v in _SOCKET_VALUE.iter_unpack(values) if v[1] == child.pid] == []
+    eventually(folded)
+    assert not proctable.alive(child.pid)
+    sockets_probe.collect(Snapshot())  # against the listing made before the child started
+    assert process_counts(collect(sockets_probe), child.pid, "tcp") == dict(
+        ZERO, sent_bytes=count * size, send_calls=sent["calls"])
 
 
 CLOSING_SENDER = r"""
@@ -683,6 +723,46 @@ def test_next_socket_does_not_inherit_a_socket_used_after_reset(sockets_probe, c
                 assert carrying == {(name(c.getsockname()), str(inode(c)))}
 
 
+def test_a_new_connection_does_not_take_the_entry_an_earlier_socket_left_at_its_address(sockets_probe, collect):
+    """A TCP socket's calls count into the entry at its address, its inode unchecked: an entry that
+    lost its CLOSE (its socket's first call raced with it) would take the counts of the next socket
+    there. Every socket that connects, listens or is accepted forgets what is at its address first.
+    Here entries are planted where closed sockets were: the new sockets that get those addresses
+    count for themselves, and each planted entry is either still as planted or gone (to its owner)."""
+    def entries() -> dict[int, tuple]:
+        keys, values = sockets_probe.socket_entries()
+        return dict(zip((k for (k,) in struct.iter_unpack("<Q", keys)), _SOCKET_VALUE.iter_unpack(values)))
+
+    with connected_pairs(20) as pairs:
+        for client, server in pairs:
+            client.sendall(b"p")
+            recv_exactly(server, 1)
+        inodes = {inode(sock) for pair in pairs for sock in pair}
+        old = {key: v for key, v in entries().items() if v[0] in inodes}
+    assert len(old) == 40
+
+    def closed():
+        assert old.keys() & entries().keys() == set()
+    eventually(closed, timeout=30)
+    planted = {key: v[:12] + (777, 1, 0, 0, 0, 0, 0, v[19], 0) for key, v in old.items()}  # identity, counts, start
+    hashed = sockets_probe.opened["socket_traffic"]
+    for key, v in planted.items():
+        hashed.update(struct.pack("<Q", key), _SOCKET_VALUE.pack(*v))
+    try:
+        with connected_pairs(20) as pairs:
+            expected = sent_over(pairs)
+            rows = own_tcp_rows(collect(sockets_probe))
+            assert {ino: rows.get(ino) for ino in expected} == expected
+            now = entries()
+            assert {key for key, v in now.items() if v[0] in expected} & planted.keys(), \
+                "no new socket got the address of a planted entry: nothing was tested"
+            assert {key: now[key] for key in planted.keys() & now.keys() if now[key] != planted[key]
+                    and now[key][0] not in expected} == {}
+    finally:
+        for key, v in planted.items():
+            hashed.delete_unchanged([(struct.pack("<Q", key), _SOCKET_VALUE.pack(*v))])
+
+
 # ---- a thread that execs ------------------------------------------------------------------------
 
 EXEC_FROM_THREAD = r"""
@@ -793,13 +873,8 @@ def test_sockets_in_their_slots_and_those_whose_slot_was_taken_count_alike(socke
     when its socket closes."""
     count = 2_000
     with connected_pairs(count) as pairs:
-        expected = {}
-        for i, (client, server) in enumerate(pairs, 1):
-            client.sendall(b"s" * i)
-            expected[inode(client)] = dict(ZERO, sent_bytes=i, send_calls=1)
-            expected[inode(server)] = dict(ZERO, received_bytes=i, receive_calls=recv_exactly(server, i))
-        rows = {int(labels[-1]): counts for labels, counts in
-                socket_rows(collect(sockets_probe), pid=os.getpid(), protocol="tcp").items()}
+        expected = sent_over(pairs)
+        rows = own_tcp_rows(collect(sockets_probe))
         assert {ino: rows.get(ino) for ino in expected} == expected
         _, values = sockets_probe.socket_entries()
         in_slot = [v[-1] != 0 for v in _SOCKET_VALUE.iter_unpack(values) if v[0] in expected]  # v[-1]: the slot's owner
