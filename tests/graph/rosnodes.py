@@ -8,7 +8,8 @@ with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory,
 every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
 "go", publishes $DRUMS_TEST_BURST messages on /beat (with $DRUMS_TEST_DEADLINE_MS), the times between
 them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but every tenth 40 ms;
-on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish; each
+on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish (from a
+thread of real-time priority); each
 message says CLOCK_REALTIME in ns as it is published), receiver (takes /beat, requesting
 $DRUMS_TEST_DEADLINE_MS, and on a line "latencies" prints for each message the ns from its stamp
 to the callback's start; "ages" the ns from the RMW's source stamp to right after rclpy took it, and
@@ -174,7 +175,11 @@ def schedule() -> list[int]:
 
 
 def beat(pub) -> None:
-    """Publish on an absolute schedule, so that a late wakeup does not shift the ones after it."""
+    """Publish on an absolute schedule, so that a late wakeup does not shift the ones after it. The
+    thread runs at a real-time priority: the tests compare its clock, read right before rcl_publish,
+    with the probe's at rcl_publish's entry, and on a host busy with the other lanes of the suite a
+    task run in between put milliseconds into one period of the two (p99 3 ms apart)."""
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # 0: this thread
     periods = schedule()
     started.wait()
     # With $DRUMS_TEST_BURST_SUBSCRIBERS, not before that many subscribers matched (DDS discovery
