@@ -183,7 +183,9 @@ def test_a_node_restarted_under_its_name_shows_in_its_new_process_while_dds_stil
         again = ros_nodes("talker", "phoenix")
         wait_until(lambda: nodes(ros2_graph).get("/phoenix") == (again.pid, "gid"),
                    f"round {round}: the restarted phoenix, within DDS's lease of the killed one", timeout=8)
-        assert {e.node for e in ros2_graph.entities("endpoint") if e.topic == "/chatter"} == {"/phoenix"}
+        # DDS may list the new participant before its endpoints (and the killed one's are gone).
+        wait_until(lambda: {e.node for e in ros2_graph.entities("endpoint") if e.topic == "/chatter"} == {"/phoenix"},
+                   f"round {round}: the restarted phoenix's /chatter publisher", timeout=8)
         again.kill()
         wait_until(lambda: "/phoenix" not in nodes(ros2_graph), "the restarted phoenix to leave", timeout=5)
 
