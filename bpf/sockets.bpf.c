@@ -493,9 +493,9 @@ int exit_udp_recvmsg(struct pt_regs *ctx)
 // sock:inet_sock_set_state (sk, oldstate, newstate): a TCP socket that reaches CLOSE is done;
 // its entry goes before the struct sock can be reused, and its counts to its owner. One that
 // connects, listens or is made by a listener for a new connection (SYN_RECV from LISTEN; not a
-// simultaneous open, from SYN_SENT) begins anew: an entry at its address is an earlier socket's,
-// which lost no CLOSE (its first call raced with it, say), and whose calls a TCP socket would take
-// for its own (socket_entry does not check a TCP socket's inode).
+// simultaneous open, from SYN_SENT) begins anew: an entry at its address is an earlier socket's
+// that its CLOSE did not find (made by a call that raced with it, say), and the new socket would
+// count into it as its own (socket_entry does not check a TCP socket's inode).
 int on_tcp_state(struct bpf_raw_tracepoint_args *ctx)
 {
     int old = (int)ctx->args[1], state = (int)ctx->args[2];
