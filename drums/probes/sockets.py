@@ -14,7 +14,8 @@ from sys import intern
 import numpy as np
 
 from drums.arrays import among, distinct, within
-from drums.kernel import bpffs
+from drums.errors import KernelError
+from drums.kernel import bpffs, sockdiag
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
@@ -53,8 +54,9 @@ _U64 = struct.Struct("<Q")
 _WORD = (1 << 64) - 1
 _U32 = struct.Struct("<I")
 
-# Listing a process's open files costs a readlink per file: a process's idle non-TCP sockets are
-# checked for having closed at most this often (seconds).
+# Listing a process's open files costs a readlink per file, and listing the namespace's TCP sockets
+# a sock_diag dump: idle sockets are checked for having closed unseen at most this often (seconds),
+# each process's non-TCP ones, and the TCP ones all at once.
 FD_CHECK_INTERVAL = 10.0
 
 # Slots of socket entries (bpf/sockets.bpf.c, whose slot_of() hashes a socket's id as _slot_index() does).
@@ -238,6 +240,8 @@ class SocketsProbe(BpfProbe):
         self.proc_net_unix = proc_net_unix
         self._monotonic = Monotonic()
         self._fds_read_at: dict[int, float] = {}
+        self._tcp_checked_at = float("-inf")
+        self._netns: int | None = None  # this process's network namespace: the one sock_diag lists
         self._entries = Entries(_SOCKET_VALUE.size, _IDENTITY.size)
         self._live_totals: dict = {}  # _owned() of the live entries, as of the last collect
         self._entries_summed = False  # whether _live_totals is that of the entries the last collect kept
@@ -417,10 +421,13 @@ class SocketsProbe(BpfProbe):
         return forgotten
 
     def _closed(self, m: Matched, pids: np.ndarray, klass: np.ndarray) -> np.ndarray:
-        """Entries of sockets the kernel freed without a tracepoint (all but TCP): the process no
-        longer holds the inode. Only sockets idle since the last collect are checked, each process
-        at most once per FD_CHECK_INTERVAL, which keeps the /proc reads few."""
-        closed = np.zeros(len(pids), bool)
+        """Entries of sockets the kernel freed without the programs' seeing it. Any but TCP is freed
+        without a tracepoint: the process no longer holds the inode. A TCP one's CLOSE finds no entry
+        when the socket's first call made it on another CPU at that moment (rare; seen under load):
+        its inode is no longer among the namespace's TCP sockets. Only sockets idle since the last
+        collect are checked, each process (and the TCP sockets) at most once per FD_CHECK_INTERVAL,
+        which keeps the reads few."""
+        closed = self._tcp_closed(m, klass)
         idle = m.same & (klass != _TCP)
         now = time.monotonic()
         due = [pid for pid in distinct(pids[idle]).tolist()
@@ -433,3 +440,25 @@ class SocketsProbe(BpfProbe):
                 closed[i] = int(m.words[i, 0]) not in inodes_of[int(pids[i])]
             self._fds_read_at = {pid: t for pid, t in self._fds_read_at.items() if self.proctable.alive(pid)}
         return closed
+
+    def _tcp_closed(self, m: Matched, klass: np.ndarray) -> np.ndarray:
+        """The idle TCP entries of this network namespace whose socket a sock_diag dump does not
+        list. A socket its process closed (an orphan finishing its FIN, listed with inode 0) counts
+        nothing more, and goes too. Those of other namespaces, which the dump cannot see, stay, and
+        so do those without an inode (a kernel's socket)."""
+        now = time.monotonic()
+        if now - self._tcp_checked_at < FD_CHECK_INTERVAL:
+            return np.zeros(len(klass), bool)
+        try:
+            if self._netns is None:
+                self._netns = int(sockdiag.own_netns())
+            w = m.words
+            idle = m.same & (klass == _TCP) & ((w[:, 1] >> np.uint64(32)) == self._netns) & (w[:, 0] != 0)
+            if not idle.any():
+                return idle
+            listed = np.sort(sockdiag.dump_tcp_table()["inode"].astype(np.uint64))
+        except KernelError:
+            return np.zeros(len(klass), bool)  # no sock_diag here: such entries wait for their owner's end
+        finally:
+            self._tcp_checked_at = now
+        return idle & ~within(w[:, 0], listed)

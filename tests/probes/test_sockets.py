@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from drums.budget import Budget
+from drums.kernel import bpffs
 from drums.metrics import Columns, Snapshot
 from drums.probes import sockets
 from drums.probes.sockets import _SOCKET_VALUE
@@ -556,6 +557,7 @@ def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
     # acknowledged: on a host busy with the whole suite, 102 of them were still closing after 3 s
     # (one way: a FIN dropped from a full loopback backlog is sent again after 0.2, 0.4, 0.8 s...).
     def drained():
+        collect(sockets_probe)  # which forgets any entry whose CLOSE the programs missed
         _, values = sockets_probe.socket_entries()
         assert [v for v in _SOCKET_VALUE.iter_unpack(values) if v[1] in pids] == []  # v[1]: the process
     eventually(drained, timeout=30)
@@ -723,44 +725,81 @@ def test_next_socket_does_not_inherit_a_socket_used_after_reset(sockets_probe, c
                 assert carrying == {(name(c.getsockname()), str(inode(c)))}
 
 
+def probe_entries(probe) -> dict[int, tuple]:
+    """Socket id -> its entry, unpacked, of every entry the probe's maps hold."""
+    keys, values = probe.socket_entries()
+    return dict(zip((k for (k,) in struct.iter_unpack("<Q", keys)), _SOCKET_VALUE.iter_unpack(values)))
+
+
+def lose_a_mark(probe) -> None:
+    """Count a mark lost to a full set, as the programs do: the probe's next collect reads the maps
+    whole, and so sees what a test changed in them behind the programs' backs."""
+    generation, lost = probe.opened["generation"], struct.pack("<I", 1)
+    generation.update(lost, struct.pack("<Q", struct.unpack("<Q", generation.lookup(lost))[0] + 1))
+
+
+@contextlib.contextmanager
+def planted_where_sockets_closed(probe, n: int):
+    """Entries planted in socket_traffic at the addresses of the 2n sockets of n connections of this
+    process that closed (and whose entries went): each as its socket's entry was, counting one send
+    of 777 bytes. Yields them by id. After, those left are forgotten as the agent forgets a socket
+    (their counts to their owner, whose totals stay monotonic for the tests that follow)."""
+    with connected_pairs(n) as pairs:
+        for client, server in pairs:
+            client.sendall(b"p")
+            recv_exactly(server, 1)
+        inodes = {inode(sock) for pair in pairs for sock in pair}
+        old = {key: v for key, v in probe_entries(probe).items() if v[0] in inodes}
+    assert len(old) == 2 * n
+
+    def closed():
+        assert old.keys() & probe_entries(probe).keys() == set()
+    eventually(closed, timeout=30)
+    planted = {key: v[:12] + (777, 1, 0, 0, 0, 0, 0, v[19], 0) for key, v in old.items()}  # identity, counts, start
+    hashed = probe.opened["socket_traffic"]
+    for key, v in planted.items():
+        hashed.update(struct.pack("<Q", key), _SOCKET_VALUE.pack(*v))
+    lose_a_mark(probe)
+    try:
+        yield planted
+    finally:
+        for key, v in planted.items():
+            bpffs.run_program(probe.programs["forget_gone"], key, v[0], v[1], v[19])
+        lose_a_mark(probe)
+
+
 def test_a_new_connection_does_not_take_the_entry_an_earlier_socket_left_at_its_address(sockets_probe, collect):
     """A TCP socket's calls count into the entry at its address, its inode unchecked: an entry that
     lost its CLOSE (its socket's first call raced with it) would take the counts of the next socket
     there. Every socket that connects, listens or is accepted forgets what is at its address first.
     Here entries are planted where closed sockets were: the new sockets that get those addresses
     count for themselves, and each planted entry is either still as planted or gone (to its owner)."""
-    def entries() -> dict[int, tuple]:
-        keys, values = sockets_probe.socket_entries()
-        return dict(zip((k for (k,) in struct.iter_unpack("<Q", keys)), _SOCKET_VALUE.iter_unpack(values)))
+    with planted_where_sockets_closed(sockets_probe, 20) as planted, connected_pairs(20) as pairs:
+        expected = sent_over(pairs)
+        rows = own_tcp_rows(collect(sockets_probe))
+        assert {ino: rows.get(ino) for ino in expected} == expected
+        now = probe_entries(sockets_probe)
+        assert {key for key, v in now.items() if v[0] in expected} & planted.keys(), \
+            "no new socket got the address of a planted entry: nothing was tested"
+        assert {key: now[key] for key in planted.keys() & now.keys() if now[key] != planted[key]
+                and now[key][0] not in expected} == {}
 
-    with connected_pairs(20) as pairs:
-        for client, server in pairs:
-            client.sendall(b"p")
-            recv_exactly(server, 1)
-        inodes = {inode(sock) for pair in pairs for sock in pair}
-        old = {key: v for key, v in entries().items() if v[0] in inodes}
-    assert len(old) == 40
 
-    def closed():
-        assert old.keys() & entries().keys() == set()
-    eventually(closed, timeout=30)
-    planted = {key: v[:12] + (777, 1, 0, 0, 0, 0, 0, v[19], 0) for key, v in old.items()}  # identity, counts, start
-    hashed = sockets_probe.opened["socket_traffic"]
-    for key, v in planted.items():
-        hashed.update(struct.pack("<Q", key), _SOCKET_VALUE.pack(*v))
-    try:
-        with connected_pairs(20) as pairs:
-            expected = sent_over(pairs)
-            rows = own_tcp_rows(collect(sockets_probe))
-            assert {ino: rows.get(ino) for ino in expected} == expected
-            now = entries()
-            assert {key for key, v in now.items() if v[0] in expected} & planted.keys(), \
-                "no new socket got the address of a planted entry: nothing was tested"
-            assert {key: now[key] for key in planted.keys() & now.keys() if now[key] != planted[key]
-                    and now[key][0] not in expected} == {}
-    finally:
-        for key, v in planted.items():
-            hashed.delete_unchanged([(struct.pack("<Q", key), _SOCKET_VALUE.pack(*v))])
+def test_a_tcp_entry_whose_close_went_unseen_goes_and_its_counts_stay_with_its_owner(sockets_probe, collect, monkeypatch):
+    """A TCP entry goes when its socket reaches CLOSE; one made by a call that raced with the CLOSE
+    on another CPU is not found then (a few in 10,000 connections on a loaded host). The probe finds
+    such an entry, once idle, by its inode missing from the namespace's TCP sockets, and forgets it:
+    what it held stays in its owner's totals. Here they are planted where closed sockets were."""
+    monkeypatch.setattr(sockets, "FD_CHECK_INTERVAL", 0.0)  # checked at each collect
+    before = process_counts(collect(sockets_probe), os.getpid(), "tcp")
+    with planted_where_sockets_closed(sockets_probe, 10) as planted:
+        collect(sockets_probe)  # finds them: new, so not yet checked
+        assert planted.keys() <= probe_entries(sockets_probe).keys()
+        after = process_counts(collect(sockets_probe), os.getpid(), "tcp")
+        assert planted.keys() & probe_entries(sockets_probe).keys() == set()
+    # The connections' ten 1-byte sends and receives, and the twenty plants' sends.
+    assert after == dict(before, sent_bytes=before["sent_bytes"] + 10 + 20 * 777, send_calls=before["send_calls"] + 30,
+                         received_bytes=before["received_bytes"] + 10, receive_calls=before["receive_calls"] + 10)
 
 
 # ---- a thread that execs ------------------------------------------------------------------------
