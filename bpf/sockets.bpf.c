@@ -336,14 +336,17 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int
         KREAD(state, sk + SK_STATE_OFF);
     if (state != TCP_CLOSE) {
         s = make_entry(id, &fresh);
-        if (s && fresh.klass == CLASS_TCP)
-            KREAD(state, sk + SK_STATE_OFF);
-        if (s && state != TCP_CLOSE)
-            return s;
-        // A CLOSE that came on another CPU after the state was read found no entry to forget: this
-        // one goes now, as it would have then, and the call's counts with it.
-        if (s)
+        if (s) {
+            if (fresh.klass == CLASS_TCP)
+                KREAD(state, sk + SK_STATE_OFF);
+            if (state != TCP_CLOSE)
+                return s;
+            // A CLOSE that came on another CPU after the state was read found no entry to forget:
+            // this one goes now, as it would have then, and the call's counts with it. (The
+            // tracepoint comes just before the state is stored: an entry made in between stays,
+            // and the agent forgets it once idle, finding its socket gone.)
             forget_socket(id, 0);
+        }
     }
     one_call(&fresh.t, ret, is_send);
     fold(fresh.tgid, fresh.process_start, fresh.klass, &fresh.t);

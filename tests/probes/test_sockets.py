@@ -168,6 +168,12 @@ def own_tcp_rows(snap) -> dict[int, dict[str, int]]:
     return {int(lv[-1]): counts for lv, counts in socket_rows(snap, pid=os.getpid(), protocol="tcp").items()}
 
 
+def probe_entries(probe) -> dict[int, tuple]:
+    """Socket id -> its entry, unpacked, of every entry the probe's maps hold."""
+    keys, values = probe.socket_entries()
+    return dict(zip((k for (k,) in struct.iter_unpack("<Q", keys)), _SOCKET_VALUE.iter_unpack(values)))
+
+
 def recv_exactly(sock: socket.socket, size: int) -> int:
     """Receive `size` bytes; return the number of recv calls it took."""
     calls = 0
@@ -374,8 +380,7 @@ def test_a_process_that_started_after_the_listing_keeps_what_its_closed_sockets_
     child, sent = many_sent(spawn, count, size, size)
 
     def folded():  # by the kernel: the child's sockets have no entries left
-        _, values = sockets_probe.socket_entries()
-        assert [v for v in _SOCKET_VALUE.iter_unpack(values) if v[1] == child.pid] == []
+        assert [v for v in probe_entries(sockets_probe).values() if v[1] == child.pid] == []
     eventually(folded)
     assert not proctable.alive(child.pid)
     sockets_probe.collect(Snapshot())  # against the listing made before the child started
@@ -558,8 +563,7 @@ def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
     # (one way: a FIN dropped from a full loopback backlog is sent again after 0.2, 0.4, 0.8 s...).
     def drained():
         collect(sockets_probe)  # which forgets any entry whose CLOSE the programs missed
-        _, values = sockets_probe.socket_entries()
-        assert [v for v in _SOCKET_VALUE.iter_unpack(values) if v[1] in pids] == []  # v[1]: the process
+        assert [v for v in probe_entries(sockets_probe).values() if v[1] in pids] == []  # v[1]: the process
     eventually(drained, timeout=30)
 
 
@@ -723,12 +727,6 @@ def test_next_socket_does_not_inherit_a_socket_used_after_reset(sockets_probe, c
                 rows = socket_rows(collect(sockets_probe), pid=os.getpid(), protocol="tcp")
                 carrying = {(lv[3], lv[6]) for lv, counts in rows.items() if counts["sent_bytes"] == 1234}
                 assert carrying == {(name(c.getsockname()), str(inode(c)))}
-
-
-def probe_entries(probe) -> dict[int, tuple]:
-    """Socket id -> its entry, unpacked, of every entry the probe's maps hold."""
-    keys, values = probe.socket_entries()
-    return dict(zip((k for (k,) in struct.iter_unpack("<Q", keys)), _SOCKET_VALUE.iter_unpack(values)))
 
 
 def lose_a_mark(probe) -> None:
@@ -915,14 +913,13 @@ def test_sockets_in_their_slots_and_those_whose_slot_was_taken_count_alike(socke
         expected = sent_over(pairs)
         rows = own_tcp_rows(collect(sockets_probe))
         assert {ino: rows.get(ino) for ino in expected} == expected
-        _, values = sockets_probe.socket_entries()
-        in_slot = [v[-1] != 0 for v in _SOCKET_VALUE.iter_unpack(values) if v[0] in expected]  # v[-1]: the slot's owner
+        in_slot = [v[-1] != 0 for v in probe_entries(sockets_probe).values() if v[0] in expected]  # v[-1]: the slot's owner
         assert len(in_slot) == 2 * count
         assert 0 < in_slot.count(False) < in_slot.count(True)
 
     def gone():
-        _, values = sockets_probe.socket_entries()
-        assert [v for v in _SOCKET_VALUE.iter_unpack(values) if v[0] in expected] == []
+        collect(sockets_probe)  # which forgets any entry whose CLOSE the programs missed
+        assert [v for v in probe_entries(sockets_probe).values() if v[0] in expected] == []
     eventually(gone, timeout=30)
 
 
