@@ -34,6 +34,9 @@ TCP_STATES = {
     11: "CLOSING",
 }
 ALL_STATES = sum(1 << state for state in TCP_STATES)
+# Those of full sockets, which a process may hold: not TIME_WAIT and SYN_RECV (the kernel's small
+# stand-ins for a connection closing or being accepted), which may outnumber them on a busy host.
+FULL_STATES = ALL_STATES & ~(1 << 6) & ~(1 << 3)
 
 NETLINK_SOCK_DIAG = 4
 SOCK_DIAG_BY_FAMILY = 20

@@ -442,9 +442,9 @@ class SocketsProbe(BpfProbe):
         return closed
 
     def _tcp_closed(self, m: Matched, klass: np.ndarray) -> np.ndarray:
-        """The idle TCP entries of this network namespace whose socket a sock_diag dump does not
-        list. A socket its process closed (an orphan finishing its FIN, listed with inode 0) counts
-        nothing more, and goes too. Those of other namespaces, which the dump cannot see, stay, and
+        """The idle TCP entries of this network namespace whose socket a sock_diag dump of the full
+        sockets does not list. A socket its process closed (an orphan finishing its FIN, listed with
+        inode 0) counts nothing more, and goes too. Those of other namespaces, which the dump cannot see, stay, and
         so do those without an inode (a kernel's socket)."""
         now = time.monotonic()
         if now - self._tcp_checked_at < FD_CHECK_INTERVAL:
@@ -456,7 +456,7 @@ class SocketsProbe(BpfProbe):
             idle = m.same & (klass == _TCP) & ((w[:, 1] >> np.uint64(32)) == self._netns) & (w[:, 0] != 0)
             if not idle.any():
                 return idle
-            listed = np.sort(sockdiag.dump_tcp_table()["inode"].astype(np.uint64))
+            listed = np.sort(sockdiag.dump_tcp_table(sockdiag.FULL_STATES)["inode"].astype(np.uint64))
         except KernelError:
             return np.zeros(len(klass), bool)  # no sock_diag here: such entries wait for their owner's end
         finally:
