@@ -54,10 +54,13 @@ _U64 = struct.Struct("<Q")
 _WORD = (1 << 64) - 1
 _U32 = struct.Struct("<I")
 
-# Listing a process's open files costs a readlink per file, and listing the namespace's TCP sockets
-# a sock_diag dump: idle sockets are checked for having closed unseen at most this often (seconds),
-# each process's non-TCP ones, and the TCP ones all at once.
+# Listing a process's open files costs a readlink per file: a process's idle non-TCP sockets are
+# checked for having closed at most this often (seconds).
 FD_CHECK_INTERVAL = 10.0
+# A TCP entry whose CLOSE the programs missed is rare (a call raced with it), and finding one costs
+# a sock_diag dump of the namespace's TCP sockets (3 ms a thousand): idle TCP entries are checked
+# at most this often (seconds).
+TCP_CHECK_INTERVAL = 60.0
 
 # Slots of socket entries (bpf/sockets.bpf.c, whose slot_of() hashes a socket's id as _slot_index() does).
 SOCKET_SLOTS = 16384
@@ -425,8 +428,8 @@ class SocketsProbe(BpfProbe):
         without a tracepoint: the process no longer holds the inode. A TCP one's CLOSE finds no entry
         when the socket's first call made it on another CPU at that moment (rare; seen under load):
         its inode is no longer among the namespace's TCP sockets. Only sockets idle since the last
-        collect are checked, each process (and the TCP sockets) at most once per FD_CHECK_INTERVAL,
-        which keeps the reads few."""
+        collect are checked, each process's at most once per FD_CHECK_INTERVAL and the TCP ones
+        once per TCP_CHECK_INTERVAL, which keeps the reads few."""
         closed = self._tcp_closed(m, klass)
         idle = m.same & (klass != _TCP)
         now = time.monotonic()
@@ -447,7 +450,7 @@ class SocketsProbe(BpfProbe):
         inode 0) counts nothing more, and goes too. Those of other namespaces, which the dump cannot see, stay, and
         so do those without an inode (a kernel's socket)."""
         now = time.monotonic()
-        if now - self._tcp_checked_at < FD_CHECK_INTERVAL:
+        if now - self._tcp_checked_at < TCP_CHECK_INTERVAL:
             return np.zeros(len(klass), bool)
         try:
             if self._netns is None:

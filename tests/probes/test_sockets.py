@@ -525,7 +525,8 @@ def process_totals(snap, pids) -> dict[tuple, int]:
     return out
 
 
-def test_ten_thousand_short_connections(sockets_probe, collect, spawn):
+def test_ten_thousand_short_connections(sockets_probe, collect, spawn, monkeypatch):
+    monkeypatch.setattr(sockets, "TCP_CHECK_INTERVAL", 0.0)  # drained() below: see there
     count, size = 10_000, 1_001
     server = spawn(CHURN_SERVER, count)
     client = spawn(CHURN_CLIENT, server.expect()["port"], count, size)
@@ -788,7 +789,7 @@ def test_a_tcp_entry_whose_close_went_unseen_goes_and_its_counts_stay_with_its_o
     on another CPU is not found then (a few in 10,000 connections on a loaded host). The probe finds
     such an entry, once idle, by its inode missing from the namespace's TCP sockets, and forgets it:
     what it held stays in its owner's totals. Here they are planted where closed sockets were."""
-    monkeypatch.setattr(sockets, "FD_CHECK_INTERVAL", 0.0)  # checked at each collect
+    monkeypatch.setattr(sockets, "TCP_CHECK_INTERVAL", 0.0)  # checked at each collect
     before = process_counts(collect(sockets_probe), os.getpid(), "tcp")
     with planted_where_sockets_closed(sockets_probe, 10) as planted:
         collect(sockets_probe)  # finds them: new, so not yet checked
@@ -903,11 +904,12 @@ def test_a_collect_looks_up_the_sockets_that_changed_and_keeps_the_idle_ones(soc
         assert looked_up >= 20
 
 
-def test_sockets_in_their_slots_and_those_whose_slot_was_taken_count_alike(sockets_probe, collect):
+def test_sockets_in_their_slots_and_those_whose_slot_was_taken_count_alike(sockets_probe, collect, monkeypatch):
     """A socket's entry is in its slot of an array (by a hash of its id) when that is free, else in
     socket_traffic: of 2,000 connections' 4,000 sockets, hundreds find their slot taken (16,384
     slots), so both kinds are here. Each counts exactly what it sent and received; each entry goes
     when its socket closes."""
+    monkeypatch.setattr(sockets, "TCP_CHECK_INTERVAL", 0.0)  # gone() below: see there
     count = 2_000
     with connected_pairs(count) as pairs:
         expected = sent_over(pairs)
