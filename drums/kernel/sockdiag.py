@@ -10,6 +10,7 @@ import socket
 import struct
 import sys
 import threading
+from array import array
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -142,18 +143,23 @@ def dump_tcp(states: int = ALL_STATES, info: bool = True) -> list[TcpConnection]
     """Every IPv4 and IPv6 TCP socket of this network namespace whose state bit is set in `states`;
     without `info`, their tcp_info fields are 0 (and the kernel sends a fifth of the bytes)."""
     with _diag_socket() as sock:
-        return [_connection(payload) for family in (socket.AF_INET, socket.AF_INET6)
-                for payload in _dump(sock, family, states, info)]
+        return [_connection(data[start:end]) for family in (socket.AF_INET, socket.AF_INET6)
+                for data, starts, ends in _dump(sock, family, states, info) for start, end in zip(starts, ends)]
 
 
 def dump_tcp_table(states: int = ALL_STATES) -> np.ndarray:
     """The same sockets without tcp_info, as an array of DIAG_RECORD: ten thousand in a few ms,
-    and no Python object each."""
+    gathered from the replies in place (no Python object a socket)."""
     with _diag_socket() as sock:
-        payloads = [p for family in (socket.AF_INET, socket.AF_INET6) for p in _dump(sock, family, states, False)]
-    if any(len(p) < DIAG_RECORD.itemsize for p in payloads):
-        raise KernelError("truncated inet_diag_msg in a sock_diag reply")
-    table = np.frombuffer(b"".join(p[:DIAG_RECORD.itemsize] for p in payloads), DIAG_RECORD)
+        replies = [reply for family in (socket.AF_INET, socket.AF_INET6) for reply in _dump(sock, family, states, False)]
+    tables = [np.empty(0, DIAG_RECORD)]
+    for data, starts, ends in replies:
+        starts = np.frombuffer(starts, np.int64)
+        if (np.frombuffer(ends, np.int64) - starts < DIAG_RECORD.itemsize).any():
+            raise KernelError("truncated inet_diag_msg in a sock_diag reply")
+        record = np.frombuffer(data, np.uint8)[starts[:, None] + np.arange(DIAG_RECORD.itemsize)]
+        tables.append(record.view(DIAG_RECORD)[:, 0])
+    table = np.concatenate(tables)
     if not ((table["family"] == socket.AF_INET) | (table["family"] == socket.AF_INET6)).all():
         raise KernelError("unexpected address family in a sock_diag reply")
     return table
@@ -195,21 +201,21 @@ def _lookup(sock: socket.socket, family: int, src: bytes, sport: int, dst: bytes
     return _connection(payloads[0]) if payloads else None
 
 
-def _dump(sock: socket.socket, family: int, states: int, info: bool) -> list[bytes]:
-    """The payloads of a dump's messages, one a socket."""
+def _dump(sock: socket.socket, family: int, states: int, info: bool) -> list[tuple[bytes, array, array]]:
+    """The replies of a dump, each with where its messages' payloads start and end (one a socket)."""
     body = _REQUEST.pack(family, socket.IPPROTO_TCP, 1 << (INET_DIAG_INFO - 1) if info else 0, states)
     header = _NLMSGHDR.pack(_NLMSGHDR.size + len(body), SOCK_DIAG_BY_FAMILY, NLM_F_REQUEST | NLM_F_DUMP, 1, 0)
     try:
         sock.send(header + body)
-        payloads = []
+        replies = []
         while True:
             data, _, flags, _ = sock.recvmsg(_RECV_SIZE)
             if flags & socket.MSG_TRUNC:
                 raise KernelError(f"a sock_diag reply did not fit in {_RECV_SIZE} bytes")
-            batch, done = _payloads(data)
-            payloads += batch
+            starts, ends, done = _messages(data)
+            replies.append((data, starts, ends))
             if done:
-                return payloads
+                return replies
     except OSError as e:
         raise KernelError(f"reading TCP sockets over NETLINK_SOCK_DIAG failed: {e.strerror}") from None
 
@@ -224,9 +230,15 @@ def parse_messages(data: bytes) -> list[TcpConnection]:
 
 
 def _payloads(data: bytes) -> tuple[list[bytes], bool]:
-    """The sock_diag messages' payloads in `data`, one a socket, and whether the dump ended in it
-    (NLMSG_DONE)."""
-    payloads = []
+    """The sock_diag messages' payloads in `data`, one a socket, and whether the dump ended in it."""
+    starts, ends, done = _messages(data)
+    return [data[start:end] for start, end in zip(starts, ends)], done
+
+
+def _messages(data: bytes) -> tuple[array, array, bool]:
+    """Where the sock_diag messages' payloads in `data` start and end (machine integers: a dump of
+    ten thousand sockets makes no object each), and whether the dump ended in it (NLMSG_DONE)."""
+    starts, ends = array("q"), array("q")
     offset = 0
     while offset < len(data):
         if len(data) - offset < _NLMSGHDR.size:
@@ -234,18 +246,19 @@ def _payloads(data: bytes) -> tuple[list[bytes], bool]:
         length, kind, _, _, _ = _NLMSGHDR.unpack_from(data, offset)
         if length < _NLMSGHDR.size or offset + length > len(data):
             raise KernelError(f"bad netlink message length {length} at byte {offset} of a sock_diag reply")
-        payload = data[offset + _NLMSGHDR.size : offset + length]
         if kind in (NLMSG_ERROR, NLMSG_DONE):
             # NLMSG_ERROR with 0 is an ACK; NLMSG_DONE of a dump carries the error that ended it, if any.
+            payload = data[offset + _NLMSGHDR.size : offset + length]
             err = -_ERRNO.unpack_from(payload)[0] if len(payload) >= _ERRNO.size else 0
             if err:
                 raise KernelError(f"the kernel refused the sock_diag request: {_strerror(err)}")
             if kind == NLMSG_DONE:
-                return payloads, True
+                return starts, ends, True
         elif kind == SOCK_DIAG_BY_FAMILY:
-            payloads.append(payload)
+            starts.append(offset + _NLMSGHDR.size)
+            ends.append(offset + length)
         offset += _align(length)
-    return payloads, False
+    return starts, ends, False
 
 
 def _connection(payload: bytes) -> TcpConnection:

@@ -280,7 +280,7 @@ def test_each_thread_keeps_one_sock_diag_socket_and_one_whose_request_failed_is_
             kept = _diag_sockets(me) - before
             with pytest.raises(KernelError):
                 with monkeypatch.context() as patched:
-                    patched.setattr(sockdiag, "_payloads", refuse)
+                    patched.setattr(sockdiag, "_messages", refuse)
                     dump_tcp_table()
             closed = _diag_sockets(me) - before
             dump_tcp_table()
