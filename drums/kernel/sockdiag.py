@@ -37,7 +37,7 @@ TCP_STATES = {
 ALL_STATES = sum(1 << state for state in TCP_STATES)
 # Those of full sockets, which a process may hold: not TIME_WAIT and SYN_RECV (the kernel's small
 # stand-ins for a connection closing or being accepted), which may outnumber them on a busy host.
-FULL_STATES = ALL_STATES & ~(1 << 6) & ~(1 << 3)
+FULL_STATES = sum(1 << state for state, name in TCP_STATES.items() if name not in ("TIME_WAIT", "SYN_RECV"))
 
 NETLINK_SOCK_DIAG = 4
 SOCK_DIAG_BY_FAMILY = 20

@@ -447,8 +447,8 @@ class SocketsProbe(BpfProbe):
     def _tcp_closed(self, m: Matched, klass: np.ndarray) -> np.ndarray:
         """The idle TCP entries of this network namespace whose socket a sock_diag dump of the full
         sockets does not list. A socket its process closed (an orphan finishing its FIN, listed with
-        inode 0) counts nothing more, and goes too. Those of other namespaces, which the dump cannot see, stay, and
-        so do those without an inode (a kernel's socket)."""
+        inode 0) counts nothing more, and goes too. Those of other namespaces, which the dump cannot
+        see, stay, and so do those without an inode (a kernel's socket)."""
         now = time.monotonic()
         if now - self._tcp_checked_at < TCP_CHECK_INTERVAL:
             return np.zeros(len(klass), bool)
