@@ -11,10 +11,11 @@ import pytest
 
 from drums.errors import KernelError
 from drums.kernel import sockdiag
-from drums.kernel.sockdiag import (ALL_STATES, NETLINK_SOCK_DIAG, TCP_STATES, TcpConnection, dump_tcp, dump_tcp_table,
-                                   lookup_tcp, parse_messages)
+from drums.kernel.sockdiag import (ALL_STATES, FULL_STATES, NETLINK_SOCK_DIAG, TCP_STATES, TcpConnection, dump_tcp,
+                                   dump_tcp_table, lookup_tcp, parse_messages)
+from tests.conftest import eventually
 
-ESTABLISHED, LISTEN = 1, 10
+ESTABLISHED, TIME_WAIT, LISTEN = 1, 6, 10
 
 
 def _pad(data: bytes) -> bytes:
@@ -229,6 +230,27 @@ def test_a_dump_as_a_table_holds_what_a_dump_of_connections_does():
     finally:
         for s in held + servers:
             s.close()
+
+
+def test_a_dump_of_full_sockets_leaves_out_a_connection_in_time_wait():
+    """The sockets a process may hold (what the sockets probe checks its TCP entries against): a
+    connection whose client closed first ends in TIME_WAIT on the client's side, which a dump of
+    every state lists and a dump of the full sockets does not."""
+    with socket.create_server(("127.0.0.1", 0)) as srv:
+        client = socket.create_connection(srv.getsockname())
+        server, _ = srv.accept()
+        port = client.getsockname()[1]
+        client.close()
+        assert server.recv(1) == b""
+        server.close()
+
+    def listed(states: int) -> set[tuple[int, int]]:
+        return {(state, sport) for _, state, sport, *_ in dump_tcp_table(states).tolist() if sport == port}
+
+    def closing():
+        assert listed(ALL_STATES) == {(TIME_WAIT, port)}
+    eventually(closing)
+    assert listed(FULL_STATES) == set()
 
 
 def _diag_sockets(tid: int) -> set[int]:
