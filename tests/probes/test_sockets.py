@@ -788,15 +788,33 @@ def test_a_tcp_entry_whose_close_went_unseen_goes_and_its_counts_stay_with_its_o
     """A TCP entry goes when its socket reaches CLOSE; one made by a call that raced with the CLOSE
     on another CPU is not found then (a few in 10,000 connections on a loaded host). The probe finds
     such an entry, once idle, by its inode missing from the namespace's TCP sockets, and forgets it:
-    what it held stays in its owner's totals. Here they are planted where closed sockets were."""
+    what it held stays in its owner's totals. Here each entry of 20 idle sockets of this process is
+    made one of an earlier socket (an inode no socket has) that sent 777 bytes more: at addresses
+    these sockets hold, no other socket can take them while the test runs."""
     monkeypatch.setattr(sockets, "TCP_CHECK_INTERVAL", 0.0)  # checked at each collect
     before = process_counts(collect(sockets_probe), os.getpid(), "tcp")
-    with planted_where_sockets_closed(sockets_probe, 10) as planted:
-        collect(sockets_probe)  # finds them: new, so not yet checked
-        assert planted.keys() <= probe_entries(sockets_probe).keys()
+    slots, hashed = sockets_probe.opened["socket_slots"], sockets_probe.opened["socket_traffic"]
+    with connected_pairs(10) as pairs:
+        for client, server in pairs:
+            client.sendall(b"p")
+            recv_exactly(server, 1)
+        inodes = {inode(sock) for pair in pairs for sock in pair}
+        made = {key: v for key, v in probe_entries(sockets_probe).items() if v[0] in inodes}
+        assert len(made) == 20
+        earlier = {}
+        for i, (key, v) in enumerate(made.items()):
+            earlier[key] = (1 << 40) + i, *v[1:12], v[12] + 777, v[13] + 1, *v[14:]  # inode, ..., sent bytes, calls
+            if v[-1]:  # v[-1]: the slot's owner
+                slot = int(sockets._slot_index(np.array([key], np.uint64), slots.max_entries)[0])
+                slots.update(struct.pack("<I", slot), _SOCKET_VALUE.pack(*earlier[key]))
+            else:
+                hashed.update(struct.pack("<Q", key), _SOCKET_VALUE.pack(*earlier[key]))
+        lose_a_mark(sockets_probe)  # written behind the programs' backs: the next collect reads all
+        collect(sockets_probe)  # finds them: changed, so not yet checked
+        assert {key: probe_entries(sockets_probe).get(key) for key in earlier} == earlier
         after = process_counts(collect(sockets_probe), os.getpid(), "tcp")
-        assert planted.keys() & probe_entries(sockets_probe).keys() == set()
-    # The connections' ten 1-byte sends and receives, and the twenty plants' sends.
+        assert earlier.keys() & probe_entries(sockets_probe).keys() == set()
+    # The connections' ten 1-byte sends and receives, and the twenty earlier sockets' sends.
     assert after == dict(before, sent_bytes=before["sent_bytes"] + 10 + 20 * 777, send_calls=before["send_calls"] + 30,
                          received_bytes=before["received_bytes"] + 10, receive_calls=before["receive_calls"] + 10)
 
