@@ -109,8 +109,10 @@ def test_each_view_shows_what_the_nodes_count(agent, ros_nodes):
             # Over UDP on one host, taken by an idle executor: well under a 10 Hz period (the figure
             # itself is checked against the subscriber's own clock in test_topic_timing).
             assert 0 < number(edge["AGE"]) < 0.05, edge
-            out, = [r for r in seen["connections"] if r["PID"] == str(sender) and r["REMOTE"].endswith(f":{port}")]
-            into, = [r for r in seen["connections"] if r["PID"] == str(os.getpid()) and r["LOCAL"].endswith(f":{port}")]
+            out = [r for r in seen["connections"] if r["PID"] == str(sender) and r["REMOTE"].endswith(f":{port}")]
+            into = [r for r in seen["connections"] if r["PID"] == str(os.getpid()) and r["LOCAL"].endswith(f":{port}")]
+            assert len(out) == len(into) == 1, seen["connections"]
+            (out,), (into,) = out, into
             close(number(out["TX"]), sent, "sender's socket")
             close(number(into["RX"]), sent, "receiver's socket")
             host = seen["hosts"][0]
