@@ -7,6 +7,7 @@ socket's own series simply ends.
 """
 from __future__ import annotations
 
+import socket
 import struct
 import time
 from sys import intern
@@ -126,6 +127,14 @@ def _ports(words: np.ndarray) -> np.ndarray:
 def _slot_index(keys: np.ndarray, slots: int) -> np.ndarray:
     """The slot of each socket, by its key (its id: bpf/sockets.bpf.c's socket_id), as slot_of() there."""
     return ((keys * _SLOT_HASH) >> np.uint64(32) & np.uint64(slots - 1)).astype(np.intp)
+
+
+def _addresses(words: np.ndarray) -> tuple[tuple[int, bytes, int], tuple[int, bytes, int]]:
+    """(family, address, port) of a socket's two ends, from its value as 8-byte words, as
+    sockdiag.lookup_tcp takes them."""
+    _, _, _, family, _, _, lport, rport, _, _, laddr, raddr = _IDENTITY.unpack(words[:_WORDS_IDENTITY].tobytes())
+    size = 4 if family == socket.AF_INET else 16
+    return (family, laddr[:size], lport), (family, raddr[:size], rport)
 
 
 def _owner(words: list[int]) -> tuple[int, int, int]:
@@ -445,10 +454,11 @@ class SocketsProbe(BpfProbe):
         return closed
 
     def _tcp_closed(self, m: Matched, klass: np.ndarray) -> np.ndarray:
-        """The idle TCP entries of this network namespace whose socket a sock_diag dump of the full
-        sockets does not list. A socket its process closed (an orphan finishing its FIN, listed with
-        inode 0) counts nothing more, and goes too. Those of other namespaces, which the dump cannot
-        see, stay, and so do those without an inode (a kernel's socket)."""
+        """The idle TCP entries of this network namespace whose socket is gone: a sock_diag dump of
+        the full sockets does not list its inode, nor does a lookup of its addresses find it. A
+        socket its process closed (an orphan finishing its FIN, listed with inode 0) counts nothing
+        more, and goes too. Those of other namespaces, which sock_diag cannot see, stay, and so do
+        those without an inode (a kernel's socket)."""
         now = time.monotonic()
         if now - self._tcp_checked_at < TCP_CHECK_INTERVAL:
             return np.zeros(len(klass), bool)
@@ -460,8 +470,16 @@ class SocketsProbe(BpfProbe):
             if not idle.any():
                 return idle
             listed = np.sort(sockdiag.dump_tcp_table(sockdiag.FULL_STATES)["inode"].astype(np.uint64))
+            gone = idle & ~within(w[:, 0], listed)
+            # A dump is no snapshot: read while other sockets come and go, it may skip a live one
+            # (its position in a hash bucket moved between two reads). Each it did not list is
+            # looked up by its addresses, which finds it if it is there.
+            missed = np.flatnonzero(gone)
+            if len(missed):
+                found = sockdiag.lookup_tcp([_addresses(w[i]) for i in missed.tolist()])
+                gone[missed[[c is not None and c.inode == int(w[i, 0]) for c, i in zip(found, missed.tolist())]]] = False
         except KernelError:
             return np.zeros(len(klass), bool)  # no sock_diag here: such entries wait for their owner's end
         finally:
             self._tcp_checked_at = now
-        return idle & ~within(w[:, 0], listed)
+        return gone

@@ -819,6 +819,20 @@ def test_a_tcp_entry_whose_close_went_unseen_goes_and_its_counts_stay_with_its_o
                          received_bytes=before["received_bytes"] + 10, receive_calls=before["receive_calls"] + 10)
 
 
+def test_a_live_tcp_socket_that_the_dump_missed_keeps_its_entry(sockets_probe, collect, monkeypatch):
+    """A sock_diag dump read while sockets come and go may skip a live one: the check of TCP entries
+    looks up each socket the dump did not list before forgetting it. Here the dump lists none, and
+    the idle sockets of 10 live connections keep their entries and series."""
+    monkeypatch.setattr(sockets, "TCP_CHECK_INTERVAL", 0.0)  # checked at each collect
+    monkeypatch.setattr(sockets.sockdiag, "dump_tcp_table", lambda states: np.empty(0, sockets.sockdiag.DIAG_RECORD))
+    with connected_pairs(10) as pairs:
+        expected = sent_over(pairs)
+        collect(sockets_probe)
+        rows = own_tcp_rows(collect(sockets_probe))  # idle since the last: checked
+        assert {ino: rows.get(ino) for ino in expected} == expected
+        assert {v[0] for v in probe_entries(sockets_probe).values()} >= expected.keys()
+
+
 # ---- a thread that execs ------------------------------------------------------------------------
 
 EXEC_FROM_THREAD = r"""
