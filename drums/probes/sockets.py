@@ -474,10 +474,9 @@ class SocketsProbe(BpfProbe):
             # A dump is no snapshot: read while other sockets come and go, it may skip a live one
             # (its position in a hash bucket moved between two reads). Each it did not list is
             # looked up by its addresses, which finds it if it is there.
-            missed = np.flatnonzero(gone)
-            if len(missed):
-                found = sockdiag.lookup_tcp([_addresses(w[i]) for i in missed.tolist()])
-                gone[missed[[c is not None and c.inode == int(w[i, 0]) for c, i in zip(found, missed.tolist())]]] = False
+            missed = np.flatnonzero(gone).tolist()
+            for i, found in zip(missed, sockdiag.lookup_tcp([_addresses(w[i]) for i in missed])):
+                gone[i] = found is None or found.inode != int(w[i, 0])
         except KernelError:
             return np.zeros(len(klass), bool)  # no sock_diag here: such entries wait for their owner's end
         finally:
