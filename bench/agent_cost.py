@@ -9,7 +9,8 @@ memory its BPF maps hold is said beside. Goals: at most 0.5% of one core, 30 MB 
 The agent runs three times: with the auto graph (no helper process); with the ROS 2 graph, whose
 rclpy reader is a child: its whole tree is measured, goal 60 MB; and with the ROS 2 graph and
 /diagnostics, which that one child publishes too. Then the first again, and the poller, on a host
-of a tenth of the processes and sockets, goal 0.1% of one core.
+of a tenth of the processes and sockets, goal 0.1% of one core; there also with two probes of five,
+and with a tenth of its budget: what a scrape costs apart from what it reads and serves.
 
     .venv/bin/python bench/agent_cost.py [--seconds 30] [--processes 1000] [--sockets 10000]
 """
@@ -33,6 +34,10 @@ from common import (Agent, BenchError, Scraper, cpu_seconds, drums_unload, fmt, 
 
 GOALS = {"cpu": 0.5, "uss_mb": 30, "metrics_ms": 10, "tree_uss_mb": 60, "small_cpu": 0.1}
 SMALL = 10  # the small host: a tenth of the processes and sockets
+# The small host again, to tell what a scrape costs apart from what it reads and serves: the agent
+# with the two probes whose maps every other kind of row depends on, and with a tenth of its budget.
+TWO_PROBES = ["--probe", "sockets", "--probe", "sched"]
+TENTH_BUDGET = ["--max-processes", "10", "--max-threads", "20", "--max-sockets", "10", "--max-connections", "10"]
 HOLDERS = 4  # processes that hold the sockets
 # Seconds of scrapes, unmeasured, once the crowd is ready and the auto graph shows its socket
 # holders: the agent takes it in (reads every new process's name and files; the graph, which polls
@@ -229,19 +234,19 @@ def poller(pid_file: str, interval: float) -> None:
 
 
 def measure_host(processes: int, sockets: int, seconds: float, interval: float, agent_args: list[str],
-                 with_ros: bool) -> tuple[dict, list[dict], dict]:
-    """The agent (and, with_ros, the agent with the ROS 2 graph, without and with /diagnostics) and
-    the psutil poller on a host of `processes` processes holding `sockets` sockets."""
+                 variants: list[list[str]]) -> tuple[dict, list[dict], dict]:
+    """The agent, then the agent with each variant's extra flags, and the psutil poller on a host of
+    `processes` processes holding `sockets` sockets."""
     crowd = Crowd(processes, sockets)
     pid_file = f"/tmp/drums-bench-pids-{os.getpid()}"
     try:
         progress(f"agent: {seconds} s at one scrape per {interval:g} s, once {processes} processes holding "
                  f"{sockets} sockets have started after it")
         ours = measure_agent(seconds, interval, agent_args, crowd)
-        ros = []
-        for extra in (["--graph", "ros2"], ["--graph", "ros2", "--diagnostics"]) if with_ros else ():
+        others = []
+        for extra in variants:
             progress(f"agent with {' '.join(extra)}: {seconds} s")
-            ros.append(measure_agent(seconds, interval, agent_args + extra, crowd))
+            others.append(measure_agent(seconds, interval, agent_args + extra, crowd))
         progress(f"psutil poller: {seconds} s")
         crowd.restart()
         peer = measure_poller(seconds, interval, crowd.pids(), pid_file)
@@ -252,7 +257,7 @@ def measure_host(processes: int, sockets: int, seconds: float, interval: float, 
             os.unlink(pid_file)
         except OSError:
             pass
-    return ours, ros, peer
+    return ours, others, peer
 
 
 # What each part of a scrape does, for the profile: why it costs what the run measures.
@@ -292,9 +297,10 @@ def run(args) -> None:
     require_root()
     agent_args = shlex.split(args.agent_args)
     ours, (ros, diag), peer = measure_host(args.processes, args.sockets, args.seconds, args.interval, agent_args,
-                                           True)
-    small, _, small_peer = measure_host(args.processes // SMALL, args.sockets // SMALL, args.seconds, args.interval,
-                                        agent_args, False)
+                                           [["--graph", "ros2"], ["--graph", "ros2", "--diagnostics"]])
+    small, (two_probes, tenth), small_peer = measure_host(
+        args.processes // SMALL, args.sockets // SMALL, args.seconds, args.interval, agent_args,
+        [TWO_PROBES, TENTH_BUDGET])
 
     lat, cyc = ours["latencies"], peer["cycles"]
     mb = 2 ** 20
@@ -325,6 +331,10 @@ def run(args) -> None:
         [f"at {args.processes // SMALL:,} processes / {args.sockets // SMALL:,} sockets: ms per cycle, median",
          fmt(median(small["latencies"]), 1), fmt(median(small_peer["cycles"]), 1),
          ratio(median(small["latencies"]), median(small_peer["cycles"]))],
+        [f"there, the sockets and sched probes alone ({' '.join(TWO_PROBES)}): CPU, % of one core",
+         fmt(two_probes["cpu"]), fmt(small_peer["cpu"]), ratio(two_probes["cpu"], small_peer["cpu"])],
+        [f"there, a tenth of the default budget ({' '.join(TENTH_BUDGET)}): CPU, % of one core",
+         fmt(tenth["cpu"]), fmt(small_peer["cpu"]), ratio(tenth["cpu"], small_peer["cpu"])],
     ]
     size, series = ours["sizes"]
     notes = [
@@ -345,7 +355,10 @@ def run(args) -> None:
         f"and measured alike after the first run, with a crowd started anew once it is ready; with "
         f"/diagnostics too, the tree is {diag['processes']} processes ({each_mb(diag)} MB: that one child "
         f"publishes the arrays too, drawn from the scrapes' snapshots)",
-        "the last rows: the agent (auto graph) and the poller again on a host of a tenth of the processes and sockets",
+        "the last rows: the agent (auto graph) and the poller again on a host of a tenth of the processes and "
+        f"sockets; then the agent there with two probes of five, and with a tenth of its budget "
+        f"({two_probes['sizes'][1]:,} and {tenth['sizes'][1]:,} series against {small['sizes'][1]:,}): what a "
+        "scrape costs whatever it reads and however many series it serves",
     ]
     print_table("Agent cost: 1 s scrapes on a host with many processes and sockets",
                 ["measure", "Drums agent", "psutil poller", "Drums / psutil"], rows, notes)
