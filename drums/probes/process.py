@@ -4,13 +4,14 @@ Only the chosen PIDs are read, since the agent may watch a thousand processes on
 """
 from __future__ import annotations
 
+import heapq
 import os
 import time
 from typing import Iterable
 
 import psutil
 
-from drums.metrics import COUNTER, GAUGE, Metric, Snapshot
+from drums.metrics import COUNTER, GAUGE, Changes, Metric, Snapshot
 from drums.probes.base import Probe, ProbeStatus
 from drums.proctable import ProcessTable
 
@@ -107,6 +108,18 @@ class ProcessProbe(Probe):
         self._pids: frozenset[int] = frozenset()
         self._procs: dict[int, psutil.Process] = {}
         self._last: dict[int, _Read] = {}
+        # A collect looks only at the processes that may be due (see _to_look_at), not at every
+        # chosen one: every one when the process table cannot say what changed (no sched probe,
+        # lost notices), and after a collect that failed midway.
+        self._look_at: dict[int, float] = {}  # pid -> when its wait runs out, as last reckoned
+        self._queue: list[tuple[float, int]] = []  # the same as a heap; an entry not in _look_at is stale
+        self._refreshed = -1  # the process table's refresh at the last collect
+        self._cpu: dict[int, float] = {}  # the CPU seconds the process table gave at the last collect
+        self._look_at_all = True
+        self._rows: dict[int, tuple] = {}  # pid -> its rows ((metric, (labels, value)), ...) as shown
+        self._shown: dict[Metric, dict[int, tuple]] = {metric: {} for metric in self.metrics}  # the same by metric
+        self._gone: list[tuple] = []  # rows of processes left out since the last collect
+        self._collects = 0
 
     def start(self) -> None:
         self.status = ProbeStatus(attached=True, attach_type="psutil")
@@ -117,6 +130,17 @@ class ProcessProbe(Probe):
             del self._procs[pid]
         for pid in self._last.keys() - self._pids:
             del self._last[pid]
+        for pid in self._rows.keys() - self._pids:
+            self._show(pid, ())
+        for pid in self._look_at.keys() - self._pids:
+            del self._look_at[pid]
+
+    def _wait(self, pid: int, cached: _Read) -> float:
+        """Seconds from its last read until the process is read again, unless the kernel says its PID
+        has another process: longer while it has not run since."""
+        cpu = self.proctable.cpu(pid)
+        idle = cpu is not None and cpu == cached.cpu
+        return self.idle_interval * (1 + _spread(pid)) / 2 if idle else self.interval
 
     def _due(self, pid: int, cached: _Read | None, now: float) -> bool:
         """Whether the process must be read now rather than given its values of the last read."""
@@ -129,15 +153,37 @@ class ProcessProbe(Probe):
         if new_at is not None and new_at > cached.refresh:
             self._procs.pop(pid, None)
             return True
-        cpu = table.cpu(pid)
-        idle = cpu is not None and cpu == cached.cpu
-        wait = self.idle_interval * (1 + _spread(pid)) / 2 if idle else self.interval
-        return now - cached.at >= wait or (new_at is None and not self._procs[pid].is_running())
+        return now - cached.at >= self._wait(pid, cached) or (new_at is None and not self._procs[pid].is_running())
+
+    def _to_look_at(self, now: float, whole: bool) -> tuple[set[int], bool]:
+        """The chosen processes that may be due now (not read yet, ended, renamed or exec'd, run
+        since the last collect, or whose wait ran out), and whether they are all of them: `whole`,
+        or the table cannot tell what changed."""
+        table = self.proctable
+        renamed, cpu = table.renamed_since(self._refreshed), table.cpu_seconds()
+        self._refreshed = table.refreshes
+        was, self._cpu = self._cpu, cpu or {}
+        if whole or renamed is None or cpu is None:
+            return set(self._pids), True
+        ran = {pid for pid, _ in cpu.items() - was.items()}  # moved or new: C's set work, not a loop here
+        unread_or_ended = (self._pids - self._last.keys()) | (self._pids - table.alive_among(self._pids))
+        look = ((renamed | ran) & self._pids) | unread_or_ended
+        queue = self._queue
+        while queue and queue[0][0] <= now:
+            at, pid = heapq.heappop(queue)
+            if self._look_at.get(pid) == at:
+                look.add(pid)
+        return look, False
 
     def collect(self, snap: Snapshot) -> None:
+        """The rows of every chosen process, told as what changed since the last collect: a process
+        that is not due keeps its rows (the same tuples)."""
         now, table = time.monotonic(), self.proctable
-        rows: dict[Metric, list] = {metric: [] for metric in self.metrics}
-        for pid in self._pids:
+        self._collects += 1  # first: a collect that fails is one the next cannot be told against
+        whole, self._look_at_all = self._look_at_all, True  # until this collect is through
+        look, look_at_all = self._to_look_at(now, whole)
+        changed = []
+        for pid in look:
             cached = self._last.get(pid)
             if self._due(pid, cached, now):
                 try:
@@ -145,17 +191,50 @@ class ProcessProbe(Probe):
                 except (psutil.NoSuchProcess, psutil.AccessDenied):  # ZombieProcess is a NoSuchProcess
                     self._procs.pop(pid, None)
                     self._last.pop(pid, None)
+                    self._look_at.pop(pid, None)  # looked at again at each collect, while chosen
+                    self._show(pid, ())
                     continue
                 # A process read for the first time is given a phase within the interval, so that
                 # a hundred processes found at once are read a few at each scrape afterwards, not
                 # all at every fifth one (a scrape of 50 ms at the 95th percentile).
                 phase = 0.0 if cached else _spread(pid) * self.interval
                 cached = self._last[pid] = _Read(now - phase, values, table.refreshes, table.cpu(pid), uss)
-            for metric, row in cached.rows_named(pid, table.name(pid)):
-                rows[metric].append(row)
-        for metric, made in rows.items():
-            if made:
-                snap.rows(metric).extend(made)
+            rows = cached.rows_named(pid, table.name(pid))
+            if rows is not self._rows.get(pid):
+                self._show(pid, rows)
+                changed += rows
+            self._look_at[pid] = at = cached.at + self._wait(pid, cached)
+            if not look_at_all:
+                heapq.heappush(self._queue, (at, pid))
+        if look_at_all:
+            self._queue = [(at, pid) for pid, at in self._look_at.items()]
+            heapq.heapify(self._queue)
+        gone, self._gone, self._look_at_all = self._gone, [], False
+        told = {metric: Changes(self._collects - 1, self._collects, [], []) for metric in self.metrics}
+        for metric, row in changed:
+            told[metric].rows.append(row)
+        for metric, labels in gone:
+            told[metric].gone.append(labels)
+        for metric, rows in self._shown.items():
+            if rows:
+                snap.rows(metric).extend(rows.values())
+            snap.changes[(metric,)] = told[metric]
+
+    def _show(self, pid: int, rows: tuple) -> None:
+        """Show these rows of the process from now on (none: it is left out). A row of a metric it
+        had keeps its place (the render compares rows in place); the labels no longer shown are
+        gone, for the collect to tell."""
+        now = dict(rows)
+        for metric, (labels, _) in self._rows.pop(pid, ()):
+            row = now.get(metric)
+            if row is None:
+                del self._shown[metric][pid]
+            if row is None or row[0] != labels:
+                self._gone.append((metric, labels))
+        if rows:
+            self._rows[pid] = rows
+            for metric, row in rows:
+                self._shown[metric][pid] = row
 
     def _read(self, pid: int, uss: tuple | None, now: float) -> tuple[list[tuple[Metric, float]], tuple | None]:
         """The process's values, leaving out those the kernel denies, and its USS as (value, when

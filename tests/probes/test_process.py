@@ -296,6 +296,122 @@ def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_
         child.wait(10)
 
 
+def collect_with_sched(sched_probe, probe: ProcessProbe) -> Snapshot:
+    """A collect as the agent makes one: the table told by the sched probe, which reads first."""
+    probe.proctable.refresh(sched_probe.renamed())
+    snap = Snapshot()
+    sched_probe.collect(snap)
+    probe.collect(snap)
+    return snap
+
+
+def test_an_idle_process_is_read_again_once_its_wait_runs_out(sched_probe, proctable):
+    """A collect looks only at the processes that may be due (came, renamed, ran): one that sleeps
+    is looked at again when its wait runs out (idle_interval, a half to one of it by its PID), and
+    read then, though nothing about it changed."""
+    probe = ProcessProbe(proctable, interval=1e9, idle_interval=0.6)
+    probe.start()
+    reads = collections.Counter()
+    read = probe._read
+    probe._read = lambda pid, *rest: (reads.update([pid]), read(pid, *rest))[1]  # the real read, counted
+    with subprocess.Popen(["sleep", "60"]) as sleeper:
+        try:
+            eventually(lambda: exec_done(sleeper.pid))
+            probe.set_pids([sleeper.pid])
+            # The first read is given a phase of the interval (1e9 s), so the next collect's is due.
+            for _ in range(3):
+                collect_with_sched(sched_probe, probe)
+            settled = reads[sleeper.pid]
+            assert settled >= 1
+            collect_with_sched(sched_probe, probe)
+            assert reads[sleeper.pid] == settled  # its wait, at least 0.3 s, has not run out
+            time.sleep(0.7)
+            snap = collect_with_sched(sched_probe, probe)
+            assert reads[sleeper.pid] == settled + 1
+            assert (str(sleeper.pid), "sleep") in snap.values(RESIDENT_MEMORY)
+        finally:
+            sleeper.kill()
+
+
+# Names itself (prctl PR_SET_NAME) as each line of input says, and answers "named".
+RENAMER = r"""
+import ctypes, sys
+print("ready", flush=True)
+for line in sys.stdin:
+    ctypes.CDLL(None).prctl(15, line.strip().encode(), 0, 0, 0)
+    print("named", flush=True)
+"""
+
+
+def test_the_rows_told_as_changes_are_the_rows_given(sched_probe, proctable):
+    """Each collect tells its rows as what changed since the one before (the budget applies them
+    instead of comparing every row): applied to the rows of the collect before, they give this
+    one's, through a rename, a process that grows, one that exits and one that is chosen anew."""
+    probe = ProcessProbe(proctable, interval=0.2, idle_interval=1e9)
+    probe.start()
+    sleepers = [subprocess.Popen(["sleep", "60"]) for _ in range(2)]
+    grower, renamer = (subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        text=True) for code in (GROWER, RENAMER))
+    try:
+        assert grower.stdout.readline() == renamer.stdout.readline() == "ready\n"
+        for sleeper in sleepers:
+            eventually(lambda: exec_done(sleeper.pid))
+        chosen = [grower.pid, renamer.pid, sleepers[0].pid]
+        probe.set_pids(chosen)
+        mark, held = None, {}
+
+        def check() -> Snapshot:
+            nonlocal mark
+            snap = collect_with_sched(sched_probe, probe)
+            for metric in probe.metrics:
+                told = snap.changes[(metric,)]
+                assert mark is None or told.since == mark
+                rows = held.get(metric, {})
+                for labels in told.gone:
+                    rows.pop(labels, None)
+                rows.update(told.rows)
+                held[metric] = rows
+                assert rows == dict(snap.series.get(metric, ())), metric.name
+            mark = told.mark
+            return snap
+
+        def shown(pid: int, name: str, metric=START_TIME):
+            values = check().values(metric)
+            assert (str(pid), name) in values
+            return values[(str(pid), name)]
+
+        shown(grower.pid, comm(grower.pid))
+        renamer.stdin.write("dozer\n")  # renamed
+        renamer.stdin.flush()
+        assert renamer.stdout.readline() == "named\n"
+        eventually(lambda: shown(renamer.pid, "dozer"))
+        grower.stdin.write(f"{32 * MIB}\n")  # grows, and is read again within the interval
+        grower.stdin.flush()
+        assert grower.stdout.readline() == "grown\n"
+        grown = psutil.Process(grower.pid).memory_info().rss
+
+        def grown_shown():
+            assert shown(grower.pid, comm(grower.pid), RESIDENT_MEMORY) == grown
+        eventually(grown_shown)
+        sleepers[0].kill()  # exits
+        sleepers[0].wait()
+
+        def gone():
+            assert (str(sleepers[0].pid), "sleep") not in check().values(START_TIME)
+        eventually(gone)
+        probe.set_pids(chosen + [sleepers[1].pid])  # chosen anew
+        assert (str(sleepers[1].pid), "sleep") in check().values(START_TIME)
+        for _ in range(3):
+            check()
+    finally:
+        for child in (grower, renamer):
+            child.stdin.close()
+            child.wait(10)
+        for sleeper in sleepers:
+            sleeper.kill()
+            sleeper.wait()
+
+
 def test_the_table_lists_proc_only_when_the_sched_probe_says_a_process_came_or_went(sched_probe):
     """The sched probe marks every process forked, exec'd, renamed or ended: told so, a refresh
     whose notices are empty lists nothing, and one that follows a fork or an exit has the process
