@@ -35,7 +35,7 @@ BENCHMARKS = (
     ("http_robustness", ["--seconds", "5"]),
     ("detect", ["--ticks", "5", "--series-quality", "50"]),
 )
-TIMEOUT = 600  # seconds; each benchmark is meant to finish within about 3 minutes
+TIMEOUT = 600  # seconds; the longest benchmarks (agent_cost, workload_overhead) take about 6 minutes
 
 
 def run_one(name: str, extra: list[str], tables: str) -> tuple[int, float]:
