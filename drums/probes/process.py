@@ -181,7 +181,7 @@ class ProcessProbe(Probe):
         now, table = time.monotonic(), self.proctable
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
         whole, self._look_at_all = self._look_at_all, True  # until this collect is through
-        look, look_at_all = self._to_look_at(now, whole)
+        look, whole = self._to_look_at(now, whole)
         changed = []
         for pid in look:
             cached = self._last.get(pid)
@@ -204,9 +204,9 @@ class ProcessProbe(Probe):
                 self._show(pid, rows)
                 changed += rows
             self._look_at[pid] = at = cached.at + self._wait(pid, cached)
-            if not look_at_all:
+            if not whole:
                 heapq.heappush(self._queue, (at, pid))
-        if look_at_all:
+        if whole:  # the queue made anew: every chosen process was looked at
             self._queue = [(at, pid) for pid, at in self._look_at.items()]
             heapq.heapify(self._queue)
         gone, self._gone, self._look_at_all = self._gone, [], False
