@@ -201,13 +201,15 @@ def test_the_age_of_a_message_when_taken_is_what_the_subscriber_measures_from_it
     # message into Python: never earlier, and within the 20% or 50 us.
     assert 0 <= np.median(own) - p50 <= max(0.2 * np.median(own), 50e-6), (p50, np.median(own))
     # The transport is the RMW's two stamps, which the receiver has too: the same sum to the ns, and
-    # the median within its slot (1.6%).
+    # the median within its slot (1.6%). Prometheus interpolates within the bucket of the sample of
+    # rank n/2, the lower of the two middle ones when n is even: their mean (np.median) may lie in
+    # another bucket where the samples are sparse (a fresh-clone run: 139.3 us against 142.1).
     transports = np.array(listening.times("transports"))
     assert len(transports) == len(own)
     assert abs(value(url, transport_seconds + "_sum", **edge) - transports.sum() / 1e9) <= 1e-6
     transport_p50 = quantile(prometheus, 0.5, transport_seconds, selector)
-    assert abs(transport_p50 - np.median(transports) / 1e9) <= 0.02 * np.median(transports) / 1e9, \
-        (transport_p50, np.median(transports))
+    middle = np.quantile(transports, 0.5, method="inverted_cdf") / 1e9  # the sample of rank n/2
+    assert abs(transport_p50 - middle) <= 0.02 * middle, (transport_p50, middle)
     assert transport_p50 <= p50  # received before it was taken
 
 
