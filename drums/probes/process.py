@@ -166,7 +166,7 @@ class ProcessProbe(Probe):
         if whole or renamed is None or cpu is None:
             return set(self._pids), True
         ran = {pid for pid, _ in cpu.items() - was.items()}  # moved or new: C's set work, not a loop here
-        unread_or_ended = (self._pids - self._last.keys()) | (self._pids - table.alive_among(self._pids))
+        unread_or_ended = self._pids - table.alive_among(self._last.keys())  # read and alive: the others
         look = ((renamed | ran) & self._pids) | unread_or_ended
         queue = self._queue
         while queue and queue[0][0] <= now:

@@ -252,6 +252,15 @@ GROWER = ("import sys\nheld = []\nprint('ready', flush=True)\nfor line in sys.st
           "    held.append(bytearray(b'\\1') * int(line))\n    print('grown', flush=True)\n")
 
 
+def collect_with_sched(sched_probe, probe: ProcessProbe) -> Snapshot:
+    """A collect as the agent makes one: the table told by the sched probe, which reads first."""
+    probe.proctable.refresh(sched_probe.renamed())
+    snap = Snapshot()
+    sched_probe.collect(snap)
+    probe.collect(snap)
+    return snap
+
+
 def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_probe, proctable):
     """With the sched probe telling the process table which processes ran, a sleeping process is
     read once, not at every interval (here every collect); once it wakes and grows, the next
@@ -269,11 +278,7 @@ def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_
         probe.set_pids([pid])
 
         def collect_rss() -> int:
-            proctable.refresh(sched_probe.renamed())
-            snap = Snapshot()
-            sched_probe.collect(snap)
-            probe.collect(snap)
-            return snap.values(RESIDENT_MEMORY)[(str(pid), comm(pid))]
+            return collect_with_sched(sched_probe, probe).values(RESIDENT_MEMORY)[(str(pid), comm(pid))]
 
         def sleeping() -> None:
             assert state(pid) == "S"
@@ -294,15 +299,6 @@ def test_a_process_that_has_not_run_is_not_read_again_and_one_that_has_is(sched_
     finally:
         child.stdin.close()
         child.wait(10)
-
-
-def collect_with_sched(sched_probe, probe: ProcessProbe) -> Snapshot:
-    """A collect as the agent makes one: the table told by the sched probe, which reads first."""
-    probe.proctable.refresh(sched_probe.renamed())
-    snap = Snapshot()
-    sched_probe.collect(snap)
-    probe.collect(snap)
-    return snap
 
 
 def test_an_idle_process_is_read_again_once_its_wait_runs_out(sched_probe, proctable):
