@@ -47,6 +47,10 @@
 #ifndef EAGAIN
 #define EAGAIN 11
 #endif
+// The kernel's restart codes (ERESTARTSYS to ERESTART_RESTARTBLOCK): a call stopped or interrupted
+// by a signal is restarted, or returns EINTR; no application ever sees them.
+#define ERESTARTSYS 512
+#define ERESTART_RESTARTBLOCK 516
 #ifndef MSG_PEEK
 #define MSG_PEEK 2
 #endif

@@ -355,8 +355,8 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int
 
 static __always_inline void count(u64 sk, int ret, int flags, int is_send)
 {
-    if (ret == -EAGAIN || ret == -EINTR)
-        return;  // non-blocking polls and interrupted calls are not failures of the socket
+    if (ret == -EAGAIN || ret == -EINTR || (ret <= -ERESTARTSYS && ret >= -ERESTART_RESTARTBLOCK))
+        return;  // non-blocking polls and interrupted or restarted calls are not failures of the socket
     if (!is_send && ret >= 0 && (flags & MSG_PEEK))
         return;  // the bytes will be counted when they are really read
     u64 id = socket_id(sk);

@@ -50,6 +50,13 @@ def _address(text: str) -> str:
     return text
 
 
+def _attach(text: str) -> tuple[str, str]:
+    probe, sep, path = text.partition("=")
+    if not (sep and probe and path):
+        raise argparse.ArgumentTypeError(f"{text!r} is not PROBE=PATH (e.g. sockets=kprobe)")
+    return probe, path
+
+
 def _seconds(text: str) -> float:
     from drums.exporters.jobs import MAX_INTERVAL, MIN_INTERVAL
     try:
@@ -127,6 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "ros2 graph)")
     agent.add_argument("--no-probe", action="append", choices=PROBES, default=[],
                        help="do not run this probe (repeatable)")
+    agent.add_argument("--attach", type=_attach, action="append", default=[], metavar="PROBE=PATH",
+                       help="hold a probe to one attach path that `drums doctor` lists for it, or to "
+                            "fallback (its counters without eBPF); repeatable. A path this kernel refuses "
+                            "leaves the probe to its fallback (an error with --strict)")
     agent.add_argument("--no-ros-timing", dest="ros_timing", action="store_false",
                        help="count ROS 2 messages without timing them (no periods, deadlines, reactions or "
                             "delivery times): less work in the kernel for each message")
@@ -285,8 +296,8 @@ def run_agent(args) -> int:
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
     features = Features()
+    probes = build(features, proctable, names, args.pin_dir, args.ros_timing, dict(args.attach))
     pins = pinlock.hold(args.pin_dir)  # held while the agent runs
-    probes = build(features, proctable, names, args.pin_dir, args.ros_timing)
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})
     graph = Graph()

@@ -78,6 +78,7 @@ def report(f: Features) -> tuple[list[str], bool]:
                        if f.tp_btf else "tracepoints not typed in BTF (Linux < 5.5)",
                        "none needed: the raw tracepoint paths serve, at a helper call per field"))
     lines.append(_line("fentry", f.fentry, "BPF trampolines load" if f.fentry
+                       else "untested: bcc has no kernel headers to compile with" if headers is None
                        else "refused (fentry/fexit programs cannot load)", "none needed while the tracepoint paths work"))
 
     problems = common_requirements(f)

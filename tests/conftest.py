@@ -44,9 +44,12 @@ def ros_domain_id(offset: int = 0) -> int:
     return 10 * _domain_slot[0] + offset
 
 
+_FEATURES = Features()  # one look at the kernel for the whole session (the fentry check loads bcc)
+
+
 @pytest.fixture(scope="session")
 def features():
-    return Features()
+    return _FEATURES
 
 
 @pytest.fixture(scope="session")
@@ -60,17 +63,22 @@ def _started(probe):
     probe.unload()
 
 
-# The attach paths this kernel offers the socket and scheduler probes: the probes' own tests run on
-# each, under a pin root of their own (loading a probe removes its pins of any other path).
-TRACEPOINT_PATHS = ("tp_btf", "raw_tracepoint")
+def offered_paths(probe_class) -> list[str]:
+    """The attach paths of a BPF probe that this kernel offers (as `drums doctor` lists them): the
+    probe's own tests run on each, forced one at a time. None offered fails the tests that need the
+    probe, never skips them."""
+    from drums.probes.bpf import usable_paths
+    return [p.name for p in usable_paths(probe_class.paths, _FEATURES)] or ["none offered"]
 
 
 def started_on_path(probe, path: str):
-    """The probe held to one attach path: the raw tracepoint programs are what runs where the
-    kernel's BTF does not type its tracepoints, or refuses a tp_btf program."""
+    """The probe held to one attach path (as `drums agent --attach` holds it), under a pin root of
+    its own: loading a probe removes its pins of any other path."""
+    from drums.probes.registry import held_to
     probe.pin_root = f"{TEST_PIN_ROOT}_{path}"
-    probe.paths = tuple(p for p in probe.paths if p.name == path)
-    probe.start()
+    if path == "none offered":
+        pytest.fail(f"this kernel offers probe {probe.name} no attach path")
+    held_to(probe, path).start()
     assert probe.status.attach_type == path
     yield probe
     probe.unload()

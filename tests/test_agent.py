@@ -21,7 +21,7 @@ import pytest
 from drums.client import Agent
 from drums.selfcost import MEMORY_EVERY
 from tests.agentproc import free_port, running_agent, samples, scrape, serving
-from tests.conftest import TEST_PIN_ROOT, eventually
+from tests.conftest import TEST_PIN_ROOT, eventually, offered_paths
 
 
 @pytest.fixture(scope="module")
@@ -76,13 +76,28 @@ def test_a_page_says_when_its_counters_were_read_so_a_rate_over_two_is_true(agen
         burner.wait()
 
 
+def attached(url: str) -> dict[str, tuple[str, float]]:
+    return {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in samples(scrape(url), "drums_probe_attached").items()}
+
+
 def test_every_probe_attached_with_its_attach_type(agent):
-    attached = samples(scrape(agent), "drums_probe_attached")
-    got = {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in attached.items()}
-    # rclpy is importable here, so the graph is ros2 and the per-topic probes run too.
-    assert got == {"sockets": ("tp_btf", 1), "sched": ("tp_btf", 1), "tcp": ("raw_tracepoint", 1),
-                   "host": ("psutil", 1), "process": ("psutil", 1), "rtps": ("tracepoint", 1),
-                   "rcl": ("uprobe", 1), "loads": ("uprobe", 1), "latency": ("icmp", 1)}
+    from drums.probes import loads, rcl, rtps, sched, sockets, tcp
+    best = {cls.name: offered_paths(cls)[0] for cls in (sockets.SocketsProbe, sched.SchedProbe, tcp.TcpProbe,
+                                                         rtps.RtpsProbe, rcl.RclProbe, loads.LoadsProbe)}
+    # rclpy is importable here, so the graph is ros2 and the per-topic probes run too. Each BPF
+    # probe takes the best path this kernel offers (tp_btf for sockets and sched on Linux >= 6.6).
+    assert attached(agent) == {"sockets": (best["sockets"], 1), "sched": (best["sched"], 1),
+                               "tcp": (best["tcp"], 1), "host": ("psutil", 1), "process": ("psutil", 1),
+                               "rtps": (best["rtps"], 1), "rcl": (best["rcl"], 1), "loads": (best["loads"], 1),
+                               "latency": ("icmp", 1)}
+
+
+def test_attach_holds_a_probe_to_the_path_it_names():
+    from drums.probes import sched
+    path = offered_paths(sched.SchedProbe)[-1]
+    with running_agent("--probe", "sockets", "--probe", "sched", "--attach", "sockets=fallback",
+                       "--attach", f"sched={path}", "--strict") as url:
+        assert attached(url) == {"sockets": ("sock_diag", 1), "sched": (path, 1)}
 
 
 def test_exited_process_series_gone_within_two_scrapes(agent):
@@ -131,6 +146,11 @@ def test_clients_that_hang_up_before_the_answer_cost_no_traceback(agent):
     (["agent", "--pid", "2147483646"], "--pid 2147483646: no such process"),
     (["agent", "--process-name", "(["], "not a regular expression"),
     (["agent", "--no-probe", "nope"], "invalid choice: 'nope'"),
+    (["agent", "--attach", "sockets"], "'sockets' is not PROBE=PATH"),
+    (["agent", "--attach", "sockets=pigeon"],
+     "probe sockets has no such path (tp_btf, raw_tracepoint, fentry, kprobe, fallback)"),
+    (["agent", "--attach", "host=kprobe"], "probe host has no such path (it has no attach paths)"),
+    (["agent", "--probe", "sched", "--attach", "sockets=kprobe"], "--attach sockets=...: no such probe runs"),
     (["frobnicate"], "invalid choice: 'frobnicate'"),
     (["agent", "--graph", "auto", "--graph-file", "robot.yaml"], "--graph-file is read by --graph static only, not by --graph auto"),
     (["graph", "--graph", "ros1", "--graph-file", "robot.yaml"], "--graph-file is read by --graph static only, not by --graph ros1"),

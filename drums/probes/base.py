@@ -23,6 +23,7 @@ class Probe:
     name = ""
     metrics: tuple[Metric, ...] = ()
     fallback: Callable[[], "Probe"] | None = None  # what to run instead when start() fails
+    paths: tuple = ()  # the attach paths a BPF probe may take, best first (drums.probes.bpf.AttachPath)
 
     def __init__(self):
         self.status = ProbeStatus()

@@ -50,7 +50,11 @@ def needs_tp_btf(f: Features) -> str | None:
 
 
 def needs_fentry(f: Features) -> str | None:
-    return None if f.fentry else "the kernel refuses BPF trampolines (fentry/fexit)"
+    if f.fentry:
+        return None
+    if f.kernel_headers is None:  # bcc compiles nothing without them, a trampoline's test program included
+        return "no kernel headers for bcc to compile a trampoline with"
+    return "the kernel refuses BPF trampolines (fentry/fexit)"
 
 
 def needs_test_run(f: Features) -> str | None:
@@ -113,6 +117,8 @@ def common_requirements(features: Features) -> list[str]:
         problems.append("bpffs is not mounted at /sys/fs/bpf (mount -t bpf bpf /sys/fs/bpf)")
     if not features.has_btf:
         problems.append("no kernel BTF at /sys/kernel/btf/vmlinux (CONFIG_DEBUG_INFO_BTF)")
+    if features.kernel_headers is None:
+        problems.append("no kernel headers for bcc (apt-get install linux-headers-$(uname -r), or scripts/setup.sh)")
     return problems
 
 

@@ -1,6 +1,7 @@
 """Every probe by name, in the order the agent starts them."""
 from __future__ import annotations
 
+from drums.errors import UsageError
 from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.proctable import MappedLibraries, ProcessTable
@@ -13,9 +14,10 @@ ROS2_PROBES = ("rtps", "rcl", "loads")
 
 
 def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "",
-          ros_timing: bool = True) -> list[Probe]:
+          ros_timing: bool = True, attach: dict[str, str] | None = None) -> list[Probe]:
     """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums);
-    `ros_timing`: rcl times messages as well as counting them."""
+    `ros_timing`: rcl times messages as well as counting them; `attach`: probe -> the one attach
+    path it may take, or "fallback" for its fallback alone."""
     from drums.probes.host import HostProbe
     from drums.probes.latency import LatencyProbe
     from drums.probes.loads import LINKERS, LoadsProbe
@@ -49,13 +51,32 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
         "sched": lambda: ProcSchedProbe(proctable),
         "tcp": SockDiagTcpProbe,
     }
+    attach = attach or {}
+    unknown = sorted(set(attach) - set(names))
+    if unknown:
+        raise UsageError(f"--attach {unknown[0]}=...: no such probe runs (probes: {', '.join(names)})")
     probes = []
     for name in PROBES:
         if name in names:
             probe = makers[name]()
             probe.fallback = fallbacks.get(name)
+            if name in attach:
+                probe = held_to(probe, attach[name])
             probes.append(probe)
     return probes
+
+
+def held_to(probe: Probe, path: str) -> Probe:
+    """The probe with only the attach path `path` left to it (its fallback itself for "fallback")."""
+    paths = [p.name for p in probe.paths]
+    if path == "fallback" and probe.fallback is not None:
+        return probe.fallback()
+    if path not in paths:
+        offered = paths + (["fallback"] if probe.fallback is not None else [])
+        raise UsageError(f"--attach {probe.name}={path}: probe {probe.name} has no such path "
+                         f"({', '.join(offered) if offered else 'it has no attach paths'})")
+    probe.paths = tuple(p for p in probe.paths if p.name == path)
+    return probe
 
 
 def all_metrics():

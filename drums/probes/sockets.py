@@ -33,8 +33,8 @@ _HELP = {
     "send_calls": "Successful send calls",
     "received_bytes": "Bytes received",
     "receive_calls": "Successful receive calls",
-    "send_errors": "Send calls that failed (not counting EAGAIN and EINTR)",
-    "receive_errors": "Receive calls that failed (not counting EAGAIN and EINTR)",
+    "send_errors": "Send calls that failed with an error the application saw (not EAGAIN or EINTR)",
+    "receive_errors": "Receive calls that failed with an error the application saw (not EAGAIN or EINTR)",
 }
 SOCKET_LABELS = ("pid", "process", "protocol", "local", "remote", "netns", "inode")
 PROCESS_LABELS = ("pid", "process", "protocol")

@@ -17,10 +17,10 @@ import pytest
 from drums.metrics import Histogram
 from drums.probes import sched
 from drums.probes.sched import _PROCESS_VALUE, _THREAD_VALUE, RUNQ_BUCKETS
-from tests.conftest import TRACEPOINT_PATHS, series, started_on_path, wait_until
+from tests.conftest import offered_paths, series, started_on_path, wait_until
 
 
-@pytest.fixture(scope="module", params=TRACEPOINT_PATHS)
+@pytest.fixture(scope="module", params=offered_paths(sched.SchedProbe))
 def sched_probe(request, features, proctable):
     yield from started_on_path(sched.SchedProbe(features, proctable), request.param)
 

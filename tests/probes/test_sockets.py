@@ -8,6 +8,7 @@ import errno
 import json
 import os
 import select
+import signal
 import socket
 import struct
 import subprocess
@@ -22,10 +23,10 @@ from drums.kernel import bpffs
 from drums.metrics import Columns, Snapshot
 from drums.probes import sockets
 from drums.probes.sockets import _SOCKET_VALUE
-from tests.conftest import TRACEPOINT_PATHS, connected_pairs, eventually, series, started_on_path, wait_until
+from tests.conftest import connected_pairs, eventually, offered_paths, series, started_on_path, wait_until
 
 
-@pytest.fixture(scope="module", params=TRACEPOINT_PATHS)
+@pytest.fixture(scope="module", params=offered_paths(sockets.SocketsProbe))
 def sockets_probe(request, features, proctable):
     yield from started_on_path(sockets.SocketsProbe(features, proctable), request.param)
 
@@ -695,6 +696,67 @@ def test_failed_calls_are_errors_and_eagain_is_not(sockets_probe, collect, spawn
         assert counts == dict(ZERO, send_errors=4)
         # Only EAGAIN ever happened on the idle connection: nothing to count, so no series.
         assert socket_rows(snap, pid=child.pid, inode=inodes["idle"]) == {}
+
+
+# A UDP receiver and a TCP sender, each blocked in its call while the test stops and continues it
+# and interrupts it with a handled signal (SA_RESTART): the kernel restarts each call, and the
+# application sees no error. It counts its own successful calls.
+BLOCKED_CHILD = r"""
+import signal
+signal.signal(signal.SIGUSR1, lambda *_: None)
+signal.siginterrupt(signal.SIGUSR1, False)
+u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+u.bind(("127.0.0.1", 0))
+t = socket.create_connection(("127.0.0.1", int(sys.argv[1])))
+t.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+report(port=u.getsockname()[1], udp=inode(u), tcp=inode(t))
+got = u.recv(100)
+report(received=len(got))
+data, calls = memoryview(b"b" * int(sys.argv[2])), 0
+while data:
+    data = data[t.send(data):]
+    calls += 1
+report(calls=calls)
+command()
+"""
+
+
+def blocked(pid: int) -> bool:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0] == "S"
+
+
+def stop_and_interrupt(pid: int) -> None:
+    """Three stops and continues, then three handled signals, each while the process is blocked."""
+    for sig in [signal.SIGSTOP] * 3 + [signal.SIGUSR1] * 3:
+        wait_until(lambda: blocked(pid), "the child to block in its call", timeout=30)
+        time.sleep(0.05)
+        os.kill(pid, sig)
+        if sig == signal.SIGSTOP:
+            wait_until(lambda: not blocked(pid), "the child to stop", timeout=30)
+            os.kill(pid, signal.SIGCONT)
+
+
+def test_calls_that_the_kernel_restarts_after_a_signal_are_no_errors(sockets_probe, collect, spawn):
+    size = 4 << 20
+    with tcp_listener() as lst:
+        lst.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        child = spawn(BLOCKED_CHILD, lst.getsockname()[1], size)
+        peer, _ = lst.accept()
+    with peer:
+        where = child.expect()
+        stop_and_interrupt(child.pid)  # blocked in recv
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
+            u.sendto(b"0123456789", ("127.0.0.1", where["port"]))
+        assert child.expect() == {"received": 10}
+        stop_and_interrupt(child.pid)  # blocked in send: the test has not read yet
+        got = 0
+        while got < size:
+            got += len(peer.recv(1 << 20))
+        calls = child.expect()["calls"]
+        snap = collect(sockets_probe)
+        assert one_socket(snap, pid=child.pid, inode=where["udp"])[1] == dict(ZERO, received_bytes=10, receive_calls=1)
+        assert one_socket(snap, pid=child.pid, inode=where["tcp"])[1] == dict(ZERO, sent_bytes=size, send_calls=calls)
 
 
 # ---- a TCP socket used after the kernel closed it -------------------------------------------------
