@@ -23,6 +23,11 @@
 #define CURRENT_TASK() bpf_get_current_task()
 #endif
 
+// Hides a value's range from the compiler, so that the bounds check or mask written after it stays
+// on the register the access uses: Linux 6.1's verifier loses a bound once the compiler spills the
+// checked copy, or drops a mask it knows changes nothing.
+#define OPAQUE(v) asm volatile("" : "+r"(v))
+
 #ifndef AF_UNIX
 #define AF_UNIX 1
 #endif

@@ -200,9 +200,10 @@ static __always_inline int leave(void *ctx, u32 msghdr, u32 direction)
         dg.seg[0].base = ptr;
         dg.seg[0].len = ret;
     }
-    u32 cached = dg.seg[0].len < HEAD ? dg.seg[0].len : HEAD;
-    if (cached > ret)
-        cached = ret;  // a receive fills only what arrived
+    u64 cached = dg.seg[0].len < (u64)ret ? dg.seg[0].len : ret;  // a receive fills only what arrived
+    OPAQUE(cached);
+    if (cached > HEAD)
+        cached = HEAD;
     if (bpf_probe_read_user(dg.head, cached, (void *)dg.seg[0].base) == 0)
         dg.cached = cached;
     parse(&dg, ret, direction);

@@ -245,15 +245,24 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
 // The histogram slot of a wait: [2^slot, 2^(slot+1)) us; slot 0 is [0, 2). Microseconds without
 // a division (a BPF division is the CPU's, tens of cycles, on every switch): the multiply-shift is
 // at most one over below 2^33 ns (8.6 s, already the last slot's), which the check takes back.
-static __always_inline u32 runq_slot(u64 ns)
+static __always_inline u64 runq_slot(u64 ns)
 {
     if (ns >= (1ULL << 33))
         return RUNQ_SLOTS - 1;
     u64 us = ns * 1099511628ULL >> 40;  // 2^40 / 1000, rounded up
     if (us * 1000 > ns)
         us--;
-    u32 slot = bpf_log2l(us) - 1;
+    u64 slot = bpf_log2l(us) - 1;
     return slot >= RUNQ_SLOTS ? RUNQ_SLOTS - 1 : slot;
+}
+
+// n waits into the histogram slot of a wait of `ns`.
+static __always_inline void add_waits(u32 *hist, u64 ns, u32 n)
+{
+    u64 slot = runq_slot(ns);
+    OPAQUE(slot);
+    if (slot < RUNQ_SLOTS)
+        hist[slot] += n;
 }
 
 #if DRUMS_ATTACH == ATTACH_TP_BTF
@@ -273,7 +282,7 @@ static __always_inline void count_waits(struct thread_sched_t *t, u64 run_delay,
     u64 mean = waited > t->s.runq_ns ? waited - t->s.runq_ns : 0;
     if (n - t->s.runq_waits > 1)  // as a rule one run since the last switch-out: no division
         mean /= n - t->s.runq_waits;
-    t->s.runq_hist[runq_slot(mean)] += n - t->s.runq_waits;
+    add_waits(t->s.runq_hist, mean, n - t->s.runq_waits);
     t->s.runq_ns = waited;
     t->s.runq_waits = n;
 }
@@ -282,7 +291,7 @@ static __always_inline void count_wait(struct thread_sched_t *t, u64 waited)
 {
     t->s.runq_ns += waited;
     t->s.runq_waits++;
-    t->s.runq_hist[runq_slot(waited)]++;
+    add_waits(t->s.runq_hist, waited, 1);
 }
 #endif
 

@@ -11,14 +11,14 @@
 // Kernel struct offsets arrive as -D flags read from the running kernel's BTF (drums/kernel/btf.py),
 // never from the installed headers, which may belong to another kernel. DRUMS_ATTACH picks the
 // attach path chosen by drums/probes/sockets.py: 6 (tp_btf) or 1 (raw) = the sock_send/recv_length
-// tracepoints (kernel >= 6.6, every socket family), 2 = fexit, 3 = kprobes (TCP and UDP only).
+// tracepoints (kernel >= 6.6), 2 = fexit, 3 = kprobes on the families' sendmsg and recvmsg.
 #include "drums.h"
 
 #define CLASS_TCP 0
 #define CLASS_UDP 1
 #define CLASS_UNIX 2
 #define CLASS_OTHER 3
-#define NCLASSES 4
+#define NCLASSES 4  // a power of two (fold masks with it)
 
 #define DROP_SOCKET 0
 #define DROP_PROCESS 1
@@ -149,19 +149,20 @@ static __always_inline void fold(u32 tgid, u64 start, u16 klass, struct traffic_
         closed_traffic.insert(&tgid, &fresh);
         p = closed_traffic.lookup(&tgid);
     }
+    OPAQUE(klass);
     if (p)
-        add_traffic(&p->by_class[klass], t);
+        add_traffic(&p->by_class[klass & (NCLASSES - 1)], t);
     else
         count_drop(DROP_PROCESS);
 }
 
-// What names a socket in the maps: its struct sock's address, as a number. A typed program (tp_btf,
-// fentry) holds that as a pointer, which the verifier lets it subtract from another pointer but not
+// What names a socket in the maps: its struct sock's address, as a number. A typed program (tp_btf)
+// holds that as a pointer, which the verifier lets it subtract from another pointer but not
 // hash: there, it is the address less that of a map's value (which stays put while the map lives).
 // 0: none.
 static __always_inline u64 socket_id(u64 sk)
 {
-#if DRUMS_ATTACH == ATTACH_TP_BTF || DRUMS_ATTACH == ATTACH_FENTRY
+#if DRUMS_ATTACH == ATTACH_TP_BTF
     int zero = 0;
     u64 *base = dropped.lookup(&zero);
     return base ? sk - (u64)base : 0;
@@ -393,49 +394,88 @@ int on_recv(struct bpf_raw_tracepoint_args *ctx)
 }
 #endif
 
+#if DRUMS_ATTACH == ATTACH_FENTRY || DRUMS_ATTACH == ATTACH_KPROBE
+// Before Linux 6.6 the programs take what sock_sendmsg and sock_recvmsg hand each family's
+// sendmsg and recvmsg (inet, inet6 and the unix ones), where the tracepoints later came: the same
+// calls, the same results, every socket family the agent names. A struct socket holds its sock.
+static __always_inline u64 sock_of(u64 sock)
+{
+    u64 sk = 0;
+    if (sock)
+        bpf_probe_read_kernel(&sk, sizeof(sk), (void *)(sock + SOCKET_SK_OFF));
+    return sk;
+}
+#endif
+
 #if DRUMS_ATTACH == ATTACH_FENTRY
-// fexit sees arguments and return value together: no per-call state to keep.
-KRETFUNC_PROBE(tcp_sendmsg, struct sock *sk, struct msghdr *msg, size_t size, int ret)
+// fexit sees arguments and return value together: no per-call state to keep. (bcc cannot take
+// programs made by a macro of ours: each is written out. The seqpacket calls go through the
+// datagram ones, so are not hooked twice.)
+KRETFUNC_PROBE(inet_sendmsg, struct socket *sock, struct msghdr *msg, size_t size, int ret)
 {
-    count((u64)sk, ret, 0, 1);
+    count(sock_of((u64)sock), ret, 0, 1);
     return 0;
 }
 
-KFUNC_PROBE(tcp_cleanup_rbuf, struct sock *sk, int copied)
+KRETFUNC_PROBE(inet6_sendmsg, struct socket *sock, struct msghdr *msg, size_t size, int ret)
 {
-    if (copied > 0)
-        count((u64)sk, copied, 0, 0);
+    count(sock_of((u64)sock), ret, 0, 1);
     return 0;
 }
 
-KRETFUNC_PROBE(udp_sendmsg, struct sock *sk, struct msghdr *msg, size_t len, int ret)
+KRETFUNC_PROBE(unix_stream_sendmsg, struct socket *sock, struct msghdr *msg, size_t size, int ret)
 {
-    count((u64)sk, ret, 0, 1);
+    count(sock_of((u64)sock), ret, 0, 1);
     return 0;
 }
 
-KRETFUNC_PROBE(udp_recvmsg, struct sock *sk, struct msghdr *msg, size_t len, int flags,
-               int *addr_len, int ret)
+KRETFUNC_PROBE(unix_dgram_sendmsg, struct socket *sock, struct msghdr *msg, size_t size, int ret)
 {
-    count((u64)sk, ret, flags, 0);
+    count(sock_of((u64)sock), ret, 0, 1);
     return 0;
 }
+
+KRETFUNC_PROBE(inet_recvmsg, struct socket *sock, struct msghdr *msg, size_t size, int flags, int ret)
+{
+    count(sock_of((u64)sock), ret, flags, 0);
+    return 0;
+}
+
+KRETFUNC_PROBE(inet6_recvmsg, struct socket *sock, struct msghdr *msg, size_t size, int flags, int ret)
+{
+    count(sock_of((u64)sock), ret, flags, 0);
+    return 0;
+}
+
+KRETFUNC_PROBE(unix_stream_recvmsg, struct socket *sock, struct msghdr *msg, size_t size, int flags, int ret)
+{
+    count(sock_of((u64)sock), ret, flags, 0);
+    return 0;
+}
+
+KRETFUNC_PROBE(unix_dgram_recvmsg, struct socket *sock, struct msghdr *msg, size_t size, int flags, int ret)
+{
+    count(sock_of((u64)sock), ret, flags, 0);
+    return 0;
+}
+
 #endif
 
 #if DRUMS_ATTACH == ATTACH_KPROBE
 #include <uapi/linux/ptrace.h>  // struct pt_regs for PT_REGS_RC
 
-// A kprobe sees the arguments, its kretprobe the result: the socket waits here in between.
+// A kprobe sees the arguments, its kretprobe the result: the socket waits here in between. One
+// call per thread at a time: a socket call does not nest another on the same thread.
 struct call_t {
     u64 sk;
     int flags;
 };
 BPF_HASH(calls, u32, struct call_t, 4096);
 
-static __always_inline void remember(u64 sk, int flags)
+static __always_inline void remember(u64 sock, int flags)
 {
     u32 tid = (u32)bpf_get_current_pid_tgid();
-    struct call_t c = {.sk = sk, .flags = flags};
+    struct call_t c = {.sk = sock_of(sock), .flags = flags};
     calls.update(&tid, &c);
 }
 
@@ -445,52 +485,107 @@ static __always_inline void finish(struct pt_regs *ctx, int is_send)
     struct call_t *c = calls.lookup(&tid);
     if (!c)
         return;
-    count(c->sk, (int)PT_REGS_RC(ctx), c->flags, is_send);
+    struct call_t got = *c;
     calls.delete(&tid);
+    count(got.sk, (int)PT_REGS_RC(ctx), got.flags, is_send);
 }
 
-int enter_tcp_sendmsg(struct pt_regs *ctx, struct sock *sk)
+int enter_inet_sendmsg(struct pt_regs *ctx)
 {
-    remember((u64)sk, 0);
+    remember(PT_REGS_PARM1(ctx), 0);
     return 0;
 }
 
-int exit_tcp_sendmsg(struct pt_regs *ctx)
-{
-    finish(ctx, 1);
-    return 0;
-}
-
-int enter_tcp_cleanup_rbuf(struct pt_regs *ctx, struct sock *sk, int copied)
-{
-    if (copied > 0)
-        count((u64)sk, copied, 0, 0);
-    return 0;
-}
-
-int enter_udp_sendmsg(struct pt_regs *ctx, struct sock *sk)
-{
-    remember((u64)sk, 0);
-    return 0;
-}
-
-int exit_udp_sendmsg(struct pt_regs *ctx)
+int exit_inet_sendmsg(struct pt_regs *ctx)
 {
     finish(ctx, 1);
     return 0;
 }
 
-int enter_udp_recvmsg(struct pt_regs *ctx, struct sock *sk, void *msg, size_t len, int flags)
+int enter_inet6_sendmsg(struct pt_regs *ctx)
 {
-    remember((u64)sk, flags);
+    remember(PT_REGS_PARM1(ctx), 0);
     return 0;
 }
 
-int exit_udp_recvmsg(struct pt_regs *ctx)
+int exit_inet6_sendmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 1);
+    return 0;
+}
+
+int enter_unix_stream_sendmsg(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_unix_stream_sendmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 1);
+    return 0;
+}
+
+int enter_unix_dgram_sendmsg(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_unix_dgram_sendmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 1);
+    return 0;
+}
+
+int enter_inet_recvmsg(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), (int)PT_REGS_PARM4(ctx));
+    return 0;
+}
+
+int exit_inet_recvmsg(struct pt_regs *ctx)
 {
     finish(ctx, 0);
     return 0;
 }
+
+int enter_inet6_recvmsg(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), (int)PT_REGS_PARM4(ctx));
+    return 0;
+}
+
+int exit_inet6_recvmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
+int enter_unix_stream_recvmsg(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), (int)PT_REGS_PARM4(ctx));
+    return 0;
+}
+
+int exit_unix_stream_recvmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
+int enter_unix_dgram_recvmsg(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), (int)PT_REGS_PARM4(ctx));
+    return 0;
+}
+
+int exit_unix_dgram_recvmsg(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
 #endif
 
 // sock:inet_sock_set_state (sk, oldstate, newstate): a TCP socket that reaches CLOSE is done;

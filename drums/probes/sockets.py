@@ -68,6 +68,10 @@ SOCKET_SLOTS = 16384
 _SLOT_HASH = np.uint64(0x9E3779B97F4A7C15)
 
 SEND_RECV = ("sock_send_length", "sock_recv_length")
+# Before those tracepoints (Linux 6.6): what sock_sendmsg and sock_recvmsg call for each family, where
+# the tracepoints later came (bpf/sockets.bpf.c).
+FAMILY_CALLS = tuple(f"{family}_{call}msg" for call in ("send", "recv")
+                     for family in ("inet", "inet6", "unix_stream", "unix_dgram"))
 _LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_free")
 LIFECYCLE = tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(_LIFECYCLE_EVENTS, ("on_tcp_state", "on_task_free"))) + (
     ("run", "", "forget_gone"),  # the agent's, for sockets freed without a tracepoint (see _forget)
@@ -233,17 +237,13 @@ class SocketsProbe(BpfProbe):
         _RAW,
         AttachPath("fentry", (("fentry", "", ""),) + LIFECYCLE,
                    needs_all(needs_fentry, _NEEDS_LIFECYCLE),
-                   "Linux 5.10 to 6.5 with BPF trampolines (Ubuntu 22.04): TCP and UDP only"),
+                   "Linux 5.10 to 6.5 with BPF trampolines (Ubuntu 22.04): fexit on each family's sendmsg and recvmsg"),
         AttachPath("kprobe",
-                   (("kprobe", "tcp_sendmsg", "enter_tcp_sendmsg"),
-                    ("kretprobe", "tcp_sendmsg", "exit_tcp_sendmsg"),
-                    ("kprobe", "tcp_cleanup_rbuf", "enter_tcp_cleanup_rbuf"),
-                    ("kprobe", "udp_sendmsg", "enter_udp_sendmsg"),
-                    ("kretprobe", "udp_sendmsg", "exit_udp_sendmsg"),
-                    ("kprobe", "udp_recvmsg", "enter_udp_recvmsg"),
-                    ("kretprobe", "udp_recvmsg", "exit_udp_recvmsg")) + LIFECYCLE,
+                   tuple((kind, fn, f"{side}_{fn}") for fn in FAMILY_CALLS
+                         for kind, side in (("kprobe", "enter"), ("kretprobe", "exit"))) + LIFECYCLE,
                    needs_all(needs_kprobes, _NEEDS_LIFECYCLE),
-                   "Linux 5.10 to 6.5 with kprobes but no BPF trampolines: TCP and UDP only, loaded in the agent"),
+                   "Linux 5.10 to 6.5 without BPF trampolines: kprobes on each family's sendmsg and recvmsg, "
+                   "loaded in the agent"),
     )
 
     def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix", **kw):
@@ -267,6 +267,7 @@ class SocketsProbe(BpfProbe):
             "SK_STATE_OFF": ("sock", "__sk_common.skc_state"),
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
+            "SOCKET_SK_OFF": ("socket", "sk"),
             **TASK_IDENTITY_FIELDS,
         })
         # The socket's inode sits right after struct socket in struct socket_alloc; a tp_btf program
