@@ -15,13 +15,19 @@
 // tracepoint program (the verifier knows the pointer's type and checks the load), else through
 // bpf_probe_read_kernel, a helper call that costs as much as the rest of a small program.
 // CURRENT_TASK() is the running task, typed likewise where it can be.
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-#define KREAD(dst, addr) ((dst) = *(typeof(dst) *)(addr))
-#define CURRENT_TASK() ((u64)bpf_get_current_task_btf())
-#else
-#define KREAD(dst, addr) bpf_probe_read_kernel(&(dst), sizeof(dst), (void *)(addr))
-#define CURRENT_TASK() bpf_get_current_task()
-#endif
+// The _AS forms take that as a constant argument instead, for a program of another type in a
+// tp_btf build (a syscall tracepoint's sees no typed pointers).
+#define TYPED (DRUMS_ATTACH == ATTACH_TP_BTF)
+#define KREAD_AS(typed, dst, addr)                                                \
+    do {                                                                          \
+        if (typed)                                                                \
+            (dst) = *(typeof(dst) *)(addr);                                       \
+        else                                                                      \
+            bpf_probe_read_kernel(&(dst), sizeof(dst), (void *)(addr));          \
+    } while (0)
+#define CURRENT_TASK_AS(typed) ((typed) ? (u64)bpf_get_current_task_btf() : bpf_get_current_task())
+#define KREAD(dst, addr) KREAD_AS(TYPED, dst, addr)
+#define CURRENT_TASK() CURRENT_TASK_AS(TYPED)
 
 // Hides a value's range from the compiler, so that the bounds check or mask written after it stays
 // on the register the access uses: Linux 6.1's verifier loses a bound once the compiler spills the
@@ -36,6 +42,9 @@
 #endif
 #ifndef AF_INET6
 #define AF_INET6 10
+#endif
+#ifndef SOCK_STREAM
+#define SOCK_STREAM 1
 #endif
 #ifndef IPPROTO_TCP
 #define IPPROTO_TCP 6
@@ -74,6 +83,9 @@
 
 struct sock;
 struct msghdr;
+struct socket;
+struct page;
+struct pipe_inode_info;
 
 #ifdef SK_FAMILY_OFF
 // Family, network namespace, ports (host order) and addresses of a socket; IPv4 addresses fill
@@ -118,14 +130,28 @@ static __always_inline u32 leader_tgid(u64 task)
 // When a task's process started: with the PID, what tells a process from a later one that got
 // its PID. Needs TASK_GROUP_LEADER_OFF and TASK_START_TIME_OFF.
 #ifdef TASK_GROUP_LEADER_OFF
-static __always_inline u64 process_start(u64 task)
+static __always_inline u64 process_start_as(const int typed, u64 task)
 {
     u64 leader = 0, start = 0;
-    KREAD(leader, task + TASK_GROUP_LEADER_OFF);
+    KREAD_AS(typed, leader, task + TASK_GROUP_LEADER_OFF);
     if (leader)
-        KREAD(start, leader + TASK_START_TIME_OFF);
+        KREAD_AS(typed, start, leader + TASK_START_TIME_OFF);
     return start;
 }
+#define process_start(task) process_start_as(TYPED, task)
 #endif
+
+// The tracepoint records of syscalls:sys_enter_* and sys_exit_* (stable since they exist).
+struct syscall_enter_t {
+    u64 common;
+    s64 nr;
+    u64 args[6];
+};
+
+struct syscall_exit_t {
+    u64 common;
+    s64 nr;
+    s64 ret;
+};
 
 #endif

@@ -22,13 +22,6 @@
 #define SENT 0
 #define RECEIVED 1
 
-// The tracepoint record of syscalls:sys_exit_* (stable since it exists).
-struct syscall_exit_t {
-    u64 common;
-    s64 nr;
-    s64 ret;
-};
-
 struct writer_key_t {
     u32 tgid;       // the process that sent or received
     u32 direction;  // SENT or RECEIVED

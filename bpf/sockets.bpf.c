@@ -241,24 +241,24 @@ static __always_inline int forget_socket(u64 id, struct bpf_raw_tracepoint_args 
     return n;
 }
 
-static __always_inline u64 socket_ino(u64 sk)
+static __always_inline u64 socket_ino(const int typed, u64 sk)
 {
     u64 sock = 0, ino = 0;
-    KREAD(sock, sk + SK_SOCKET_OFF);
+    KREAD_AS(typed, sock, sk + SK_SOCKET_OFF);
     if (!sock)
         return 0;
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-    // The verifier checks each load against its struct, and the inode lies past struct socket (in
-    // struct socket_alloc): it is reached through the socket's file instead.
-    u64 file = 0, inode = 0;
-    KREAD(file, sock + SOCKET_FILE_OFF);
-    if (file)
-        KREAD(inode, file + FILE_INODE_OFF);
-    if (inode)
-        KREAD(ino, inode + INODE_INO_OFF);
-#else
-    bpf_probe_read_kernel(&ino, sizeof(ino), (void *)(sock + SOCKET_INO_OFF));
-#endif
+    if (typed) {
+        // The verifier checks each load against its struct, and the inode lies past struct socket
+        // (in struct socket_alloc): it is reached through the socket's file instead.
+        u64 file = 0, inode = 0;
+        KREAD_AS(typed, file, sock + SOCKET_FILE_OFF);
+        if (file)
+            KREAD_AS(typed, inode, file + FILE_INODE_OFF);
+        if (inode)
+            KREAD_AS(typed, ino, inode + INODE_INO_OFF);
+    } else {
+        bpf_probe_read_kernel(&ino, sizeof(ino), (void *)(sock + SOCKET_INO_OFF));
+    }
     return ino;
 }
 
@@ -311,7 +311,7 @@ static __always_inline struct socket_traffic_t *make_entry(u64 id, struct socket
 
 // The socket's entry, created at first use. A call on a socket that gets none (see below) is
 // folded into the calling process's closed_traffic here.
-static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int ret, int is_send)
+static __always_inline struct socket_traffic_t *socket_entry(const int typed, u64 sk, u64 id, int ret, int is_send)
 {
     struct socket_traffic_t *s = socket_of(id);
     if (s) {
@@ -320,26 +320,26 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int
         // tracepoint, so a recycled struct sock is recognised by its new inode.
         if (s->klass == CLASS_TCP)
             return s;
-        u64 ino = socket_ino(sk);
+        u64 ino = socket_ino(typed, sk);
         if (ino == s->ino)
             return s;
         forget_socket(id, 0);  // whether or not a fresh entry takes its place
     }
     struct socket_traffic_t fresh = {};
     fresh.tgid = bpf_get_current_pid_tgid() >> 32;
-    fresh.process_start = process_start(CURRENT_TASK());
-    fresh.ino = socket_ino(sk);
+    fresh.process_start = process_start_as(typed, CURRENT_TASK_AS(typed));
+    fresh.ino = socket_ino(typed, sk);
     read_identity(&fresh, sk);
     // A TCP socket in CLOSE (never connected, or reset) would never pass CLOSE again to free its
     // entry, and its struct sock would pass the entry to the next socket: it gets none.
     u8 state = 0;
     if (fresh.klass == CLASS_TCP)
-        KREAD(state, sk + SK_STATE_OFF);
+        KREAD_AS(typed, state, sk + SK_STATE_OFF);
     if (state != TCP_CLOSE) {
         s = make_entry(id, &fresh);
         if (s) {
             if (fresh.klass == CLASS_TCP)
-                KREAD(state, sk + SK_STATE_OFF);
+                KREAD_AS(typed, state, sk + SK_STATE_OFF);
             if (state != TCP_CLOSE)
                 return s;
             // A CLOSE that came on another CPU after the state was read found no entry to forget:
@@ -354,14 +354,14 @@ static __always_inline struct socket_traffic_t *socket_entry(u64 sk, u64 id, int
     return 0;
 }
 
-static __always_inline void count(u64 sk, int ret, int flags, int is_send)
+// One call on the socket `sk` (whose id is `id`): `typed` where the program sees typed pointers.
+static __always_inline void count_as(const int typed, u64 sk, u64 id, int ret, int flags, int is_send)
 {
     if (ret == -EAGAIN || ret == -EINTR || (ret <= -ERESTARTSYS && ret >= -ERESTART_RESTARTBLOCK))
         return;  // non-blocking polls and interrupted or restarted calls are not failures of the socket
     if (!is_send && ret >= 0 && (flags & MSG_PEEK))
         return;  // the bytes will be counted when they are really read
-    u64 id = socket_id(sk);
-    struct socket_traffic_t *s = id ? socket_entry(sk, id, ret, is_send) : 0;
+    struct socket_traffic_t *s = id ? socket_entry(typed, sk, id, ret, is_send) : 0;
     if (!s)
         return;
     // Atomic: the threads of a process, and processes that share a socket, call at once.
@@ -379,6 +379,20 @@ static __always_inline void count(u64 sk, int ret, int flags, int is_send)
     mark_changed(id, s);
 }
 
+static __always_inline void count(u64 sk, int ret, int flags, int is_send)
+{
+    count_as(TYPED, sk, socket_id(sk), ret, flags, is_send);
+}
+
+// A struct socket's sock.
+static __always_inline u64 sock_of(u64 sock)
+{
+    u64 sk = 0;
+    if (sock)
+        bpf_probe_read_kernel(&sk, sizeof(sk), (void *)(sock + SOCKET_SK_OFF));
+    return sk;
+}
+
 #if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT || DRUMS_ATTACH == ATTACH_TP_BTF
 // sock:sock_send_length / sock_recv_length (sk, ret, flags), kernel >= 6.6.
 int on_send(struct bpf_raw_tracepoint_args *ctx)
@@ -394,17 +408,95 @@ int on_recv(struct bpf_raw_tracepoint_args *ctx)
 }
 #endif
 
+#if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT || DRUMS_ATTACH == ATTACH_TP_BTF
+// splice(2) from a TCP or unix stream socket hands its bytes to the pipe without sock_recvmsg, so
+// without sock_recv_length: the syscall's exit counts them, a call per splice. A socket of another
+// kind is read through sock_recvmsg, and a splice or sendfile into a socket sends through
+// sock_sendmsg (Linux >= 6.5): those the tracepoints count. io_uring's splice is no syscall.
+BPF_HASH(splicing, u32, u64, 4096);  // thread -> the socket it splices from, while it does
+
+// socket_id() of a socket that a program without typed pointers meets as a number: the map
+// value's address becomes a number too, copied out by the helper (as root may).
+static __always_inline u64 socket_id_untyped(u64 sk)
+{
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    int zero = 0;
+    u64 *base = dropped.lookup(&zero);
+    if (!base)
+        return 0;
+    u64 where = (u64)base, at = 0;
+    bpf_probe_read_kernel(&at, sizeof(at), &where);
+    return sk - at;
+#else
+    return sk;
+#endif
+}
+
+// The sock of the running task's file descriptor `fd` if it is a TCP or unix stream socket, else 0.
+static __always_inline u64 spliced_socket(u64 fd)
+{
+    u64 task = bpf_get_current_task(), files = 0, fdt = 0, fds = 0, file = 0, inode = 0;
+    u32 max = 0;
+    u16 mode = 0, family = 0, protocol = 0, type = 0;
+    bpf_probe_read_kernel(&files, sizeof(files), (void *)(task + TASK_FILES_OFF));
+    if (files)
+        bpf_probe_read_kernel(&fdt, sizeof(fdt), (void *)(files + FILES_FDT_OFF));
+    if (!fdt)
+        return 0;
+    bpf_probe_read_kernel(&max, sizeof(max), (void *)(fdt + FDTABLE_MAX_FDS_OFF));
+    bpf_probe_read_kernel(&fds, sizeof(fds), (void *)(fdt + FDTABLE_FD_OFF));
+    if (fd >= max || !fds)
+        return 0;
+    bpf_probe_read_kernel(&file, sizeof(file), (void *)(fds + fd * 8));
+    if (file)
+        bpf_probe_read_kernel(&inode, sizeof(inode), (void *)(file + FILE_INODE_OFF));
+    if (inode)
+        bpf_probe_read_kernel(&mode, sizeof(mode), (void *)(inode + INODE_MODE_OFF));
+    if ((mode & 0170000) != 0140000)  // S_IFSOCK
+        return 0;
+    u64 sock = 0;
+    bpf_probe_read_kernel(&sock, sizeof(sock), (void *)(file + FILE_PRIVATE_OFF));
+    u64 sk = sock_of(sock);
+    if (!sk)
+        return 0;
+    bpf_probe_read_kernel(&family, sizeof(family), (void *)(sk + SK_FAMILY_OFF));
+    bpf_probe_read_kernel(&protocol, sizeof(protocol), (void *)(sk + SK_PROTOCOL_OFF));
+    bpf_probe_read_kernel(&type, sizeof(type), (void *)(sk + SK_TYPE_OFF));
+    if (family == AF_UNIX ? type == SOCK_STREAM : classify(family, protocol) == CLASS_TCP)
+        return sk;
+    return 0;
+}
+
+// syscalls:sys_enter_splice (fd_in, off_in, fd_out, off_out, len, flags) and its exit.
+int on_splice_enter(struct syscall_enter_t *ctx)
+{
+    u64 sk = spliced_socket(ctx->args[0]);
+    if (sk) {
+        u32 tid = (u32)bpf_get_current_pid_tgid();
+        splicing.update(&tid, &sk);
+    }
+    return 0;
+}
+
+int on_splice_exit(struct syscall_exit_t *ctx)
+{
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    u64 *from = splicing.lookup(&tid);
+    if (!from)
+        return 0;
+    u64 sk = *from;
+    splicing.delete(&tid);
+    count_as(0, sk, socket_id_untyped(sk), (int)ctx->ret, 0, 0);
+    return 0;
+}
+#endif
+
 #if DRUMS_ATTACH == ATTACH_FENTRY || DRUMS_ATTACH == ATTACH_KPROBE
 // Before Linux 6.6 the programs take what sock_sendmsg and sock_recvmsg hand each family's
 // sendmsg and recvmsg (inet, inet6 and the unix ones), where the tracepoints later came: the same
-// calls, the same results, every socket family the agent names. A struct socket holds its sock.
-static __always_inline u64 sock_of(u64 sock)
-{
-    u64 sk = 0;
-    if (sock)
-        bpf_probe_read_kernel(&sk, sizeof(sk), (void *)(sock + SOCKET_SK_OFF));
-    return sk;
-}
+// calls, the same results, every socket family the agent names. Besides: what splice(2) takes
+// from a TCP or unix stream socket (their splice_read), and before Linux 6.5 what sendfile and
+// splice hand a socket (its sendpage, a call per page).
 #endif
 
 #if DRUMS_ATTACH == ATTACH_FENTRY
@@ -458,6 +550,35 @@ KRETFUNC_PROBE(unix_dgram_recvmsg, struct socket *sock, struct msghdr *msg, size
     count(sock_of((u64)sock), ret, flags, 0);
     return 0;
 }
+
+KRETFUNC_PROBE(tcp_splice_read, struct socket *sock, loff_t *ppos, struct pipe_inode_info *pipe, size_t len,
+               unsigned int flags, ssize_t ret)
+{
+    count(sock_of((u64)sock), (int)ret, 0, 0);
+    return 0;
+}
+
+KRETFUNC_PROBE(unix_stream_splice_read, struct socket *sock, loff_t *ppos, struct pipe_inode_info *pipe, size_t len,
+               unsigned int flags, ssize_t ret)
+{
+    count(sock_of((u64)sock), (int)ret, 0, 0);
+    return 0;
+}
+
+#ifdef HAS_SENDPAGE  // Linux < 6.5
+KRETFUNC_PROBE(inet_sendpage, struct socket *sock, struct page *page, int offset, size_t size, int flags,
+               ssize_t ret)
+{
+    count(sock_of((u64)sock), (int)ret, 0, 1);
+    return 0;
+}
+KRETFUNC_PROBE(unix_stream_sendpage, struct socket *sock, struct page *page, int offset, size_t size, int flags,
+               ssize_t ret)
+{
+    count(sock_of((u64)sock), (int)ret, 0, 1);
+    return 0;
+}
+#endif
 
 #endif
 
@@ -583,6 +704,54 @@ int enter_unix_dgram_recvmsg(struct pt_regs *ctx)
 int exit_unix_dgram_recvmsg(struct pt_regs *ctx)
 {
     finish(ctx, 0);
+    return 0;
+}
+
+int enter_tcp_splice_read(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_tcp_splice_read(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
+int enter_unix_stream_splice_read(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_unix_stream_splice_read(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
+int enter_inet_sendpage(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_inet_sendpage(struct pt_regs *ctx)
+{
+    finish(ctx, 1);
+    return 0;
+}
+
+int enter_unix_stream_sendpage(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_unix_stream_sendpage(struct pt_regs *ctx)
+{
+    finish(ctx, 1);
     return 0;
 }
 

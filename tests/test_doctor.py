@@ -17,12 +17,15 @@ class Kernel(Features):
         self.__dict__["kprobes"] = kprobes
         self.__dict__["fentry"] = fentry
         self.__dict__["tp_btf"] = tp_btf
+        self.__dict__["perf_links"] = True
 
     def tracepoint(self, event):
         return event in self._tracepoints
 
 
-LIFECYCLE = {"inet_sock_set_state", "sched_process_exit", "sched_process_free", "sched_process_exec"}
+# What every kernel of interest has (syscall tracepoints among them: splice's), and what 6.6 added.
+LIFECYCLE = {"inet_sock_set_state", "sched_process_exit", "sched_process_free", "sched_process_exec",
+             "sys_enter_splice", "sys_exit_splice"}
 LINUX_6_6 = LIFECYCLE | {"sock_send_length", "sock_recv_length"}
 
 

@@ -168,6 +168,10 @@ class Btf:
             return False
         return True
 
+    def has_function(self, name: str) -> bool:
+        """Whether the kernel has a function of that name (one a trampoline or kprobe can take)."""
+        return any(self._header(t)[1] == _FUNC for t in self._by_name.get(name, ()))
+
     def tracepoint_args(self, event: str) -> list[str] | None:
         """Names of the raw tracepoint's argument types, or None if the kernel has no such event.
 

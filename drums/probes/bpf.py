@@ -36,6 +36,7 @@ class AttachPath:
     attachments: tuple[tuple[str, str, str], ...]  # (kind, kernel target, BPF function)
     requires: Callable[[Features], str | None]  # why this kernel cannot use the path, or None
     serves: str  # which kernels this path is for, for the README and `drums doctor`
+    optional: tuple[str, ...] = ()  # kernel functions attached only where the kernel has them
 
 
 def needs_tracepoints(*events: str) -> Callable[[Features], str | None]:
@@ -210,10 +211,11 @@ class BpfProbe(Probe):
         if self.features.btf is None:
             raise KernelError("cannot parse the kernel's BTF (/sys/kernel/btf/vmlinux)")
         defines = dict(self.offsets(self.features.btf), **self.options, DRUMS_ATTACH=ATTACH_DEFINES[path.name])
+        btf = self.features.btf
         return loader.LoadRequest(
             source=self.source,
             cflags=[f"-D{k}={v}" for k, v in sorted(defines.items())],
-            attachments=list(path.attachments),
+            attachments=[a for a in path.attachments if a[1] not in path.optional or btf.has_function(a[1])],
             maps=list(self.maps),
             pin_dir=pin_dir,
             headers=self.features.kernel_headers,

@@ -21,8 +21,8 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
-                              needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints, offset_defines,
-                              typed)
+                              needs_fentry, needs_kprobes, needs_perf_links, needs_test_run, needs_tracepoints,
+                              offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable, comm
 
@@ -72,14 +72,23 @@ SEND_RECV = ("sock_send_length", "sock_recv_length")
 # the tracepoints later came (bpf/sockets.bpf.c).
 FAMILY_CALLS = tuple(f"{family}_{call}msg" for call in ("send", "recv")
                      for family in ("inet", "inet6", "unix_stream", "unix_dgram"))
+# What splice(2) takes from a TCP or unix stream socket, and (Linux < 6.5) what sendfile and splice
+# hand a socket: neither goes through sendmsg or recvmsg there.
+SPLICE_READS = ("tcp_splice_read", "unix_stream_splice_read")
+SENDPAGES = ("inet_sendpage", "unix_stream_sendpage")
+# On Linux >= 6.6 only splice's reads miss the tracepoints: the syscall's entry and exit count them.
+SPLICE_EVENTS = ("sys_enter_splice", "sys_exit_splice")
 _LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_free")
 LIFECYCLE = tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(_LIFECYCLE_EVENTS, ("on_tcp_state", "on_task_free"))) + (
     ("run", "", "forget_gone"),  # the agent's, for sockets freed without a tracepoint (see _forget)
 )
 _NEEDS_LIFECYCLE = needs_all(needs_test_run, needs_tracepoints(*_LIFECYCLE_EVENTS))
 _RAW = AttachPath("raw_tracepoint",
-                  tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv"))) + LIFECYCLE,
-                  needs_all(needs_tracepoints(*SEND_RECV), _NEEDS_LIFECYCLE),
+                  tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv")))
+                  + tuple(("tracepoint", f"syscalls:{e}", fn) for e, fn in zip(SPLICE_EVENTS, ("on_splice_enter",
+                                                                                              "on_splice_exit")))
+                  + LIFECYCLE,
+                  needs_all(needs_tracepoints(*SEND_RECV, *SPLICE_EVENTS), needs_perf_links, _NEEDS_LIFECYCLE),
                   "Linux >= 6.6: every socket family, one event per send and receive call")
 
 
@@ -239,11 +248,11 @@ class SocketsProbe(BpfProbe):
                    needs_all(needs_fentry, _NEEDS_LIFECYCLE),
                    "Linux 5.10 to 6.5 with BPF trampolines (Ubuntu 22.04): fexit on each family's sendmsg and recvmsg"),
         AttachPath("kprobe",
-                   tuple((kind, fn, f"{side}_{fn}") for fn in FAMILY_CALLS
+                   tuple((kind, fn, f"{side}_{fn}") for fn in FAMILY_CALLS + SPLICE_READS + SENDPAGES
                          for kind, side in (("kprobe", "enter"), ("kretprobe", "exit"))) + LIFECYCLE,
                    needs_all(needs_kprobes, _NEEDS_LIFECYCLE),
                    "Linux 5.10 to 6.5 without BPF trampolines: kprobes on each family's sendmsg and recvmsg, "
-                   "loaded in the agent"),
+                   "loaded in the agent", optional=SENDPAGES),
     )
 
     def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix", **kw):
@@ -268,6 +277,14 @@ class SocketsProbe(BpfProbe):
             "SK_PROTOCOL_OFF": ("sock", "sk_protocol"),
             "SK_SOCKET_OFF": ("sock", "sk_socket"),
             "SOCKET_SK_OFF": ("socket", "sk"),
+            "SK_TYPE_OFF": ("sock", "sk_type"),
+            # a task's file descriptor to its file (the splice counts)
+            "TASK_FILES_OFF": ("task_struct", "files"),
+            "FILES_FDT_OFF": ("files_struct", "fdt"),
+            "FDTABLE_FD_OFF": ("fdtable", "fd"),
+            "FDTABLE_MAX_FDS_OFF": ("fdtable", "max_fds"),
+            "FILE_PRIVATE_OFF": ("file", "private_data"),
+            "INODE_MODE_OFF": ("inode", "i_mode"),
             **TASK_IDENTITY_FIELDS,
         })
         # The socket's inode sits right after struct socket in struct socket_alloc; a tp_btf program
@@ -277,6 +294,8 @@ class SocketsProbe(BpfProbe):
         d.update(offset_defines(btf, {"SOCKET_FILE_OFF": ("socket", "file"), "FILE_INODE_OFF": ("file", "f_inode"),
                                       "INODE_INO_OFF": ("inode", "i_ino")}))
         d["SOCKET_SLOTS"] = SOCKET_SLOTS if self.features.bpf_atomics else 1  # slots are taken by compare-and-swap
+        if btf.has_function(SENDPAGES[0]):
+            d["HAS_SENDPAGE"] = 1
         return d
 
     def socket_entries(self) -> tuple[bytes, bytes]:

@@ -35,7 +35,7 @@ RESULTS = os.path.join(CHECKOUT, "tests", "kernels", "results.json")
 VENV_BIN = os.path.join(CHECKOUT, ".venv", "bin")
 # The portable part: every exact count the probes make against ground truth the test makes, the
 # agent as the README starts it, the fallbacks, and per-topic counts of rclpy nodes.
-TESTS = ("tests/test_doctor.py", "tests/probes/test_attach_paths.py", "tests/probes/test_sockets.py",
+TESTS = ("tests/probes/test_attach_paths.py", "tests/probes/test_sockets.py",
          "tests/probes/test_sched.py", "tests/probes/test_tcp.py", "tests/probes/test_fallbacks.py",
          "tests/graph/test_topics.py", "tests/test_agent.py::test_every_probe_attached_with_its_attach_type",
          "tests/test_agent.py::test_attach_holds_a_probe_to_the_path_it_names")

@@ -24,7 +24,7 @@ def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
             cflags=[f"-D{k}={v}" for k, v in defines.items()] + [f"-I{BPF_DIR}"])
     try:
         functions = [fn for kind, _, fn in path.attachments if kind in ("kprobe", "kretprobe")]
-        assert len(functions) == 16
+        assert len(functions) == 24
         for fn in functions:
             assert b.load_func(fn.encode(), BPF.KPROBE).fd >= 0, fn
         # The lifecycle's programs, and the one the agent runs itself to forget a socket.

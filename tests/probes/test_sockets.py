@@ -13,6 +13,7 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -327,6 +328,110 @@ def test_unix_stream_socketpair(sockets_probe, collect, spawn):
         assert counts == dict(ZERO, received_bytes=size, receive_calls=recv_calls)
 
         assert process_counts(snap, child.pid, "unix") == dict(ZERO, sent_bytes=size, send_calls=calls)
+
+
+# ---- every way bytes cross a socket, and what a call is -------------------------------------------
+
+class _Iovec(ctypes.Structure):
+    _fields_ = [("base", ctypes.c_void_p), ("len", ctypes.c_size_t)]
+
+
+class _Msghdr(ctypes.Structure):
+    _fields_ = [("name", ctypes.c_void_p), ("namelen", ctypes.c_uint32), ("iov", ctypes.POINTER(_Iovec)),
+                ("iovlen", ctypes.c_size_t), ("control", ctypes.c_void_p), ("controllen", ctypes.c_size_t),
+                ("flags", ctypes.c_int)]
+
+
+class _Mmsghdr(ctypes.Structure):
+    _fields_ = [("hdr", _Msghdr), ("len", ctypes.c_uint)]
+
+
+def mmsg(call: str, sock: socket.socket, count: int, size: int) -> int:
+    """sendmmsg or recvmmsg of `count` datagrams of `size` bytes in one call; the datagrams it moved."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    buffers = [ctypes.create_string_buffer(b"m" * size, size) for _ in range(count)]
+    iovs = [_Iovec(ctypes.cast(b, ctypes.c_void_p), size) for b in buffers]
+    msgs = (_Mmsghdr * count)(*(_Mmsghdr(_Msghdr(None, 0, ctypes.pointer(iov), 1, None, 0, 0), 0) for iov in iovs))
+    n = libc.sendmmsg(sock.fileno(), msgs, count, 0) if call == "send" else \
+        libc.recvmmsg(sock.fileno(), msgs, count, 0, None)
+    assert n >= 0, os.strerror(ctypes.get_errno())
+    return n
+
+
+def received_in_thread(sock: socket.socket, size: int) -> threading.Thread:
+    thread = threading.Thread(target=recv_exactly, args=(sock, size), daemon=True)
+    thread.start()
+    return thread
+
+
+def test_each_way_of_sending_and_receiving_counts_its_bytes_once_and_its_calls_as_documented(
+        sockets_probe, collect, tmp_path):
+    """send, writev, sendmsg and a peek; sendfile; splice from and into a socket; sendmmsg and
+    recvmmsg: bytes exact on every socket, and calls as the metrics' help says: one per call that
+    moved data, one per datagram of sendmmsg and recvmmsg, and one per batch of pages that sendfile
+    and splice hand the socket (the kernel's batches: at least one per system call, at most one a page)."""
+    page, big = os.sysconf("SC_PAGE_SIZE"), 8 << 20
+    data = tmp_path / "data"
+    data.write_bytes(os.urandom(big))
+    with contextlib.ExitStack() as stack, connected_pairs(4) as pairs:
+        (plain, plain_rx), (sf, sf_rx), (sp, sp_rx), (into, into_rx) = pairs
+        # One call each: send, writev of three buffers, sendmsg of two; a peek moves nothing.
+        plain.send(b"s" * 1000)
+        os.writev(plain.fileno(), [b"a" * 100, b"b" * 200, b"c" * 300])
+        plain.sendmsg([b"d" * 400, b"e" * 500])
+        assert len(plain_rx.recv(10, socket.MSG_PEEK)) == 10
+        plain_calls = recv_exactly(plain_rx, 2500)
+        # sendfile of 8 MiB from a file.
+        reader = received_in_thread(sf_rx, big)
+        f = stack.enter_context(open(data, "rb"))
+        sent = sendfiles = 0
+        while sent < big:
+            sent += os.sendfile(sf.fileno(), f.fileno(), sent, big - sent)
+            sendfiles += 1
+        reader.join(30)
+        # splice from a socket into a pipe, 4 MiB, and from a pipe into a socket, 1 MiB.
+        r, w = os.pipe()
+        stack.callback(os.close, r)
+        stack.callback(os.close, w)
+        sender = threading.Thread(target=sp.sendall, args=(b"p" * (4 << 20),), daemon=True)
+        sender.start()
+        got = splices = 0
+        while got < 4 << 20:
+            n = os.splice(sp_rx.fileno(), w, min(65536, (4 << 20) - got))
+            assert n > 0
+            got += n
+            splices += 1
+            while n:
+                n -= len(os.read(r, n))
+        sender.join(30)
+        reader = received_in_thread(into_rx, 1 << 20)
+        spliced_in = splices_in = 0
+        while spliced_in < 1 << 20:
+            os.write(w, b"i" * 65536)
+            left = 65536
+            while left:
+                left -= os.splice(r, into.fileno(), left)
+                splices_in += 1
+            spliced_in += 65536
+        reader.join(30)
+        # sendmmsg and recvmmsg of 32 datagrams each.
+        udp_tx = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+        udp_rx = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+        udp_rx.bind(("127.0.0.1", 0))
+        udp_tx.connect(udp_rx.getsockname())
+        assert mmsg("send", udp_tx, 32, 100) == 32
+        assert mmsg("recv", udp_rx, 32, 100) == 32
+        snap = collect(sockets_probe)
+
+        rows = {s: one_socket(snap, pid=os.getpid(), inode=inode(s))[1] for s in
+                (plain, plain_rx, sf, sf_rx, sp, sp_rx, into, into_rx, udp_tx, udp_rx)}
+        assert rows[plain] == dict(ZERO, sent_bytes=2500, send_calls=3)
+        assert rows[plain_rx] == dict(ZERO, received_bytes=2500, receive_calls=plain_calls)
+        assert rows[sf]["sent_bytes"] == big and sendfiles <= rows[sf]["send_calls"] <= big // page
+        assert rows[sp_rx]["received_bytes"] == 4 << 20 and rows[sp_rx]["receive_calls"] == splices
+        assert rows[into]["sent_bytes"] == 1 << 20 and splices_in <= rows[into]["send_calls"] <= (1 << 20) // page
+        assert rows[udp_tx] == dict(ZERO, sent_bytes=3200, send_calls=32)
+        assert rows[udp_rx] == dict(ZERO, received_bytes=3200, receive_calls=32)
 
 
 # ---- closed sockets fold into the process totals ----------------------------------------------
