@@ -30,9 +30,11 @@ PROTOCOLS = ("tcp", "udp", "unix", "other")  # index = class in the C code
 _COUNTS = ("sent_bytes", "send_calls", "received_bytes", "receive_calls", "send_errors", "receive_errors")
 _HELP = {
     "sent_bytes": "Bytes sent",
-    "send_calls": "Successful send calls",
+    "send_calls": "Successful send operations (one per send, sendmsg, write or writev call, per datagram of "
+                  "sendmmsg, and per batch of pages that sendfile or splice hands the socket)",
     "received_bytes": "Bytes received",
-    "receive_calls": "Successful receive calls",
+    "receive_calls": "Successful receive operations (one per recv, recvmsg, read or readv call, per datagram "
+                     "of recvmmsg, and per splice from the socket; a MSG_PEEK is none)",
     "send_errors": "Send calls that failed with an error the application saw (not EAGAIN or EINTR)",
     "receive_errors": "Receive calls that failed with an error the application saw (not EAGAIN or EINTR)",
 }
