@@ -80,6 +80,7 @@ def attached(url: str) -> dict[str, tuple[str, float]]:
     return {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in samples(scrape(url), "drums_probe_attached").items()}
 
 
+@pytest.mark.kernel
 def test_every_probe_attached_with_its_attach_type(agent):
     from drums.probes import loads, rcl, rtps, sched, sockets, tcp
     best = {cls.name: offered_paths(cls)[0] for cls in (sockets.SocketsProbe, sched.SchedProbe, tcp.TcpProbe,
@@ -92,6 +93,7 @@ def test_every_probe_attached_with_its_attach_type(agent):
                                "latency": ("icmp", 1)}
 
 
+@pytest.mark.kernel
 def test_attach_holds_a_probe_to_the_path_it_names():
     from drums.probes import sched
     path = offered_paths(sched.SchedProbe)[-1]

@@ -54,6 +54,7 @@ def _run(procs, agent):
     return agent.collect()
 
 
+@pytest.mark.kernel
 def test_udp_pipeline_counts_and_bytes_per_topic_and_edge(pipeline, ros2_graph, proctable, rtps_probe,
                                                           rcl_probe, sched_probe):
     procs = pipeline(UDP)

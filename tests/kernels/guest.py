@@ -77,7 +77,7 @@ def main(out: str, headers: str, tests: list[str]) -> int:
     seen["agent"] = agent_attached()
     seen["agent_s"] = round(time.monotonic() - started, 1)
     started = time.monotonic()
-    pytest = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "--durations=15",
+    pytest = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "--durations=15", "-m", "kernel",
                              "--junitxml", os.path.join(out, "junit.xml"), *tests],
                             stdout=open(os.path.join(out, "pytest.log"), "w"), stderr=subprocess.STDOUT)
     seen["pytest_status"] = pytest.returncode

@@ -1,10 +1,12 @@
-"""The sockets probe's kprobe path cannot attach on this kernel (no CONFIG_KPROBES), but its
-programs can still be compiled and put through the kernel's verifier, which is what this checks.
-The fentry path cannot even load here (the kernel refuses BPF trampolines): it is untested. The
-tp_btf and raw tracepoint paths both run here (tests/probes/test_sched.py and test_sockets.py run
-on each); a path the kernel refuses gives way to the next."""
+"""Attach paths this kernel may not offer. On a kernel without kprobes (this project's 6.18) the
+sockets probe's kprobe programs are still compiled and put through the kernel's verifier; the
+probes' own tests run on every path a kernel offers (tests/conftest.py: offered_paths), and `make
+test-kernels` runs them on the fentry and kprobe paths of Linux 5.10 to 6.1 in VMs. A path the
+kernel refuses gives way to the next."""
 import logging
 import os
+
+import pytest
 
 from drums.kernel.loader import BPF_DIR
 from drums.probes.bpf import ATTACH_DEFINES, AttachPath
@@ -13,6 +15,7 @@ from drums.probes.sockets import SocketsProbe
 from tests.conftest import TEST_PIN_ROOT
 
 
+@pytest.mark.kernel
 def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
     os.environ["BCC_KERNEL_SOURCE"] = features.kernel_headers
     from bcc import BPF
@@ -36,6 +39,7 @@ def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
         b.cleanup()
 
 
+@pytest.mark.kernel
 def test_a_path_the_kernel_refuses_gives_way_to_the_next(features, proctable, caplog):
     """The kernel's verifier refuses a tp_btf program that reads arguments its tracepoint does not
     have (on_switch, given sched_wakeup's one task): the probe says so and loads its next path."""
@@ -64,6 +68,7 @@ class _NoSchedInfo(SchedProbe):
         return {k: v for k, v in super().offsets(btf).items() if k not in ("TASK_RUN_DELAY_OFF", "TASK_PCOUNT_OFF")}
 
 
+@pytest.mark.kernel
 def test_without_sched_info_the_sched_probe_times_waits_on_raw_tracepoints(features, proctable, caplog):
     probe = _NoSchedInfo(features, proctable, pin_root=f"{TEST_PIN_ROOT}_no_sched_info")
     with caplog.at_level(logging.WARNING, logger="drums"):

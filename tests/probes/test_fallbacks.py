@@ -119,6 +119,7 @@ def _until(take, predicate, seconds=2.0):
 
 @pytest.mark.parametrize("family,host,shown", [(socket.AF_INET, "127.0.0.1", "127.0.0.1"),
                                                (socket.AF_INET6, "::1", "[::1]")])
+@pytest.mark.kernel
 def test_sockets_fallback_counts_exact_bytes_of_a_child_connection(proctable, collect, family, host, shown):
     if not _loopback(family, host):
         pytest.skip(f"no {host} here")
@@ -246,6 +247,7 @@ def _command(child, line) -> str:
     return child.stdout.readline().strip()
 
 
+@pytest.mark.kernel
 def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, collect):
     probe = ProcSchedProbe(proctable)
     probe.start()

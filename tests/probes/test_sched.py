@@ -353,6 +353,7 @@ def waits_not_under(h: Histogram, bound: float) -> int:
     return h.count - h.cumulative[RUNQ_BUCKETS.index(bound)]
 
 
+@pytest.mark.kernel
 def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn):
     child = spawn(BURN_IN_THREAD, 0.8)
     pid, tid = child.pid, child.read()["tid"]
@@ -579,6 +580,7 @@ def test_a_collect_tells_its_rows_as_changes_to_those_of_the_last(sched_probe, c
     assert not series(snap, THREAD_CPU, tid=tid)
 
 
+@pytest.mark.kernel
 def test_threads_sharing_one_cpu_wait_on_its_run_queue(sched_probe, collect, spawn):
     child = spawn(PINNED_SPINNERS, 0, 1.0)
     pid, tids = child.pid, child.read()["tids"]
@@ -647,6 +649,7 @@ def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
         assert others > 0.1 * wall, (bounds, hist, k_mean)
 
 
+@pytest.mark.kernel
 def test_exited_thread_folds_into_its_process(sched_probe, collect, spawn):
     child = spawn(EXITING_THREAD, 0.5)
     pid = child.pid
@@ -907,6 +910,7 @@ def process_cpu_clock(pid: int) -> float:
     return time.clock_gettime(((~pid) << 3) | 2)
 
 
+@pytest.mark.kernel
 def test_a_thread_that_keeps_its_cpu_is_counted_up_to_now(sched_probe, collect, spawn):
     """A thread alone on a CPU may not switch out for seconds: what it ran since its last switch
     counts too, so its process's CPU time is right at any moment, not only after a switch."""

@@ -233,6 +233,7 @@ command()
 """
 
 
+@pytest.mark.kernel
 def test_tcp_bytes_and_calls_of_both_ends(sockets_probe, collect, spawn):
     size, chunk = 1_000_003, 65_537
     with tcp_listener() as lst:
@@ -273,6 +274,7 @@ command()
 DATAGRAMS = [1, 7, 512, 1399, 1472, 1473, 4097, 8191, 9001, 30_001]  # sums to 56,154: fits rmem
 
 
+@pytest.mark.kernel
 @pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
 def test_connected_udp_datagrams(sockets_probe, collect, spawn, family):
     with socket.socket(family, socket.SOCK_DGRAM) as rx:
@@ -309,6 +311,7 @@ command()
 """
 
 
+@pytest.mark.kernel
 def test_unix_stream_socketpair(sockets_probe, collect, spawn):
     size, chunk = 1_000_003, 100_003
     mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -364,6 +367,7 @@ def received_in_thread(sock: socket.socket, size: int) -> threading.Thread:
     return thread
 
 
+@pytest.mark.kernel
 def test_each_way_of_sending_and_receiving_counts_its_bytes_once_and_its_calls_as_documented(
         sockets_probe, collect, tmp_path):
     """send, writev, sendmsg and a peek; sendfile; splice from and into a socket; sendmmsg and
@@ -460,6 +464,7 @@ def many_sent(spawn, count: int, size: int, chunk: int) -> tuple[Child, dict]:
     return child, child.expect()
 
 
+@pytest.mark.kernel
 def test_closed_connections_fold_into_process_totals(sockets_probe, collect, spawn):
     count, size, chunk = 7, 200_003, 40_009
     child, sent = many_sent(spawn, count, size, chunk)
@@ -712,6 +717,7 @@ def drain(conns: list[socket.socket], total: int) -> None:
             total -= got
 
 
+@pytest.mark.kernel
 def test_the_sockets_of_every_thread_count_for_the_process_and_stay_when_it_exits(sockets_probe, collect, spawn):
     sizes = (300_007, 700_001)
     with tcp_listener() as lst:
@@ -780,6 +786,7 @@ command()
 """
 
 
+@pytest.mark.kernel
 def test_failed_calls_are_errors_and_eagain_is_not(sockets_probe, collect, spawn):
     with tcp_listener() as lst:
         child = spawn(ERRORS_CHILD, lst.getsockname()[1])
@@ -842,6 +849,7 @@ def stop_and_interrupt(pid: int) -> None:
             os.kill(pid, signal.SIGCONT)
 
 
+@pytest.mark.kernel
 def test_calls_that_the_kernel_restarts_after_a_signal_are_no_errors(sockets_probe, collect, spawn):
     size = 4 << 20
     with tcp_listener() as lst:

@@ -111,6 +111,7 @@ def tcp_info(sock: socket.socket) -> dict[str, int]:
 
 # ---- resets -------------------------------------------------------------------------------------
 
+@pytest.mark.kernel
 @pytest.mark.parametrize("family", [socket.AF_INET, socket.AF_INET6], ids=["ipv4", "ipv6"])
 def test_abortive_close_sends_one_reset(tcp_probe, collect, family):
     with tcp_listener(family) as lst:
@@ -451,6 +452,7 @@ def settled(tcp_probe, collect, sock, field: str, metric: str, counter: bool = F
     pytest.fail(f"tcp_info {field} kept changing, or the probe never caught up with it: last {probe} for {kernel}")
 
 
+@pytest.mark.kernel
 def test_retransmits_of_segments_lost_on_the_way(tcp_probe, collect):
     """The receiver's address disappears: segments still leave, and are dropped on arrival."""
     def unaddress(ns, device, address):
@@ -501,6 +503,7 @@ def bulk_flow(index: int):
             sink.wait(timeout=10)
 
 
+@pytest.mark.kernel
 def test_retransmits_of_a_bulk_flow_are_the_segments_the_kernel_counts(tcp_probe, collect):
     """The kernel retransmits several segments at once (one GSO skb) and counts each, and a
     retransmit the queue drops too."""
