@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 9969
 
-.PHONY: setup setup-test run test bench soak readme lock mixin demo demo-stop clean
+.PHONY: setup setup-test run test test-kernels bench soak readme lock mixin demo demo-stop clean
 
 setup:
 	@scripts/setup.sh
@@ -24,6 +24,15 @@ test: setup-test
 	wait $$lane2; lane2_rc=$$?; echo "--- the second lane:"; cat .test-lane2.log; rm -f .test-lane2.log; \
 	wait $$demo; demo_rc=$$?; echo "--- the demo lane:"; cat .test-demo.log; rm -f .test-demo.log; \
 	for rc in $$rest $$lane2_rc $$demo_rc; do [ $$rc -eq 0 ] || [ $$rc -eq 5 ] || exit $$rc; done
+
+# The portable tests (marked kernel) on each kernel of tests/kernels/matrix.py, booted under qemu
+# (KVM where it works, else emulation: minutes a kernel), and on this host's own; their rows go to
+# tests/kernels/results.json and the README's platform table. KERNELS=6.1,5.10 picks some, CI=1
+# the ones .ci/run runs.
+test-kernels: setup-test
+	@DRUMS_SETUP_KERNELS=1 scripts/setup.sh
+	$(PY) -m tests.kernels.run $(if $(CI),--ci) $(if $(KERNELS),--kernels $(KERNELS))
+	$(PY) -m tests.kernels.readme README.md
 
 # The monitoring mixin: rules, alerts and dashboards rendered from deploy/mixin/config.yaml into
 # deploy/mixin/out (checked in; a test fails when they differ from what the code renders).
