@@ -112,7 +112,7 @@ start() {
 config = yaml.safe_load(open("deploy/mixin/config.yaml"))
 config.update(yaml.safe_load(open("demo/mixin.yaml")))
 yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
-  "$PY" -m deploy.mixin.build --config "$STATE/mixin.yaml" --out "$STATE/mixin" >/dev/null
+  "$PY" -m deploy.mixin.build --rules-only --config "$STATE/mixin.yaml" --out "$STATE/mixin" >/dev/null
 
   spawn agent .venv/bin/drums agent --port "$AGENT_PORT" --stream-port "$STREAM_PORT" --pin-dir "$PINS" --graph ros2
   sed -e "s/AGENT_PORT/$AGENT_PORT/" -e "s/DETECT_PORT/$DETECT_PORT/" demo/prometheus.yml >"$STATE/prometheus.yml"

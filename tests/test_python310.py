@@ -25,7 +25,7 @@ def test_no_code_needs_a_python_later_than_3_10_to_parse():
                         ast.parse(f.read(), path, feature_version=(3, 10))
 
 
-def test_without_the_dashboard_sdk_every_module_imports_and_every_test_is_collected():
+def test_without_the_dashboard_sdk_every_module_imports_and_every_test_is_collected(tmp_path):
     modules = [m.name for m in pkgutil.walk_packages(drums.__path__, "drums.") if m.name != "drums.__main__"]
     code = WITHOUT_SDK + "import importlib\n" + "".join(
         f"importlib.import_module({m!r})\n" for m in modules + ["deploy.mixin.build", "deploy.mixin.rules",
@@ -40,6 +40,11 @@ def test_without_the_dashboard_sdk_every_module_imports_and_every_test_is_collec
                           "        exec(compile(ast.Module([node], []), 'demo/robot.py', 'exec'))\n"],
                          input=robot, cwd=CHECKOUT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
+    out = subprocess.run([sys.executable, "-c", WITHOUT_SDK + "from deploy.mixin.build import main\n"
+                          f"sys.exit(main(['--rules-only', '--out', {str(tmp_path)!r}]))"],
+                         cwd=CHECKOUT, capture_output=True, text=True, timeout=120)  # as make demo runs it
+    assert out.returncode == 0 and sorted(os.listdir(tmp_path)) == ["prometheus_alerts.yaml", "prometheus_rules.yaml"], \
+        out.stderr
     collect = subprocess.run([sys.executable, "-c", WITHOUT_SDK + "import pytest\nsys.exit(pytest.main("
                               "['--collect-only', '-q', '-p', 'no:cacheprovider', '-o', 'addopts=', 'tests']))"],
                              cwd=CHECKOUT, capture_output=True, text=True, timeout=300)

@@ -34,29 +34,33 @@ def rules_file(groups: list[dict]) -> str:
                               allow_unicode=True)
 
 
-def rendered(cfg: config.Config) -> dict[str, str]:
+def rendered(cfg: config.Config, with_dashboards: bool = True) -> dict[str, str]:
     """Every generated file: path under out/ -> its text. The dashboards need the Grafana Foundation
-    SDK (Python >= 3.11), imported only here: on 3.10 the rest of the mixin, and its tests, work."""
+    SDK (Python >= 3.11), imported only for them: on 3.10 the rules, and their tests, work."""
+    files = {"prometheus_rules.yaml": rules_file(recording_groups(cfg)),
+             "prometheus_alerts.yaml": rules_file(alert_groups(cfg))}
+    if not with_dashboards:
+        return files
     try:
         from grafana_foundation_sdk.cog.encoder import JSONEncoder
 
         from deploy.mixin.dashboards import dashboards
     except ImportError:
         raise config.ConfigError("the dashboards are built with grafana-foundation-sdk, which needs Python >= 3.11"
-                                 f" (this is {sys.version.split()[0]})") from None
-    files = {"prometheus_rules.yaml": rules_file(recording_groups(cfg)),
-             "prometheus_alerts.yaml": rules_file(alert_groups(cfg))}
+                                 f" (this is {sys.version.split()[0]}; --rules-only needs none)") from None
     for uid, model in dashboards(cfg).items():
         files[f"dashboards/{uid}.json"] = json.dumps(model, cls=JSONEncoder, indent=2, sort_keys=True) + "\n"
     return files
 
 
-def write(files: dict[str, str], out: str) -> None:
+def write(files: dict[str, str], out: str, prune: bool = True) -> None:
     for path, text in files.items():
         target = os.path.join(out, path)
         os.makedirs(os.path.dirname(target), exist_ok=True)
         with open(target, "w") as f:
             f.write(text)
+    if not prune:
+        return
     for folder, _, names in os.walk(out):
         for name in names:
             if os.path.relpath(os.path.join(folder, name), out) not in files:
@@ -68,14 +72,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", default=config.CONFIG)
     parser.add_argument("--expected-rates", default=config.EXPECTED_RATES)
     parser.add_argument("--out", default=OUT, help="where to write (default deploy/mixin/out)")
+    parser.add_argument("--rules-only", action="store_true",
+                        help="write the recording rules and alerts alone, and leave the rest of --out as it is")
     args = parser.parse_args(argv)
     try:
         cfg = config.load(args.config, args.expected_rates)
-        files = rendered(cfg)
+        files = rendered(cfg, with_dashboards=not args.rules_only)
     except config.ConfigError as e:
         print(f"deploy.mixin.build: {e}", file=sys.stderr)
         return 2
-    write(files, args.out)
+    write(files, args.out, prune=not args.rules_only)
     print(f"wrote {len(files)} files to {args.out}")
     return 0
 
