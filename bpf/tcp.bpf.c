@@ -33,6 +33,8 @@ struct tcp_totals_t {
 // Sized like the sockets probe's map. Closed connections stay until the agent exports them (a
 // reset comes with or right after the close); LRU, so that without an agent the oldest go first.
 BPF_TABLE("lru_hash", u64, struct tcp_conn_t, tcp_conns, 32768);
+// Added to atomically although per CPU: under PREEMPT_RT a program runs with migration, not
+// preemption, disabled, and another program on its CPU can come between a load and its store.
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
 // Numbers the closed connections whose struct sock was reused before the agent exported them.
 BPF_ARRAY(closed_seq, u64, 1);
@@ -116,7 +118,7 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
         return 0;  // the tracepoint also fires for SCTP and MPTCP subflows' parents
     struct tcp_totals_t *tot = totals();
     if (tot && newstate < TCP_STATES)
-        tot->entered[newstate]++;
+        __sync_fetch_and_add(&tot->entered[newstate], 1);
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c && c->state == TCP_CLOSE && newstate != TCP_CLOSE) {
         // The struct sock now holds a new connection (the kernel reuses them at once): the closed
@@ -181,7 +183,7 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
         mark_changed(sk, c);
     struct tcp_totals_t *tot = totals();
     if (tot)
-        tot->retransmits += moved;
+        __sync_fetch_and_add(&tot->retransmits, moved);
     return 0;
 }
 
@@ -189,10 +191,7 @@ static __always_inline void count_reset(u64 sk, int sent)
 {
     struct tcp_totals_t *tot = totals();
     if (tot) {
-        if (sent)
-            tot->resets_sent++;
-        else
-            tot->resets_received++;
+        __sync_fetch_and_add(sent ? &tot->resets_sent : &tot->resets_received, 1);
     }
     if (!sk)
         return;  // a reset answering a segment for no socket
