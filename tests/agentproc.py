@@ -12,6 +12,8 @@ import urllib.request
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from tests.conftest import TIME_SCALE
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -72,7 +74,7 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
 def serving(proc: subprocess.Popen, url: str, what: str = "agent") -> None:
     """Wait until `proc` (the agent, or `what` it is) answers at `url`, 30 s at most; kill it and
     fail with its log if it ends or does not answer by then."""
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + 30 * TIME_SCALE
     while True:
         try:
             urllib.request.urlopen(url, timeout=5).read()

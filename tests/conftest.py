@@ -20,6 +20,9 @@ from drums.metrics import Snapshot
 from drums.proctable import ProcessTable
 
 TEST_PIN_ROOT = f"/sys/fs/bpf/drums_test_{os.getpid()}"
+# How much longer than here things take: under make test-kernels' software emulation, about ten
+# times (tests/kernels/guest.py sets it). Waits for a process or an answer are scaled by it.
+TIME_SCALE = float(os.environ.get("DRUMS_TEST_TIME_SCALE", "1"))
 _domain_slot: tuple[int, object] | None = None  # (slot, the lock file held for the session)
 
 
@@ -136,7 +139,7 @@ def series(snap: Snapshot, metric_name: str, **labels) -> dict[tuple, object]:
 
 def eventually(check, timeout: float = 3.0):
     """Retry `check` (which asserts) until it passes or `timeout` runs out; return its result."""
-    deadline = time.monotonic() + timeout
+    deadline = time.monotonic() + timeout * TIME_SCALE
     while True:
         try:
             return check()
@@ -148,7 +151,7 @@ def eventually(check, timeout: float = 3.0):
 
 def wait_until(condition, what, timeout: float = 5.0) -> None:
     """`what`: a string, or a function that says what was awaited and what was seen at the end."""
-    deadline = time.monotonic() + timeout
+    deadline = time.monotonic() + timeout * TIME_SCALE
     while not condition():
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")

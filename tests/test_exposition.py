@@ -601,3 +601,12 @@ def test_non_additive_gauges_have_no_other_series():
     snap.add(rtt, ("c:3", "d:4"), 0.002)
     out = b.apply(snap).values(rtt)
     assert len(out) == 1 and ("other", "other") not in out
+
+
+def test_readme_platform_table_is_that_of_the_last_kernel_runs():
+    """The README's table of kernels comes from tests/kernels/results.json, which `make
+    test-kernels` writes: a kernel no run proved cannot stand there."""
+    from tests.kernels import readme as kernels
+    with open("README.md") as f:
+        text = f.read()
+    assert kernels.rewrite(text, kernels.load()) == text, "run `make test-kernels` (or python -m tests.kernels.readme README.md)"

@@ -3,7 +3,7 @@ the guest what scripts/setup.sh makes a host (bpffs, tracefs, that kernel's head
 runs `drums doctor`, `drums agent` as the README starts it, and the portable tests, writing what it
 saw to OUT/guest.json and the tests' outcomes to OUT/junit.xml.
 
-    python -m tests.kernels.guest OUT HEADERS TEST...
+    python -m tests.kernels.guest OUT HEADERS TIME_SCALE TEST...
 """
 from __future__ import annotations
 
@@ -65,11 +65,15 @@ def agent_attached(timeout: float = 600) -> dict:
             print(log, file=sys.stderr)
 
 
-def main(out: str, headers: str, tests: list[str]) -> int:
+def main(out: str, headers: str, time_scale: str, tests: list[str]) -> int:
     os.chdir(CHECKOUT)
     _mount("bpf", "/sys/fs/bpf")
     _mount("tracefs", "/sys/kernel/tracing")
     os.environ["BCC_KERNEL_SOURCE"] = headers
+    # The guest's root is this machine's, read-only but for /tmp and a few overlays: ROS 2 logs
+    # there. Under emulation everything takes about ten times as long.
+    os.environ["ROS_LOG_DIR"] = "/tmp/ros-log"
+    os.environ["DRUMS_TEST_TIME_SCALE"] = time_scale
     seen: dict = {"release": platform.release(), "python": platform.python_version()}
     started = time.monotonic()
     seen["doctor"] = subprocess.run(DRUMS + ["doctor"], capture_output=True, text=True).stdout
@@ -88,4 +92,4 @@ def main(out: str, headers: str, tests: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1], sys.argv[2], sys.argv[3:]))
+    sys.exit(main(sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]))

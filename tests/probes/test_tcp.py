@@ -503,7 +503,6 @@ def bulk_flow(index: int):
             sink.wait(timeout=10)
 
 
-@pytest.mark.kernel
 def test_retransmits_of_a_bulk_flow_are_the_segments_the_kernel_counts(tcp_probe, collect):
     """The kernel retransmits several segments at once (one GSO skb) and counts each, and a
     retransmit the queue drops too."""
