@@ -46,10 +46,8 @@ def figures(results: dict) -> str:
 
 
 def rewrite(text: str, results: dict) -> str:
-    head, sep, rest = text.partition(BEGIN)
-    if not sep or END not in rest:
-        raise SystemExit(f"the README has no {BEGIN} ... {END} block")
-    return f"{head}{BEGIN}\n{figures(results)}\n{END}{rest.split(END, 1)[1]}"
+    from drums.docs import replace_block
+    return replace_block(text, BEGIN, END, figures(results))
 
 
 def load() -> dict:

@@ -23,12 +23,16 @@ def metric_table() -> str:
     return "\n".join(rows)
 
 
+def replace_block(text: str, begin: str, end: str, body: str) -> str:
+    """`text` with what lies between the markers `begin` and `end` made `body`."""
+    head, sep, rest = text.partition(begin)
+    if not sep or end not in rest:
+        raise SystemExit(f"the README has no {begin} ... {end} block")
+    return f"{head}{begin}\n{body}\n{end}{rest.split(end, 1)[1]}"
+
+
 def rewrite(text: str) -> str:
-    head, sep, rest = text.partition(BEGIN)
-    if not sep or END not in rest:
-        raise SystemExit(f"the README has no {BEGIN} ... {END} block")
-    tail = rest.split(END, 1)[1]
-    return f"{head}{BEGIN}\n{metric_table()}\n{END}{tail}"
+    return replace_block(text, BEGIN, END, metric_table())
 
 
 def update(path: str, rewrite_text) -> int:
