@@ -169,8 +169,11 @@ class Btf:
         return True
 
     def has_function(self, name: str) -> bool:
-        """Whether the kernel has a function of that name (one a trampoline or kprobe can take)."""
-        return any(self._header(t)[1] == _FUNC for t in self._by_name.get(name, ()))
+        """Whether the kernel has a function of that name (one a trampoline or kprobe can take).
+        Functions are not indexed (70,000 names, asked for twice): their records are searched for
+        the name's one string (BTF strings are deduplicated) and the kind, with any linkage."""
+        at = self._strings.find(b"\0" + name.encode() + b"\0")
+        return at >= 0 and any(struct.pack("<II", at + 1, _FUNC << 24 | linkage) in self._data for linkage in (0, 1, 2))
 
     def tracepoint_args(self, event: str) -> list[str] | None:
         """Names of the raw tracepoint's argument types, or None if the kernel has no such event.

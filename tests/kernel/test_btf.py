@@ -17,6 +17,16 @@ def test_the_names_of_the_kernel_s_btf_say_what_its_parse_says_of_perf_links_and
     assert Features().tp_btf == (parsed.tracepoint_args("sched_switch") is not None) is True
 
 
+def test_functions_are_found_by_name_and_nothing_else_is_taken_for_one():
+    parsed = btf.Btf.load()
+    # Every kernel of interest has these (the sockets probe's fentry and kprobe paths take them);
+    # a struct, a struct's member and a made-up name are no functions.
+    assert parsed.has_function("inet_sendmsg") and parsed.has_function("tcp_splice_read")
+    assert parsed.has_function("unix_stream_sendmsg")  # static: BTF has it all the same
+    for name in ("task_struct", "sk_protocol", "no_such_function_in_any_kernel"):
+        assert not parsed.has_function(name), name
+
+
 def test_the_features_read_from_the_names_keep_none_of_them():
     """The agent asks these at every start and keeps its Features: the names (2.3 MB here) must
     not stay with the answers, as they did for a while."""

@@ -427,8 +427,11 @@ def test_each_way_of_sending_and_receiving_counts_its_bytes_once_and_its_calls_a
         assert mmsg("recv", udp_rx, 32, 100) == 32
         snap = collect(sockets_probe)
 
-        rows = {s: one_socket(snap, pid=os.getpid(), inode=inode(s))[1] for s in
-                (plain, plain_rx, sf, sf_rx, sp, sp_rx, into, into_rx, udp_tx, udp_rx)}
+        named = {"plain": plain, "plain_rx": plain_rx, "sendfile": sf, "sendfile_rx": sf_rx, "splice_tx": sp,
+                 "splice_rx": sp_rx, "splice_into": into, "splice_into_rx": into_rx, "udp_tx": udp_tx, "udp_rx": udp_rx}
+        found = {n: socket_rows(snap, pid=os.getpid(), inode=inode(s)) for n, s in named.items()}
+        assert all(len(r) == 1 for r in found.values()), f"sockets without one row: {[n for n, r in found.items() if len(r) != 1]}"
+        rows = {named[n]: next(iter(r.values())) for n, r in found.items()}
         assert rows[plain] == dict(ZERO, sent_bytes=2500, send_calls=3)
         assert rows[plain_rx] == dict(ZERO, received_bytes=2500, receive_calls=plain_calls)
         assert rows[sf]["sent_bytes"] == big and sendfiles <= rows[sf]["send_calls"] <= big // page
