@@ -615,15 +615,18 @@ def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
     # A sleeper waking on an idle CPU is switched in within microseconds. When other tasks run there
     # (other tests and agents on this 2-CPU VM do), EEVDF may let the current task finish its slice
     # first: waits of 1-7 ms were seen then, also with others using under 10% of CPU 1 (one of 4-16 ms
-    # with 49 ms of others in 0.5 s). So the test takes up to three 0.5 s windows. In each, whatever
-    # the load, the probe's waits must add up to the kernel's own run_delay (schedstat; seen: 12.0
-    # against 11.5 ms with two spinners on CPU 1; 1.6 ms against the kernel's 0 on an idle CPU, whose
-    # clock leaves out a wakeup on an idle CPU), and each bucket must hold waits its bounds allow. It
-    # passes on the first window whose mean wait is an idle CPU's, and fails on one whose is not while
-    # other tasks used under 10% of CPU 1. Seen: means of 0-156 us, also with CPU 1 busy.
+    # with 49 ms of others in 0.5 s). So the test takes up to three 0.5 s windows. In each, the
+    # probe's waits must fit its buckets' bounds. A window passes when the waits add up to the
+    # kernel's own run_delay (schedstat) and both say the sleeper hardly waited. The two clocks differ
+    # on a busy VM: seen 12.0 against 11.5 ms with two spinners on CPU 1, 1.6 ms against the kernel's
+    # 0 on an idle CPU (its clock leaves out a wakeup on an idle CPU), and once beside the other lanes
+    # 6.0 against 9.6 ms over 51 waits (the kernel's rq clock at enqueue, stale on a vCPU the host
+    # had preempted). So no window's disagreement fails it alone; three do, as does an agreeing
+    # window whose waits were long while other tasks used under 10% of CPU 1. Seen: means of 0-156 us.
     child = spawn(PINNED_SLEEPER, 1)
     pid = child.pid
     child.read()
+    seen, agreed = [], False
     for _ in range(3):
         settle(pid)
         before = collect(sched_probe)
@@ -636,17 +639,20 @@ def test_lone_sleeper_waits_little(sched_probe, collect, spawn):
 
         hist = histogram_delta(value(after, PROCESS_RUNQ, pid=pid), value(before, PROCESS_RUNQ, pid=pid))
         assert hist.count >= 50  # one wait per wakeup at least
-        k_delay = (k_after[1] - k_before[1]) / 1e9
-        assert abs(hist.sum - k_delay) <= 50e-6 * hist.count + 0.1 * k_delay, (hist, k_delay)
         low, high = sum_bounds(hist)
         assert low <= hist.sum <= high, (hist, low, high)
+        k_delay = (k_after[1] - k_before[1]) / 1e9
         k_mean = k_delay / (k_after[2] - k_before[2])
-        bounds = {"mean": hist.sum / hist.count < 200e-6,
-                  "kernel mean": k_mean < 200e-6}  # the kernel agrees the sleeper hardly waited
-        if all(bounds.values()):
-            return
+        short = hist.sum / hist.count < 200e-6 and k_mean < 200e-6  # and the kernel agrees
         others = busy / os.sysconf("SC_CLK_TCK") - (k_after[0] - k_before[0]) / 1e9
-        assert others > 0.1 * wall, (bounds, hist, k_mean)
+        seen.append((hist, k_delay, k_mean, others))
+        if abs(hist.sum - k_delay) > 50e-6 * hist.count + 0.1 * k_delay:
+            continue
+        if short:
+            return
+        assert others > 0.1 * wall, seen
+        agreed = True
+    assert agreed, f"in no window did the probe's waits add up to the kernel's: {seen}"
 
 
 @pytest.mark.kernel
