@@ -14,7 +14,7 @@
 // Loads a scalar or pointer field of a kernel struct: directly where the program runs as a BTF
 // tracepoint program (the verifier knows the pointer's type and checks the load), else through
 // bpf_probe_read_kernel, a helper call that costs as much as the rest of a small program.
-// CURRENT_TASK() is the running task, typed likewise where it can be.
+// CURRENT_TASK_AS(typed) is the running task, typed likewise where it can be (Linux >= 5.11).
 // The _AS forms take that as a constant argument instead, for a program of another type in a
 // tp_btf build (a syscall tracepoint's sees no typed pointers).
 #define TYPED (DRUMS_ATTACH == ATTACH_TP_BTF)
@@ -27,7 +27,6 @@
     } while (0)
 #define CURRENT_TASK_AS(typed) ((typed) ? (u64)bpf_get_current_task_btf() : bpf_get_current_task())
 #define KREAD(dst, addr) KREAD_AS(TYPED, dst, addr)
-#define CURRENT_TASK() CURRENT_TASK_AS(TYPED)
 
 // Hides a value's range from the compiler, so that the bounds check or mask written after it stays
 // on the register the access uses: Linux 6.1's verifier loses a bound once the compiler spills the

@@ -101,15 +101,36 @@ static __always_inline u64 deadline_of(struct handle_key_t *key)
 }
 // Per thread: the subscription it passed to rcl_take, kept until it returns, and the last one it
 // took a message from and when, until it takes another or runs a timer or service. Task-local
-// storage, not a hash keyed by thread: a hash update costs about 0.5 us here, where this is a
-// pointer lookup.
+// storage where tracing programs have it (TASK_STORAGE: Linux >= 5.12, "bpf: Enable task local
+// storage for tracing programs"), not a hash keyed by thread: a hash update costs about 0.5 us
+// here, where this is a pointer lookup. Before, that hash, LRU so that ended threads' entries go.
 struct took_t {
     u64 pending;
     u64 info;  // the rmw_message_info_t the pending take fills
     u64 input;
     u64 at;
 };
+#ifdef TASK_STORAGE
 BPF_TASK_STORAGE(takes, struct took_t);
+#else
+BPF_TABLE("lru_hash", u32, struct took_t, takes, 16384);  // threads between takes at once
+#endif
+
+// The calling thread's, made if `create` and it has none.
+static __always_inline struct took_t *took_of_thread(int create)
+{
+#ifdef TASK_STORAGE
+    return takes.task_storage_get(bpf_get_current_task_btf(), 0, create ? BPF_LOCAL_STORAGE_GET_F_CREATE : 0);
+#else
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    struct took_t *t = takes.lookup(&tid);
+    if (t || !create)
+        return t;
+    struct took_t fresh = {};
+    takes.update(&tid, &fresh);
+    return takes.lookup(&tid);
+#endif
+}
 // Processes that took a message (a byte per PID modulo TAKERS): a thread of one that never did
 // reacts to nothing, and its publishes skip the task-storage lookup (a helper call) for an array's
 // read. A PID that shares a slot only costs its publishes that lookup.
@@ -185,7 +206,7 @@ static __always_inline struct timing_t *period(struct handle_key_t *key, u64 now
 
 static __always_inline void reaction(u32 tgid, u64 output, u64 now)
 {
-    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    struct took_t *took = took_of_thread(0);
     if (!took || !took->input || now < took->at)
         return;
     struct reaction_key_t key = {.tgid = tgid, .input = took->input, .output = output};
@@ -261,7 +282,7 @@ static __always_inline int delivery(u32 tgid, u64 subscription, u64 info, u64 no
 // took a message: that needs the return probe too.
 int on_take(struct pt_regs *ctx)
 {
-    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, BPF_LOCAL_STORAGE_GET_F_CREATE);
+    struct took_t *took = took_of_thread(1);
     if (took) {
         took->pending = PT_REGS_PARM1(ctx);
         took->info = PT_REGS_PARM3(ctx);
@@ -273,7 +294,7 @@ int on_take(struct pt_regs *ctx)
 
 int on_take_return(struct pt_regs *ctx)
 {
-    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    struct took_t *took = took_of_thread(0);
     if (!took || !took->pending)
         return 0;
     u64 h = took->pending;
@@ -304,7 +325,7 @@ int on_take_return(struct pt_regs *ctx)
 // a timer or a service, not to the message it took last.
 int on_idle(struct pt_regs *ctx)
 {
-    struct took_t *took = takes.task_storage_get(bpf_get_current_task_btf(), 0, 0);
+    struct took_t *took = took_of_thread(0);
     if (took)
         took->input = 0;
     return 0;

@@ -4,7 +4,8 @@
 // DATA or DATA_FRAG submessage names its writer (entity id) and the sample's sequence number.
 //
 // Only processes in `watched` (filled by the agent: those with a DDS library loaded) are parsed.
-// The syscall tracepoints are attached as perf-event links so they can be pinned like the rest.
+// The syscall tracepoints are attached as perf-event links so they can be pinned like the rest
+// (Linux >= 5.15; before, the agent holds their perf events).
 // A datagram is read where it lies in user memory after the call returned; a field split between
 // two pieces of a gathered send is not read (Fast DDS puts all headers in the first piece).
 #include <uapi/linux/ptrace.h>
@@ -163,19 +164,54 @@ static __always_inline void parse(struct datagram_t *dg, u64 total, u32 directio
     }
 }
 
-// Only the exit is traced: the buffer (or struct msghdr) argument is still in the registers the
-// task saved on entering the kernel. Tracing the entry too would cost a second event per call,
-// and would miss the first datagram of a thread that was already waiting when it became watched.
+#ifdef SYSCALL_ENTRIES
+// Before Linux 5.15 (no bpf_task_pt_regs) the entry is traced too, for the argument: kept per
+// thread until the call returns, for every process, since a node's receiving thread blocks in its
+// call before the agent knows the process speaks DDS. So only a call that was under way when the
+// probe loaded goes unparsed. LRU, sized for the threads in such calls at once: an entry whose exit
+// went untraced is replaced by its thread's next call.
+BPF_TABLE("lru_hash", u32, u64, arguments, 16384);
+
+static __always_inline int enter(struct syscall_enter_t *ctx)
+{
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    u64 ptr = ctx->args[1];
+    arguments.update(&tid, &ptr);
+    return 0;
+}
+
+int enter_sendto(void *ctx) { return enter(ctx); }
+int enter_sendmsg(void *ctx) { return enter(ctx); }
+int enter_recvfrom(void *ctx) { return enter(ctx); }
+int enter_recvmsg(void *ctx) { return enter(ctx); }
+#endif
+
+// Where the kernel has bpf_task_pt_regs (Linux >= 5.15), only the exit is traced: the buffer (or
+// struct msghdr) argument is still in the registers the task saved on entering the kernel. Tracing
+// the entry too costs a second event per call, and misses the first datagram of a thread that was
+// already waiting when it became watched.
 static __always_inline int leave(void *ctx, u32 msghdr, u32 direction)
 {
-    u32 tgid = bpf_get_current_pid_tgid() >> 32;
     s64 ret = ((struct syscall_exit_t *)ctx)->ret;
+    u64 ptr = 0;
+#ifdef SYSCALL_ENTRIES
+    u64 id = bpf_get_current_pid_tgid();
+    u32 tgid = id >> 32, tid = (u32)id;
+    u64 *arg = arguments.lookup(&tid);
+    if (!arg)
+        return 0;
+    ptr = *arg;
+    arguments.delete(&tid);
+    if (ret <= 0 || !ptr || !watched.lookup(&tgid))
+        return 0;
+#else
+    u32 tgid = bpf_get_current_pid_tgid() >> 32;
     if (ret <= 0 || !watched.lookup(&tgid))
         return 0;
     struct pt_regs *regs = (struct pt_regs *)bpf_task_pt_regs(bpf_get_current_task_btf());
-    u64 ptr = 0;
     if (bpf_probe_read_kernel(&ptr, sizeof(ptr), &PT_REGS_PARM2(regs)) != 0 || !ptr)
         return 0;
+#endif
     int zero = 0;
     struct head_t *head = heads.lookup(&zero);
     if (!head)

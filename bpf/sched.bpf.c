@@ -423,7 +423,9 @@ int on_exit(struct bpf_raw_tracepoint_args *ctx)
     if (!t)
         return 0;
 #if DRUMS_ATTACH == ATTACH_TP_BTF
-    u64 task = CURRENT_TASK(), run_delay = 0, runs = 0;  // the wait before its run now
+    // The exiting task is the tracepoint's first argument (typed here): bpf_get_current_task_btf
+    // came in Linux 5.11.
+    u64 task = ctx->args[0], run_delay = 0, runs = 0;  // the wait before its run now
     KREAD(run_delay, task + TASK_RUN_DELAY_OFF);
     KREAD(runs, task + TASK_PCOUNT_OFF);
     count_waits(t, run_delay, runs);

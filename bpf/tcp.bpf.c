@@ -36,8 +36,6 @@ BPF_TABLE("lru_hash", u64, struct tcp_conn_t, tcp_conns, 32768);
 // Added to atomically although per CPU: under PREEMPT_RT a program runs with migration, not
 // preemption, disabled, and another program on its CPU can come between a load and its store.
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
-// Numbers the closed connections whose struct sock was reused before the agent exported them.
-BPF_ARRAY(closed_seq, u64, 1);
 
 // Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
 // main file, so each program declares this map and its helper itself.)
@@ -122,17 +120,14 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c && c->state == TCP_CLOSE && newstate != TCP_CLOSE) {
         // The struct sock now holds a new connection (the kernel reuses them at once): the closed
-        // one moves to a key of its own, odd (a struct sock is aligned) and never used before,
-        // until the agent has exported it.
-        u32 zero = 0;
-        u64 *next = closed_seq.lookup(&zero);
-        if (next) {
-            u64 moved = (__sync_fetch_and_add(next, 1) << 1) | 1;
-            struct tcp_conn_t closed = *c;
-            closed.marked = 0;
-            if (tcp_conns.update(&moved, &closed) == 0)
-                mark_changed(moved, 0);
-        }
+        // one moves to a key of its own until the agent has exported it: odd (a struct sock is
+        // aligned), made of the time and the CPU, so no two moved entries that live at once share
+        // it (a counter's fetch-and-add would need Linux 5.12).
+        u64 moved = bpf_ktime_get_ns() << 12 | (bpf_get_smp_processor_id() & 0x7ff) << 1 | 1;
+        struct tcp_conn_t closed = *c;
+        closed.marked = 0;
+        if (tcp_conns.update(&moved, &closed) == 0)
+            mark_changed(moved, 0);
         tcp_conns.delete(&sk);
         mark_changed(sk, 0);  // whether or not a fresh entry takes its place
         c = 0;

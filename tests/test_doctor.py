@@ -17,7 +17,6 @@ class Kernel(Features):
         self.__dict__["kprobes"] = kprobes
         self.__dict__["fentry"] = fentry
         self.__dict__["tp_btf"] = tp_btf
-        self.__dict__["perf_links"] = True
 
     def tracepoint(self, event):
         return event in self._tracepoints
@@ -101,3 +100,16 @@ def test_bpf_atomics_are_told_by_the_kernel_release():
         return k.bpf_atomics
     assert [kernel(r) for r in ("6.18.44-fc-v669", "5.12.0", "5.11.22-generic", "4.19.0-27-amd64", "odd")] == [
         True, True, False, False, False]
+
+
+def test_before_linux_5_15_the_rtps_probe_traces_each_calls_entry_too():
+    from drums.probes.rtps import RtpsProbe
+    calls = {f"sys_{side}_{call}" for side in ("enter", "exit") for call in ("sendto", "sendmsg", "recvfrom", "recvmsg")}
+    new, old = Kernel(calls), Kernel(calls)
+    new.__dict__["task_pt_regs"], old.__dict__["task_pt_regs"] = True, False
+    path, reasons = choose_path(RtpsProbe.paths, new)
+    assert (path.defines, reasons) == ((), [])
+    assert {fn for _, _, fn in path.attachments} == {f"on_{c}" for c in ("sendto", "sendmsg", "recvfrom", "recvmsg")}
+    path, reasons = choose_path(RtpsProbe.paths, old)
+    assert path.defines == (("SYSCALL_ENTRIES", 1),) and len(path.attachments) == 8
+    assert reasons == ["tracepoint: no bpf_task_pt_regs to read a call's arguments at its exit (Linux >= 5.15)"]

@@ -87,17 +87,29 @@ class Features:
         return self._btf_has_names[1]
 
     @cached_property
-    def _btf_has_names(self) -> tuple[bool, bool]:
-        # Both answers from one read; the names themselves (2.3 MB) are not kept.
+    def _btf_has_names(self) -> tuple[bool, bool, bool]:
+        # The answers from one read; the names themselves (2.3 MB) are not kept.
         try:
             found = names(VMLINUX_BTF)
         except KernelError:
-            return False, False
-        return b"\0bpf_perf_link\0" in found, b"\0btf_trace_sched_switch\0" in found
+            return False, False, False
+        return (b"\0bpf_perf_link\0" in found, b"\0btf_trace_sched_switch\0" in found,
+                b"\0BPF_FUNC_task_pt_regs\0" in found)
 
     @cached_property
     def bpf_atomics(self) -> bool:
         """BPF atomic operations that return a value, compare-and-swap among them (Linux >= 5.12)."""
+        return release_version(self.kernel_release) >= (5, 12)
+
+    @cached_property
+    def task_pt_regs(self) -> bool:
+        """bpf_task_pt_regs (Linux >= 5.15): a syscall's exit program reads the call's arguments."""
+        return self._btf_has_names[2]
+
+    @cached_property
+    def task_storage(self) -> bool:
+        """Task-local storage in tracing programs (Linux >= 5.12, "bpf: Enable task local storage
+        for tracing programs"; the map type itself came in 5.11, for LSM programs only)."""
         return release_version(self.kernel_release) >= (5, 12)
 
     @cached_property

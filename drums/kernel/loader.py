@@ -19,7 +19,9 @@ from drums.kernel import bpffs
 
 BPF_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bpf")
 PINNABLE = {"tp_btf", "raw_tracepoint", "fentry", "tracepoint", "uprobe"}
-PROGRAMS = {"program", "run"}  # attachment kinds that load a program for the agent, pinned as prog_<function>
+# Attachment kinds that load a program for the agent, pinned as prog_<function>: to attach to
+# uprobes, to run itself, or to attach to a tracepoint and hold (Linux < 5.15: drums.kernel.perflink).
+PROGRAMS = {"program", "run", "held_tracepoint"}
 
 
 @dataclass
@@ -60,6 +62,8 @@ def attach(req: LoadRequest):
                 fds.append(perflink.tracepoint(b.load_func(fn.encode(), b.TRACEPOINT).fd, target))
             elif kind == "program":
                 programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.KPROBE).fd  # uprobes are kprobe programs
+            elif kind == "held_tracepoint":
+                programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.TRACEPOINT).fd
             elif kind == "run":  # a raw tracepoint program the agent runs itself (bpffs.run_program)
                 programs[f"prog_{fn}"] = b.load_func(fn.encode(), b.RAW_TRACEPOINT).fd
             elif kind == "tp_btf":

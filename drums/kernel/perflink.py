@@ -1,13 +1,16 @@
-"""Attach a loaded BPF program to a tracepoint or a uprobe as a BPF link, which bpffs can pin.
+"""Attach a loaded BPF program to a tracepoint or a uprobe: as a BPF link, which bpffs can pin, or
+where the kernel has no such links, through the perf event itself.
 
 bcc attaches tracepoints and uprobes through perf events with an ioctl, which ends with the
 process that made it. A link made with BPF_LINK_CREATE on the perf event (Linux >= 5.15) holds
 the event itself: pinned, it outlives the loader, and the agent attaches new uprobes (a librcl.so
-that appears later) to pinned programs without bcc or its compiler.
+that appears later) to pinned programs without bcc or its compiler. Before 5.15 the agent holds
+the perf event (`link=False`): the program stays attached while the agent runs.
 """
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import os
 
 from drums.errors import ProbeError
@@ -18,6 +21,8 @@ _PERF_TYPE_TRACEPOINT = 2
 _BPF_PERF_EVENT = 41  # enum bpf_attach_type
 _SYS_PERF_EVENT_OPEN = {"x86_64": 298, "aarch64": 241, "armv7l": 364, "riscv64": 241}
 _PERF_FLAG_FD_CLOEXEC = 8
+_PERF_EVENT_IOC_ENABLE = 0x2400  # _IO('$', 0)
+_PERF_EVENT_IOC_SET_BPF = 0x40042408  # _IOW('$', 8, __u32)
 _UPROBE_PMU = "/sys/bus/event_source/devices/uprobe"
 
 
@@ -50,7 +55,17 @@ def _perf_event_open(attr: _PerfEventAttr, what: str) -> int:
     return fd
 
 
-def _link(prog_fd: int, perf_fd: int, what: str) -> int:
+def _attach(prog_fd: int, perf_fd: int, what: str, link: bool) -> int:
+    """A BPF link of the program to the event (the event's fd closed: the link holds it), or with
+    `link` False the event's own fd with the program set on it."""
+    if not link:
+        try:
+            fcntl.ioctl(perf_fd, _PERF_EVENT_IOC_SET_BPF, prog_fd)
+            fcntl.ioctl(perf_fd, _PERF_EVENT_IOC_ENABLE, 0)
+        except OSError as e:
+            os.close(perf_fd)
+            raise ProbeError(f"{what}: {e.strerror}") from None
+        return perf_fd
     lib = bpffs.libbpf()
     lib.bpf_link_create.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_void_p]
     try:
@@ -59,11 +74,11 @@ def _link(prog_fd: int, perf_fd: int, what: str) -> int:
             raise ProbeError(f"{what}: BPF link: {os.strerror(ctypes.get_errno() or -fd)} (needs Linux >= 5.15)")
         return fd
     finally:
-        os.close(perf_fd)  # the link holds the event now
+        os.close(perf_fd)
 
 
-def tracepoint(prog_fd: int, event: str) -> int:
-    """A link of the program to `category:name`; returns its fd."""
+def tracepoint(prog_fd: int, event: str, link: bool = True) -> int:
+    """A link of the program to `category:name` (or its perf event, see _attach); returns its fd."""
     category, _, name = event.partition(":")
     try:
         with open(f"{TRACEFS}/events/{category}/{name}/id") as f:
@@ -72,12 +87,12 @@ def tracepoint(prog_fd: int, event: str) -> int:
         raise ProbeError(f"no tracepoint {event} in {TRACEFS}") from None
     attr = _PerfEventAttr(type=_PERF_TYPE_TRACEPOINT, size=ctypes.sizeof(_PerfEventAttr), config=event_id,
                           sample_period=1, wakeup_events=1)
-    return _link(prog_fd, _perf_event_open(attr, f"tracepoint {event}"), f"tracepoint {event}")
+    return _attach(prog_fd, _perf_event_open(attr, f"tracepoint {event}"), f"tracepoint {event}", link)
 
 
-def uprobe(prog_fd: int, path: str, offset: int, ret: bool = False) -> int:
+def uprobe(prog_fd: int, path: str, offset: int, ret: bool = False, link: bool = True) -> int:
     """A link of the program to the instruction at file `offset` of `path` (a return probe on the
-    function there if `ret`); returns its fd."""
+    function there if `ret`), or its perf event (see _attach); returns its fd."""
     what = f"uprobe {path}+{offset:#x}"
     try:
         with open(f"{_UPROBE_PMU}/type") as f:
@@ -89,4 +104,4 @@ def uprobe(prog_fd: int, path: str, offset: int, ret: bool = False) -> int:
     name = ctypes.create_string_buffer(path.encode())
     attr = _PerfEventAttr(type=pmu, size=ctypes.sizeof(_PerfEventAttr), config=(1 << ret_bit) if ret else 0,
                           sample_period=1, wakeup_events=1, config1=ctypes.addressof(name), config2=offset)
-    return _link(prog_fd, _perf_event_open(attr, what), what)
+    return _attach(prog_fd, _perf_event_open(attr, what), what, link)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterator
 
 from drums.errors import KernelError, ProbeError
-from drums.kernel import bpffs, loader
+from drums.kernel import bpffs, loader, perflink
 from drums.kernel.btf import Btf
 from drums.kernel.features import Features
 from drums.probes.base import Probe
@@ -37,6 +37,7 @@ class AttachPath:
     requires: Callable[[Features], str | None]  # why this kernel cannot use the path, or None
     serves: str  # which kernels this path is for, for the README and `drums doctor`
     optional: tuple[str, ...] = ()  # kernel functions attached only where the kernel has them
+    defines: tuple[tuple[str, int], ...] = ()  # -D definitions of this path's programs
 
 
 def needs_tracepoints(*events: str) -> Callable[[Features], str | None]:
@@ -64,10 +65,6 @@ def needs_test_run(f: Features) -> str | None:
 
 def needs_kprobes(f: Features) -> str | None:
     return None if f.kprobes else "kprobes are not available (CONFIG_KPROBES unset)"
-
-
-def needs_perf_links(f: Features) -> str | None:
-    return None if f.perf_links else "the kernel cannot link BPF programs to perf events (Linux >= 5.15)"
 
 
 def needs_uprobes(f: Features) -> str | None:
@@ -149,6 +146,7 @@ class BpfProbe(Probe):
         self.programs: dict[str, int] = {}  # fds of the programs the agent attaches or runs itself, by name
         self._marked: dict[str, Marked] = {}  # maps read as far as their programs marked them changed
         self._reader: int | None = None  # the pins' directory, locked while this process reads their marks
+        self._held: list[int] = []  # perf events this process attached programs to (see hold)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         """-D definitions for the C code: kernel struct offsets and tracepoint shapes."""
@@ -162,7 +160,8 @@ class BpfProbe(Probe):
                     h.update(f.read())
             except OSError as e:
                 raise ProbeError(f"BPF source {name} not found in {loader.BPF_DIR}: {e.strerror}") from None
-        h.update(f"{path.name}\0{self.features.kernel_release}\0{_boot_id()}\0{sorted(self.options.items())}".encode())
+        h.update(f"{path.name}\0{path.defines}\0{self.features.kernel_release}\0{_boot_id()}\0"
+                 f"{sorted(self.options.items())}".encode())
         return h.hexdigest()[:16]
 
     def start(self) -> None:
@@ -182,44 +181,71 @@ class BpfProbe(Probe):
             raise refused[1]
         raise KernelError("no attach path: " + "; ".join(choose_path(self.paths, self.features)[1]))
 
+    def _attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
+        """The path's attachments on this kernel: its optional functions where the kernel has them,
+        and its tracepoints held by the agent where they cannot be linked (see drums.kernel.perflink)."""
+        btf = self.features.btf
+        return [("held_tracepoint" if kind == "tracepoint" and not self.features.perf_links else kind, target, fn)
+                for kind, target, fn in path.attachments if target not in path.optional or btf.has_function(target)]
+
     def _start(self, path: AttachPath) -> None:
+        if self.features.btf is None:
+            raise KernelError("cannot parse the kernel's BTF (/sys/kernel/btf/vmlinux)")
         self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
+        attachments = self._attachments(path)
         if path.name in loader.PINNABLE:
             if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):
                 self._remove_pins()
-                loader.load_in_child(self._request(path, pin_dir))
+                loader.load_in_child(self._request(path, attachments, pin_dir))
             try:
                 for m in self.maps:
                     self.opened[m] = bpffs.PinnedMap(os.path.join(pin_dir, m))
-                for kind, _, fn in path.attachments:
+                for kind, _, fn in attachments:
                     if kind in loader.PROGRAMS:
                         self.programs[fn] = bpffs.obj_get(os.path.join(pin_dir, f"prog_{fn}"))
+                for kind, target, fn in attachments:
+                    if kind == "held_tracepoint":
+                        self.hold(perflink.tracepoint(self.programs[fn], target, link=False))
             except ProbeError:
                 self.stop()
                 raise
         else:
-            self._in_process, fds = loader.attach(self._request(path, pin_dir))
+            self._in_process, fds = loader.attach(self._request(path, attachments, pin_dir))
             self.opened = {m: bpffs.PinnedMap.from_fd(self._in_process[m.encode()].map_fd, m)
                            for m in self.maps}
-            self.programs = {fn: os.dup(fds[f"prog_{fn}"]) for kind, _, fn in path.attachments
+            self.programs = {fn: os.dup(fds[f"prog_{fn}"]) for kind, _, fn in attachments
                              if kind in loader.PROGRAMS}
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
 
-    def _request(self, path: AttachPath, pin_dir: str) -> loader.LoadRequest:
-        if self.features.btf is None:
-            raise KernelError("cannot parse the kernel's BTF (/sys/kernel/btf/vmlinux)")
-        defines = dict(self.offsets(self.features.btf), **self.options, DRUMS_ATTACH=ATTACH_DEFINES[path.name])
-        btf = self.features.btf
+    def _request(self, path: AttachPath, attachments: list[tuple[str, str, str]], pin_dir: str) -> loader.LoadRequest:
+        defines = dict(self.offsets(self.features.btf), **self.options, **dict(path.defines),
+                       DRUMS_ATTACH=ATTACH_DEFINES[path.name])
         return loader.LoadRequest(
             source=self.source,
             cflags=[f"-D{k}={v}" for k, v in sorted(defines.items())],
-            attachments=[a for a in path.attachments if a[1] not in path.optional or btf.has_function(a[1])],
+            attachments=attachments,
             maps=list(self.maps),
             pin_dir=pin_dir,
             headers=self.features.kernel_headers,
         )
+
+    def hold(self, fd: int) -> None:
+        """Keep a perf event with a program attached until the probe stops (Linux < 5.15, whose
+        perf events cannot be linked and pinned)."""
+        self._held.append(fd)
+
+    def attached(self, fd: int, pin: str) -> None:
+        """An attachment perflink made: pinned if it is a link, which then outlives this process,
+        else held while the probe runs."""
+        if not self.features.perf_links:
+            self.hold(fd)
+            return
+        try:
+            bpffs.pin(fd, pin)
+        finally:
+            os.close(fd)
 
     def read(self, name: str) -> tuple[bytes, bytes, int]:
         m = self.opened[name]
@@ -285,9 +311,9 @@ class BpfProbe(Probe):
         for m in self.opened.values():
             m.close()
         self.opened = {}
-        for fd in self.programs.values():
+        for fd in list(self.programs.values()) + self._held:
             os.close(fd)
-        self.programs = {}
+        self.programs, self._held = {}, []
         if self._reader is not None:
             os.close(self._reader)  # another reader of the pins may take the marks over
             self._reader = None

@@ -16,11 +16,11 @@ import threading
 import time
 
 from drums.errors import ProbeError
-from drums.kernel import bpffs, elf, perflink
+from drums.kernel import elf, perflink
 from drums.kernel.btf import Btf
 from drums.kernel.ringbuf import RingBuffer
 from drums.metrics import Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
+from drums.probes.bpf import AttachPath, BpfProbe, needs_uprobes
 from drums.proctable import MappedLibraries, mapped_file
 
 log = logging.getLogger("drums")
@@ -36,8 +36,8 @@ class LoadsProbe(BpfProbe):
     maps = ("loads", "dropped")
     metrics = ()
     paths = (
-        AttachPath("uprobe", (("program", "", "on_debug_state"),), needs_all(needs_uprobes, needs_perf_links),
-                   "Linux >= 5.15 (uprobes as BPF links), glibc or musl"),
+        AttachPath("uprobe", (("program", "", "on_debug_state"),), needs_uprobes,
+                   "glibc or musl; uprobes pinned as BPF links (Linux >= 5.15) or held by the agent"),
     )
 
     def __init__(self, features, libraries: MappedLibraries, **kw):
@@ -92,9 +92,8 @@ class LoadsProbe(BpfProbe):
                 offset = elf.symbol_offsets(host_path, (HOOK,)).get(HOOK)
                 if offset is None:
                     raise ProbeError(f"{path}: no {HOOK} symbol")
-                link = perflink.uprobe(self.programs["on_debug_state"], host_path, offset)
-                bpffs.pin(link, pin)
-                os.close(link)
+                self.attached(perflink.uprobe(self.programs["on_debug_state"], host_path, offset,
+                                              link=self.features.perf_links), pin)
             self._linkers[key] = ""
         except ProbeError as e:
             self._linkers[key] = str(e)

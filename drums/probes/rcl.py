@@ -21,10 +21,10 @@ import time
 import numpy as np
 
 from drums.errors import ProbeError
-from drums.kernel import bpffs, elf, perflink
+from drums.kernel import elf, perflink
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_uprobes
+from drums.probes.bpf import AttachPath, BpfProbe, needs_uprobes
 from drums.proctable import MappedLibraries, ProcessTable, mapped_file
 
 LIBRARY = "librcl.so"
@@ -196,8 +196,9 @@ class RclProbe(BpfProbe):
             "dropped")
     metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, TAKE_MISSED, REACTION, TRANSPORT, AGE, SKEWED)
     paths = (
-        AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_all(needs_uprobes, needs_perf_links),
-                   "Linux >= 5.15 (uprobes as BPF links), any ROS 2 distribution"),
+        AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_uprobes,
+                   "any ROS 2 distribution; uprobes pinned as BPF links (Linux >= 5.15) or held by the agent, "
+                   "task-local storage per thread (Linux >= 5.12) or a hash"),
     )
 
     def __init__(self, features, proctable: ProcessTable, libraries: MappedLibraries | None = None,
@@ -219,7 +220,8 @@ class RclProbe(BpfProbe):
         self._deliveries: dict[bytes, tuple[int, Histogram, Histogram]] = {}  # map key -> (count, transport, age)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
-        return {}  # only user memory, through the registers of the calling convention
+        # Only user memory, through the registers of the calling convention.
+        return {"TASK_STORAGE": 1} if self.features.task_storage else {}
 
     def start(self) -> None:
         super().start()
@@ -255,9 +257,8 @@ class RclProbe(BpfProbe):
             offsets = elf.symbol_offsets(host_path, {fn for fn, _, _ in UPROBES})
             for i, (fn, program, ret) in enumerate(UPROBES):
                 if fn in offsets and (self.timing or program != "on_idle"):  # idle ends a reaction
-                    link = perflink.uprobe(self.programs[program], host_path, offsets[fn], ret)
-                    bpffs.pin(link, f"{prefix}{i}")
-                    os.close(link)
+                    self.attached(perflink.uprobe(self.programs[program], host_path, offsets[fn], ret,
+                                                  link=self.features.perf_links), f"{prefix}{i}")
             self._files[key] = "" if "rcl_publish" in offsets else f"{path}: no rcl_publish symbol"
         except ProbeError as e:
             self._files[key] = str(e)

@@ -14,7 +14,7 @@ import struct
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_perf_links, needs_tracepoints
+from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_tracepoints
 from drums.proctable import MappedLibraries, ProcessTable
 
 # Libraries whose processes speak RTPS: Fast DDS (2.x and 3.x), Cyclone DDS, Connext, and rcl for
@@ -52,16 +52,26 @@ def decode(keys: bytes, values: bytes) -> list[tuple[int, int, str, tuple[int, i
             for i, (pid, direction, guid) in enumerate(_KEY.iter_unpack(keys))]
 
 
+_EVENTS = tuple(f"sys_{side}_{call}" for side in ("enter", "exit") for call in SYSCALLS)
+_EXITS = tuple(("tracepoint", f"syscalls:sys_exit_{call}", f"on_{call}") for call in SYSCALLS)
+_ENTRIES = tuple(("tracepoint", f"syscalls:sys_enter_{call}", f"enter_{call}") for call in SYSCALLS)
+
+
+def _needs_task_pt_regs(f) -> str | None:
+    return None if f.task_pt_regs else "no bpf_task_pt_regs to read a call's arguments at its exit (Linux >= 5.15)"
+
+
 class RtpsProbe(BpfProbe):
     name = "rtps"
     source = "rtps.bpf.c"
     maps = ("watched", "writers", "dropped")
     metrics = _BY_DIRECTION[0] + _BY_DIRECTION[1]
     paths = (
-        AttachPath("tracepoint",  # bpf_task_pt_regs: Linux >= 5.15 too
-                   tuple(("tracepoint", f"syscalls:sys_exit_{call}", f"on_{call}") for call in SYSCALLS),
-                   needs_all(needs_perf_links, needs_tracepoints(*(f"sys_exit_{call}" for call in SYSCALLS))),
-                   "Linux >= 5.15 (syscall tracepoints as BPF links)"),
+        AttachPath("tracepoint", _EXITS, needs_all(_needs_task_pt_regs, needs_tracepoints(*_EVENTS)),
+                   "Linux >= 5.15: each call's exit, its arguments read from the task's registers, pinned as BPF links"),
+        AttachPath("tracepoint", _ENTRIES + _EXITS, needs_tracepoints(*_EVENTS),
+                   "any kernel: each call's entry and exit, held by the agent before Linux 5.15",
+                   defines=(("SYSCALL_ENTRIES", 1),)),
     )
 
     def __init__(self, features, proctable: ProcessTable, libraries: MappedLibraries | None = None, **kw):

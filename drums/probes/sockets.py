@@ -21,7 +21,7 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
 from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
-                              needs_fentry, needs_kprobes, needs_perf_links, needs_test_run, needs_tracepoints,
+                              needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints,
                               offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable, comm
@@ -90,7 +90,7 @@ _RAW = AttachPath("raw_tracepoint",
                   + tuple(("tracepoint", f"syscalls:{e}", fn) for e, fn in zip(SPLICE_EVENTS, ("on_splice_enter",
                                                                                               "on_splice_exit")))
                   + LIFECYCLE,
-                  needs_all(needs_tracepoints(*SEND_RECV, *SPLICE_EVENTS), needs_perf_links, _NEEDS_LIFECYCLE),
+                  needs_all(needs_tracepoints(*SEND_RECV, *SPLICE_EVENTS), _NEEDS_LIFECYCLE),
                   "Linux >= 6.6: every socket family, one event per send and receive call")
 
 

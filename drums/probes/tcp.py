@@ -133,7 +133,7 @@ def _connection_labels(head: bytes) -> tuple[str, str, str]:
 class TcpProbe(BpfProbe):
     name = "tcp"
     source = "tcp.bpf.c"
-    maps = ("tcp_conns", "tcp_totals", "closed_seq", "dropped", "generation", "changed_even", "changed_odd")
+    maps = ("tcp_conns", "tcp_totals", "dropped", "generation", "changed_even", "changed_odd")
     metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_RESETS_RECEIVED, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
                RESETS_RECEIVED, STATE_ENTERED)
     paths = (

@@ -3,7 +3,9 @@ rtps and rcl probes in the kernel, the ROS 2 graph, and the agent's join. Each p
 burst of exactly BURST messages; every count is checked against what the nodes themselves count."""
 from __future__ import annotations
 
+import glob
 import json
+import os
 
 import pytest
 from std_msgs.msg import String, UInt8MultiArray
@@ -11,7 +13,8 @@ from std_msgs.msg import String, UInt8MultiArray
 from drums.agent import Agent
 from drums.graph import join
 from drums.graph.export import graph_metrics, render
-from tests.conftest import wait_until
+from drums.kernel.features import Features
+from tests.conftest import TEST_PIN_ROOT, wait_until
 from tests.graph.rosnodes import IMAGE_BYTES, payload
 
 BURST = 30
@@ -54,9 +57,44 @@ def _run(procs, agent):
     return agent.collect()
 
 
+def _before_linux_5_15(proctable):
+    """The rtps and rcl probes as Linux 5.10 to 5.14 has them, on this kernel: each syscall's entry
+    traced for its arguments (no bpf_task_pt_regs), a hash of threads for takes (no task-local
+    storage in tracing programs before 5.12), and every tracepoint and uprobe held on its perf event
+    by the agent (no BPF links on perf events). Started and unloaded by the caller."""
+    from drums.probes.rcl import RclProbe
+    from drums.probes.rtps import RtpsProbe
+    old = Features()
+    old.__dict__.update(perf_links=False, task_pt_regs=False, task_storage=False)
+    rtps = RtpsProbe(old, proctable, pin_root=f"{TEST_PIN_ROOT}_before_5_15")
+    rcl = RclProbe(old, proctable, pin_root=f"{TEST_PIN_ROOT}_before_5_15")
+    return rtps, rcl
+
+
 @pytest.mark.kernel
 def test_udp_pipeline_counts_and_bytes_per_topic_and_edge(pipeline, ros2_graph, proctable, rtps_probe,
                                                           rcl_probe, sched_probe):
+    _check_udp_pipeline(pipeline, ros2_graph, proctable, rtps_probe, rcl_probe, sched_probe)
+
+
+def test_udp_pipeline_counts_alike_as_before_linux_5_15(pipeline, ros2_graph, proctable, sched_probe):
+    rtps, rcl = _before_linux_5_15(proctable)
+    rtps.start()
+    try:
+        rcl.start()
+        try:
+            # The entries' path, its programs pinned for the agent to hold on perf events, no link.
+            assert os.path.exists(os.path.join(rtps.pin_dir, "prog_enter_sendto"))
+            assert not glob.glob(os.path.join(rtps.pin_dir, "link*"))
+            _check_udp_pipeline(pipeline, ros2_graph, proctable, rtps, rcl, sched_probe)
+            assert not glob.glob(os.path.join(rcl.pin_dir, "lib-*"))  # its uprobes held likewise
+        finally:
+            rcl.unload()
+    finally:
+        rtps.unload()
+
+
+def _check_udp_pipeline(pipeline, ros2_graph, proctable, rtps_probe, rcl_probe, sched_probe):
     procs = pipeline(UDP)
     agent = Agent([rtps_probe, rcl_probe, sched_probe], proctable, graph=ros2_graph, graph_adapter="ros2")
     snap = _run(procs, agent)
