@@ -97,6 +97,22 @@ def _pin_flag(parser: argparse.ArgumentParser) -> None:
                              "kernel (one per network namespace or container) each need their own")
 
 
+def _btf_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--btf", metavar="FILE", type=_btf_file, default=None,
+                        help="this kernel's BTF, for a kernel without /sys/kernel/btf/vmlinux "
+                             "(pahole --btf_encode_detached FILE vmlinux, or BTFHub's file for the kernel)")
+
+
+def _btf_file(path: str) -> str:
+    from drums.errors import KernelError
+    from drums.kernel.btf import names
+    try:
+        names(path)
+    except KernelError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return path
+
+
 def build_parser() -> argparse.ArgumentParser:
     from drums.exporters.prometheus import DEFAULT_PORT
     from drums.exporters import STREAM_PORT
@@ -146,6 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--keep-loaded", action="store_true",
                        help="leave the BPF programs pinned on exit, so a restart needs no compile")
     _pin_flag(agent)
+    _btf_flag(agent)
     agent.add_argument("--pid", type=_positive, action="append", default=[], help="monitor this process")
     agent.add_argument("--process-name", action="append", default=[],
                        help="monitor processes whose name, command line or ROS node names match this "
@@ -252,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--from", dest="begin", default="", help="the range's start (default: the log's first)")
     report.add_argument("--to", dest="end", default="", help="the range's end (default: now)")
 
-    sub.add_parser("doctor", help="say what this host offers each probe, and what to fix")
+    _btf_flag(sub.add_parser("doctor", help="say what this host offers each probe, and what to fix"))
     _pin_flag(sub.add_parser("unload", help="detach and remove BPF programs left pinned by --keep-loaded"))
     return parser
 
@@ -295,7 +312,7 @@ def run_agent(args) -> int:
     default = [p for p in PROBES if adapter_name == "ros2" or p not in ROS2_PROBES]
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
-    features = Features()
+    features = Features(args.btf or "")
     probes = build(features, proctable, names, args.pin_dir, args.ros_timing, dict(args.attach))
     pins = pinlock.hold(args.pin_dir)  # held while the agent runs
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
@@ -615,7 +632,7 @@ def main(argv: list[str] | None = None) -> int:
             return run(args.log, args.output, args.begin, args.end)
         if args.command == "doctor":
             from drums.doctor import run
-            return run()
+            return run(args.btf or "")
         return run_unload(args)
     except DrumsError as e:
         print(f"drums: {e}", file=sys.stderr)

@@ -6,7 +6,8 @@ import importlib.util
 import os
 
 from drums.kernel.features import TRACEFS, Features, is_mount_of_type
-from drums.probes.bpf import BpfProbe, choose_path, common_requirements
+from drums.kernel.btf import VMLINUX_BTF
+from drums.probes.bpf import BTF_FIX, NO_KERNEL_BTF, BpfProbe, choose_path, common_requirements, needs_tp_btf
 from drums.probes.registry import build
 from drums.proctable import ProcessTable
 
@@ -53,8 +54,13 @@ def report(f: Features) -> tuple[list[str], bool]:
     lines = [f"    kernel       {f.kernel_release}"]
     lines.append(_line("privileges", f.privileged, "root" if f.privileged else f"uid {os.geteuid()}",
                        "run the agent as root (BPF needs CAP_BPF and CAP_PERFMON)"))
-    lines.append(_line("BTF", f.btf is not None, "/sys/kernel/btf/vmlinux" if f.btf else "missing",
-                       "use a kernel built with CONFIG_DEBUG_INFO_BTF=y; without it only /proc probes run"))
+    if f.btf_file:
+        said = f"{f.btf_file} (given with --btf" + ("" if f.has_btf else "; the kernel has none of its own: no "
+                                                   "tp_btf or fentry paths, no helpers that return typed pointers") + ")"
+    else:
+        said = VMLINUX_BTF if f.has_btf else "missing"
+    lines.append(_line("BTF", f.btf is not None, said,
+                       f"{BTF_FIX}; without BTF only the /proc and sock_diag fallbacks run"))
     lines.append(_mount_line("tracefs", f.tracefs, TRACEFS, "tracefs", "kprobes need it"))
     lines.append(_mount_line("bpffs", f.bpffs, "/sys/fs/bpf", "bpf"))
     version = _bcc_version()
@@ -75,10 +81,11 @@ def report(f: Features) -> tuple[list[str], bool]:
     lines.append(_line("kprobes", f.kprobes, "available" if f.kprobes else "not available (CONFIG_KPROBES unset)",
                        "none needed while the tracepoint paths work"))
     lines.append(_line("tp_btf", f.tp_btf, "tracepoints typed in BTF: programs read kernel fields directly"
-                       if f.tp_btf else "tracepoints not typed in BTF (Linux < 5.5)",
+                       if f.tp_btf else needs_tp_btf(f),
                        "none needed: the raw tracepoint paths serve, at a helper call per field"))
     lines.append(_line("fentry", f.fentry, "BPF trampolines load" if f.fentry
-                       else "untested: bcc has no kernel headers to compile with" if headers is None
+                       else "untested: bcc has no kernel headers to compile with" if headers is None and f.has_btf
+                       else NO_KERNEL_BTF if not f.has_btf
                        else "refused (fentry/fexit programs cannot load)", "none needed while the tracepoint paths work"))
 
     problems = common_requirements(f)
@@ -102,7 +109,7 @@ def report(f: Features) -> tuple[list[str], bool]:
     return lines, can_run
 
 
-def run() -> int:
-    lines, can_run = report(Features())
+def run(btf_file: str = "") -> int:
+    lines, can_run = report(Features(btf_file))
     print("\n".join(lines))
     return 0 if can_run else 1

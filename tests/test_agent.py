@@ -102,6 +102,58 @@ def test_attach_holds_a_probe_to_the_path_it_names():
         assert attached(url) == {"sockets": ("sock_diag", 1), "sched": (path, 1)}
 
 
+@pytest.mark.kernel
+def test_without_kernel_btf_the_agent_counts_with_the_btf_file_it_is_given(tmp_path):
+    """A kernel built without BTF (Raspberry Pi OS's): the agent, with /sys/kernel/btf hidden in a
+    mount namespace of its own, takes its struct offsets from the file it is given (a copy of this
+    kernel's BTF, as pahole would make it), each BPF probe takes a path that needs no kernel BTF,
+    and the bytes a child sends and the CPU it burns are counted exactly."""
+    from drums.kernel.features import Features
+    from drums.probes import sched, sockets, tcp
+    btf = tmp_path / "vmlinux.btf"
+    shutil.copy("/sys/kernel/btf/vmlinux", btf)
+    without = Features(str(btf))
+    without.__dict__["has_btf"] = False
+    best = {cls.name: next(p.name for p in cls.paths if p.requires(without) is None)
+            for cls in (sockets.SocketsProbe, sched.SchedProbe, tcp.TcpProbe)}
+    assert best["sockets"] in ("raw_tracepoint", "kprobe") and best["sched"] == "raw_tracepoint"
+    hide = ("unshare", "--mount", "--propagation", "private", "sh", "-c",
+            'mount -t tmpfs none /sys/kernel/btf && exec "$@"', "hide")
+    with running_agent("--btf", str(btf), "--probe", "sockets", "--probe", "sched", "--probe", "tcp", "--strict",
+                       under=hide) as url:
+        assert attached(url) == {p: (path, 1) for p, path in best.items()}
+        size = 1_234_567
+        with socket.create_server(("127.0.0.1", 0)) as server:
+            child = subprocess.Popen([sys.executable, "-c", f"""
+import socket, sys, time
+s = socket.create_connection(("127.0.0.1", {server.getsockname()[1]}))
+s.sendall(b"b" * {size})
+end = time.process_time() + 0.5
+while time.process_time() < end: pass
+print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            conn, _ = server.accept()
+            got = 0
+            while got < size:
+                got += len(conn.recv(1 << 20))
+            child.stdout.readline()
+            try:
+                def counted():
+                    text = scrape(url)
+                    sent = {dict(k)["pid"]: v for k, v in samples(text, "drums_process_socket_sent_bytes_total").items()}
+                    cpu = {dict(k)["pid"]: v for k, v in samples(text, "drums_process_cpu_seconds_total").items()}
+                    pid = str(child.pid)
+                    assert sent.get(pid) == size and cpu.get(pid, 0) > 0, (sent.get(pid), cpu.get(pid))
+                    return cpu[pid]
+                cpu = eventually(counted, timeout=10)
+                # The child sleeps: its CPU time is the kernel's own runtime at its last switch-out.
+                kernel = time.clock_gettime(((~child.pid) << 3) | 2)  # its process CPU clock
+                assert abs(cpu - kernel) <= 1e-6, (cpu, kernel)
+            finally:
+                child.stdin.close()
+                child.wait()
+                conn.close()
+
+
 def test_exited_process_series_gone_within_two_scrapes(agent):
     child = subprocess.Popen([sys.executable, "-c", "import sys, time\n"
                               "while time.process_time() < 0.3: pass\n"
@@ -154,6 +206,8 @@ def test_clients_that_hang_up_before_the_answer_cost_no_traceback(agent):
     (["agent", "--attach", "host=kprobe"], "probe host has no such path (it has no attach paths)"),
     (["agent", "--probe", "sched", "--attach", "sockets=kprobe"], "--attach sockets=...: no such probe runs"),
     (["frobnicate"], "invalid choice: 'frobnicate'"),
+    (["agent", "--btf", "/etc/passwd"], "--btf: not a BTF blob (bad magic)"),
+    (["doctor", "--btf", "/nonexistent"], "--btf: cannot read kernel BTF at /nonexistent: No such file or directory"),
     (["agent", "--graph", "auto", "--graph-file", "robot.yaml"], "--graph-file is read by --graph static only, not by --graph auto"),
     (["graph", "--graph", "ros1", "--graph-file", "robot.yaml"], "--graph-file is read by --graph static only, not by --graph ros1"),
 ])

@@ -19,7 +19,11 @@ HEADERS_CACHE = "/var/cache/drums/kernel-headers"  # made by scripts/setup.sh fo
 
 
 class Features:
-    """Lazily evaluated facts about the running kernel; tests override them in a subclass."""
+    """Lazily evaluated facts about the running kernel; tests override them in a subclass.
+    `btf_file`: the kernel's BTF as a file (`--btf`), for a kernel built without it."""
+
+    def __init__(self, btf_file: str = ""):
+        self.btf_file = btf_file
 
     @cached_property
     def kernel_release(self) -> str:
@@ -27,13 +31,20 @@ class Features:
 
     @cached_property
     def has_btf(self) -> bool:
+        """The kernel's own BTF (CONFIG_DEBUG_INFO_BTF): what typed programs (tp_btf, fentry) and
+        the helpers that return typed pointers need, whatever file gives the agent its offsets."""
         return os.path.exists(VMLINUX_BTF)
+
+    @cached_property
+    def btf_source(self) -> str | None:
+        """Where struct offsets and the kernel's names are read: the file given, else the kernel's."""
+        return self.btf_file or (VMLINUX_BTF if self.has_btf else None)
 
     @cached_property
     def btf(self) -> Btf | None:
         """The parsed BTF (about 20 MB in memory): only loading a probe needs it."""
         try:
-            return Btf.load(VMLINUX_BTF)
+            return Btf.load(self.btf_source) if self.btf_source else None
         except KernelError:
             return None
 
@@ -90,11 +101,12 @@ class Features:
     def _btf_has_names(self) -> tuple[bool, bool, bool]:
         # The answers from one read; the names themselves (2.3 MB) are not kept.
         try:
-            found = names(VMLINUX_BTF)
+            found = names(self.btf_source) if self.btf_source else b""
         except KernelError:
-            return False, False, False
-        return (b"\0bpf_perf_link\0" in found, b"\0btf_trace_sched_switch\0" in found,
-                b"\0BPF_FUNC_task_pt_regs\0" in found)
+            found = b""
+        # Typed tracepoints and bpf_task_pt_regs (which takes a typed task) need the kernel's own.
+        return (b"\0bpf_perf_link\0" in found, self.has_btf and b"\0btf_trace_sched_switch\0" in found,
+                self.has_btf and b"\0BPF_FUNC_task_pt_regs\0" in found)
 
     @cached_property
     def bpf_atomics(self) -> bool:
@@ -110,7 +122,7 @@ class Features:
     def task_storage(self) -> bool:
         """Task-local storage in tracing programs (Linux >= 5.12, "bpf: Enable task local storage
         for tracing programs"; the map type itself came in 5.11, for LSM programs only)."""
-        return release_version(self.kernel_release) >= (5, 12)
+        return self.has_btf and release_version(self.kernel_release) >= (5, 12)
 
     @cached_property
     def bpf_test_run(self) -> bool:
@@ -135,7 +147,7 @@ class Features:
     @cached_property
     def fentry(self) -> bool:
         """BPF trampolines: only loading one tells (a kernel may refuse them with EPERM)."""
-        if not (self.bcc and self.btf is not None and self.privileged):
+        if not (self.bcc and self.has_btf and self.privileged):
             return False
         from drums.kernel.loader import can_load_fentry
         return can_load_fentry(self.kernel_headers)

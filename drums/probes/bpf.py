@@ -19,7 +19,7 @@ from typing import Callable, Iterator
 
 from drums.errors import KernelError, ProbeError
 from drums.kernel import bpffs, loader, perflink
-from drums.kernel.btf import Btf
+from drums.kernel.btf import VMLINUX_BTF, Btf
 from drums.kernel.features import Features
 from drums.probes.base import Probe
 from drums.probes.entries import Entries, Marked, Matched
@@ -47,13 +47,20 @@ def needs_tracepoints(*events: str) -> Callable[[Features], str | None]:
     return check
 
 
+NO_KERNEL_BTF = "the kernel has no BTF of its own (CONFIG_DEBUG_INFO_BTF) to type programs with"
+
+
 def needs_tp_btf(f: Features) -> str | None:
-    return None if f.tp_btf else "the kernel's BTF does not type its tracepoints (Linux >= 5.5)"
+    if f.tp_btf:
+        return None
+    return "the kernel's BTF does not type its tracepoints (Linux >= 5.5)" if f.has_btf else NO_KERNEL_BTF
 
 
 def needs_fentry(f: Features) -> str | None:
     if f.fentry:
         return None
+    if not f.has_btf:
+        return NO_KERNEL_BTF
     if f.kernel_headers is None:  # bcc compiles nothing without them, a trampoline's test program included
         return "no kernel headers for bcc to compile a trampoline with"
     return "the kernel refuses BPF trampolines (fentry/fexit)"
@@ -113,11 +120,16 @@ def common_requirements(features: Features) -> list[str]:
         problems.append("not root (BPF needs CAP_BPF and CAP_PERFMON)")
     if not features.bpffs:
         problems.append("bpffs is not mounted at /sys/fs/bpf (mount -t bpf bpf /sys/fs/bpf)")
-    if not features.has_btf:
-        problems.append("no kernel BTF at /sys/kernel/btf/vmlinux (CONFIG_DEBUG_INFO_BTF)")
+    if features.btf_source is None:
+        problems.append(f"no kernel BTF at {VMLINUX_BTF} (CONFIG_DEBUG_INFO_BTF): {BTF_FIX}")
     if features.kernel_headers is None:
         problems.append("no kernel headers for bcc (apt-get install linux-headers-$(uname -r), or scripts/setup.sh)")
     return problems
+
+
+# How to get a kernel's BTF where the kernel has none of its own (`drums agent --btf FILE`).
+BTF_FIX = ("give this kernel's BTF with --btf FILE: `pahole --btf_encode_detached FILE vmlinux` from its "
+           "debug symbols, or BTFHub's file for this kernel")
 
 
 def _boot_id() -> str:
@@ -190,7 +202,7 @@ class BpfProbe(Probe):
 
     def _start(self, path: AttachPath) -> None:
         if self.features.btf is None:
-            raise KernelError("cannot parse the kernel's BTF (/sys/kernel/btf/vmlinux)")
+            raise KernelError(f"cannot parse the kernel's BTF ({self.features.btf_source})")
         self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
         attachments = self._attachments(path)
         if path.name in loader.PINNABLE:
