@@ -59,7 +59,15 @@ struct datagram_t {
 
 BPF_HASH(watched, u32, u8, 4096);  // processes with a DDS library, set by the agent
 BPF_TABLE("lru_hash", struct writer_key_t, struct writer_counts_t, writers, 16384);
+#ifdef PREEMPT_RT
+// Under PREEMPT_RT a program runs with migration, not preemption, disabled: another thread's call
+// on this CPU can come in the middle of a parse and overwrite a per-CPU head, so each thread has
+// its own (of those that send or receive in watched processes; LRU, so ended threads' go).
+BPF_TABLE("lru_hash", u32, struct head_t, heads, 4096);
+BPF_PERCPU_ARRAY(head_zero, struct head_t, 1);  // never written: what a thread's head starts as
+#else
 BPF_PERCPU_ARRAY(heads, struct head_t, 1);
+#endif
 BPF_ARRAY(dropped, u64, 2);
 
 static __always_inline void count_drop(int which)
@@ -164,6 +172,19 @@ static __always_inline void parse(struct datagram_t *dg, u64 total, u32 directio
     }
 }
 
+// Where the head of a datagram is read to.
+static __always_inline struct head_t *scratch(void)
+{
+    int zero = 0;
+#ifdef PREEMPT_RT
+    u32 tid = (u32)bpf_get_current_pid_tgid();
+    struct head_t *h = heads.lookup(&tid), *fresh = h ? 0 : head_zero.lookup(&zero);
+    return fresh ? heads.lookup_or_try_init(&tid, fresh) : h;
+#else
+    return heads.lookup(&zero);
+#endif
+}
+
 #ifdef SYSCALL_ENTRIES
 // Before Linux 5.15 (no bpf_task_pt_regs) the entry is traced too, for the argument: kept per
 // thread until the call returns, for every process, since a node's receiving thread blocks in its
@@ -212,8 +233,7 @@ static __always_inline int leave(void *ctx, u32 msghdr, u32 direction)
     if (bpf_probe_read_kernel(&ptr, sizeof(ptr), &PT_REGS_PARM2(regs)) != 0 || !ptr)
         return 0;
 #endif
-    int zero = 0;
-    struct head_t *head = heads.lookup(&zero);
+    struct head_t *head = scratch();
     if (!head)
         return 0;
     struct datagram_t dg = {.nseg = 1, .head = head->b};

@@ -81,13 +81,15 @@ def attached(url: str) -> dict[str, tuple[str, float]]:
 
 
 @pytest.mark.kernel
-def test_every_probe_attached_with_its_attach_type(agent):
+def test_every_probe_attached_with_its_attach_type(agent, record_property):
     from drums.probes import loads, rcl, rtps, sched, sockets, tcp
     best = {cls.name: offered_paths(cls)[0] for cls in (sockets.SocketsProbe, sched.SchedProbe, tcp.TcpProbe,
                                                          rtps.RtpsProbe, rcl.RclProbe, loads.LoadsProbe)}
+    seen = attached(agent)
+    record_property("attached", json.dumps({probe: path for probe, (path, _) in seen.items()}))  # make test-kernels' row
     # rclpy is importable here, so the graph is ros2 and the per-topic probes run too. Each BPF
     # probe takes the best path this kernel offers (tp_btf for sockets and sched on Linux >= 6.6).
-    assert attached(agent) == {"sockets": (best["sockets"], 1), "sched": (best["sched"], 1),
+    assert seen == {"sockets": (best["sockets"], 1), "sched": (best["sched"], 1),
                                "tcp": (best["tcp"], 1), "host": ("psutil", 1), "process": ("psutil", 1),
                                "rtps": (best["rtps"], 1), "rcl": (best["rcl"], 1), "loads": (best["loads"], 1),
                                "latency": ("icmp", 1)}

@@ -125,6 +125,12 @@ class Features:
         return self.has_btf and release_version(self.kernel_release) >= (5, 12)
 
     @cached_property
+    def preempt_rt(self) -> bool:
+        """A PREEMPT_RT kernel, whose BPF programs run with migration, not preemption, disabled:
+        programs of two tasks on one CPU can interleave, so no per-CPU scratch is safe."""
+        return os.path.exists("/sys/kernel/realtime")
+
+    @cached_property
     def bpf_test_run(self) -> bool:
         """The agent may run a raw tracepoint program itself (BPF_PROG_TEST_RUN, Linux >= 5.10)."""
         return release_version(self.kernel_release) >= (5, 10)

@@ -82,7 +82,8 @@ class RtpsProbe(BpfProbe):
         self._watched: set[int] = set()
 
     def offsets(self, btf: Btf) -> dict[str, int]:
-        return {}  # only user memory and tracepoint records, whose layouts are ABI
+        # Only user memory and tracepoint records, whose layouts are ABI.
+        return {"PREEMPT_RT": 1} if self.features.preempt_rt else {}
 
     def start(self) -> None:
         super().start()

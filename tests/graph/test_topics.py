@@ -61,11 +61,12 @@ def _before_linux_5_15(proctable):
     """The rtps and rcl probes as Linux 5.10 to 5.14 has them, on this kernel: each syscall's entry
     traced for its arguments (no bpf_task_pt_regs), a hash of threads for takes (no task-local
     storage in tracing programs before 5.12), and every tracepoint and uprobe held on its perf event
-    by the agent (no BPF links on perf events). Started and unloaded by the caller."""
+    by the agent (no BPF links on perf events); and with a head per thread to parse datagrams in, as
+    on a PREEMPT_RT kernel (JetPack's 5.10 has one). Started and unloaded by the caller."""
     from drums.probes.rcl import RclProbe
     from drums.probes.rtps import RtpsProbe
     old = Features()
-    old.__dict__.update(perf_links=False, task_pt_regs=False, task_storage=False)
+    old.__dict__.update(perf_links=False, task_pt_regs=False, task_storage=False, preempt_rt=True)
     rtps = RtpsProbe(old, proctable, pin_root=f"{TEST_PIN_ROOT}_before_5_15")
     rcl = RclProbe(old, proctable, pin_root=f"{TEST_PIN_ROOT}_before_5_15")
     return rtps, rcl

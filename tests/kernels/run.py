@@ -17,7 +17,6 @@ import glob
 import hashlib
 import json
 import os
-import platform
 import re
 import shutil
 import signal
@@ -173,10 +172,15 @@ def kvm_works(vmlinuz: str) -> tuple[bool, str]:
 
 # ---- what a run found ---------------------------------------------------------------------------
 
-def outcomes(junit: str, paths: dict[str, list], agent: dict) -> tuple[dict, list[str]]:
-    """probe -> path -> {passed, failed}, from the tests' outcomes; and the failed tests' ids."""
+def outcomes(junit: str, paths: dict[str, list]) -> tuple[dict, list[str], dict[str, str]]:
+    """probe -> path -> {passed, failed}, from the tests' outcomes; the failed tests' ids; and the
+    path each probe of `drums agent` took, as its test recorded it."""
     table: dict[str, dict[str, dict[str, int]]] = {}
     failed = []
+    agent: dict[str, str] = {}
+    for prop in ET.parse(junit).getroot().iter("property"):
+        if prop.get("name") == "attached":
+            agent = json.loads(prop.get("value", "{}"))
     for case in ET.parse(junit).getroot().iter("testcase"):
         module = case.get("classname", "").rsplit(".", 1)[-1]
         name = case.get("name", "")
@@ -187,7 +191,7 @@ def outcomes(junit: str, paths: dict[str, list], agent: dict) -> tuple[dict, lis
         names = [p for p, _ in paths.get(probe, [])]
         path = next((t for t in (params[0].split("-") if params else []) if t in names), None)
         if path is None:
-            path = (agent.get(probe) or {}).get("attach_type", "-") if probe in paths else probe
+            path = agent.get(probe, "-") if probe in paths else probe
         if params and "none offered" in params[0]:
             path = "none offered"
         bad = case.find("failure") is not None or case.find("error") is not None
@@ -197,7 +201,7 @@ def outcomes(junit: str, paths: dict[str, list], agent: dict) -> tuple[dict, lis
         if bad:
             why = (case.find("failure") if case.find("failure") is not None else case.find("error")).get("message", "")
             failed.append(f"{module}::{name}: {why.splitlines()[0][:300] if why else ''}")
-    return table, failed
+    return table, failed, agent
 
 
 def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float = BOOT_TIMEOUT) -> dict:
@@ -228,12 +232,8 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
             with open(seen_path) as f:
                 seen = json.load(f)
             row.update(release=seen["release"], python=seen["python"], doctor=seen["doctor"],
-                       agent={p: v.get("attach_type", "none") if isinstance(v, dict) else str(v)
-                              for p, v in seen["agent"].items()},
-                       agent_reasons={p: v["reason"] for p, v in seen["agent"].items()
-                                      if isinstance(v, dict) and v.get("reason")},
                        paths={p: [[n, why] for n, why in ps] for p, ps in seen["paths"].items()})
-            table, failed = outcomes(os.path.join(out, "junit.xml"), seen["paths"], seen["agent"])
+            table, failed, row["agent"] = outcomes(os.path.join(out, "junit.xml"), seen["paths"])
             shutil.copy(os.path.join(out, "pytest.log"), os.path.join(CACHE, f"{name}-pytest.log"))
             row["tests"], row["failed_tests"] = table, failed
             row["status"] = "failed" if failed or seen["pytest_status"] not in (0,) else "passed"
