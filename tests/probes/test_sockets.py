@@ -304,6 +304,57 @@ def test_connected_udp_datagrams(sockets_probe, collect, spawn, family):
         assert process_counts(snap, child.pid, "udp") == dict(ZERO, sent_bytes=total, send_calls=len(DATAGRAMS))
 
 
+# Six threads pinned to CPU 1 send argv[1] datagrams each on one shared UDP socket while a
+# SCHED_FIFO thread on that CPU wakes every half millisecond to send one too, preempting them. The
+# child says what it sent once all have done.
+PREEMPTED_SENDERS = r"""
+import time
+rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+rx.bind(("127.0.0.1", 0))
+tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+tx.connect(rx.getsockname())
+report(inode=inode(tx))
+command()
+each, sent, done = int(sys.argv[1]), [], threading.Event()
+def sender(i):
+    os.sched_setaffinity(0, {1})
+    sent.append(sum(tx.send(b"s" * (1 + (i * 131 + n * 17) % 1400)) for n in range(each)))
+def realtime():
+    os.sched_setaffinity(0, {1})
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    n = 0
+    while not done.is_set():
+        n += tx.send(b"r" * 9)
+        time.sleep(0.0005)
+    sent.append(n)
+rt = threading.Thread(target=realtime)
+rt.start()
+senders = [threading.Thread(target=sender, args=(i,)) for i in range(6)]
+for t in senders: t.start()
+for t in senders: t.join()
+done.set()
+rt.join()
+report(bytes=sum(sent), calls=6 * each + sent[-1] // 9)
+command()
+"""
+
+
+@pytest.mark.kernel
+@pytest.mark.skipif(1 not in os.sched_getaffinity(0), reason="needs CPU 1")
+def test_threads_preempted_on_one_cpu_by_a_realtime_thread_are_counted_exactly(sockets_probe, collect, spawn):
+    """Under PREEMPT_RT a program runs with migration, not preemption, disabled: a thread's call can
+    be preempted amid its program by another thread's call on the same CPU and socket. Every add to a
+    socket's entry is atomic, so none is lost (a plain add loses them there: tests/kernel/test_preemption.py)."""
+    child = spawn(PREEMPTED_SENDERS, 2000)
+    ino = child.expect()["inode"]
+    child.tell("go")
+    truth = child.expect(timeout=120)
+    snap = collect(sockets_probe)
+    _, counts = one_socket(snap, pid=child.pid, inode=ino)
+    assert counts == dict(ZERO, sent_bytes=truth["bytes"], send_calls=truth["calls"]), truth
+    assert process_counts(snap, child.pid, "udp") == counts
+
+
 UNIX_SENDER = r"""
 s = socket.socket(fileno=int(sys.argv[1]))
 report(calls=send_in_calls(s, int(sys.argv[2]), int(sys.argv[3])))
