@@ -35,7 +35,7 @@ VENV_BIN = os.path.join(CHECKOUT, ".venv", "bin")
 # Where the portable part lies (the tests marked `kernel`): every exact count the probes make
 # against ground truth the test makes, the agent as the README starts it, the fallbacks, and
 # per-topic counts of rclpy nodes.
-TESTS = ("tests/probes", "tests/graph/test_topics.py", "tests/test_agent.py")
+TESTS = ("tests/probes", "tests/kernel/test_preemption.py", "tests/graph/test_topics.py", "tests/test_agent.py")
 PROBE_OF_FILE = {"test_sockets": "sockets", "test_sched": "sched", "test_tcp": "tcp", "test_topics": "rcl",
                  "test_fallbacks": "fallback", "test_attach_paths": "sockets"}
 BOOT_TIMEOUT = 45 * 60  # seconds a kernel may take to boot and run the tests under emulation
