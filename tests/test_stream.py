@@ -11,6 +11,7 @@ import pytest
 from drums.client import AgentError, Client
 from drums.exporters.stream import KEYFRAME
 from tests.agentproc import free_port, running_agent
+from tests.conftest import TIME_SCALE, peer_namespace
 
 CHEAP = ("--probe", "host", "--probe", "process", "--probe", "latency", "--graph", "auto")
 
@@ -121,6 +122,71 @@ def test_latency_jobs_measure_targets_they_are_allowed_to(agent):
     assert values["drums_latency_loss_ratio"] == (labels, 0.0)  # a reset answers as well as a SYN-ACK
     assert values["drums_latency_probes_sent_total"][1] % 2 == 0
     assert 0 < values["drums_latency_rtt_mean_seconds"][1] < 0.01
+
+
+# In the target's namespace: a listener that tells the probes' connects (closed at once) from the
+# agent's asks for its time (an HTTP request, which it does not answer), and says how many connects
+# it accepted on each line it is sent.
+TARGET = r"""
+import socket, sys, threading
+server = socket.create_server((sys.argv[1], 0))
+print(server.getsockname()[1], flush=True)
+connects = [0]
+def serve():
+    while True:
+        conn, _ = server.accept()
+        conn.settimeout(5)
+        try:
+            if not conn.recv(64):
+                connects[0] += 1
+        except OSError:
+            pass
+        conn.close()
+threading.Thread(target=serve, daemon=True).start()
+for _ in sys.stdin:
+    print(connects[0], flush=True)
+"""
+
+
+def icmp_echoes_received(ns: str) -> int:
+    """Echo requests the namespace's kernel took in, answered or not (/proc/net/snmp IcmpMsg InType8)."""
+    text = subprocess.run(["ip", "netns", "exec", ns, "cat", "/proc/net/snmp"], capture_output=True, text=True,
+                          check=True).stdout
+    rows = [line.split()[1:] for line in text.splitlines() if line.startswith("IcmpMsg:")]
+    return int(dict(zip(*rows)).get("InType8", 0)) if rows else 0
+
+
+def test_a_target_that_ignores_icmp_echoes_is_probed_by_tcp_and_every_probe_is_counted():
+    """ICMP filtered on the way, the host there: the first round's echoes go unanswered, one TCP
+    connect is answered, and from the next round on the target is probed by TCP. The agent's counts
+    are the echoes the target's kernel took in and the connects its listener accepted."""
+    with peer_namespace(7) as (ns, _, _, remote, _):
+        subprocess.run(["ip", "netns", "exec", ns, "sysctl", "-q", "-w", "net.ipv4.icmp_echo_ignore_all=1"],
+                       check=True)
+        target = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-c", TARGET, remote],
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            port = int(target.stdout.readline())
+            with running_agent(*CHEAP, "--latency-target", remote, bpf=False) as url, \
+                    Client([url.rsplit("/", 1)[0]]) as c:
+                c.start("latency", remote, interval=0.5, count=3, method="auto", port=port)
+                time.sleep(6 * TIME_SCALE)  # the first round waits a second for each echo
+                series = c.agents[0].job("latency", remote)["sample"]["series"]
+                target.stdin.write("\n")
+                target.stdin.flush()
+                connects = int(target.stdout.readline())
+                echoes = icmp_echoes_received(ns)
+        finally:
+            target.kill()
+            target.wait()
+    values = {(r["name"], r["labels"].get("method")): r["value"] for r in series}
+    # The first round: three echoes, all lost, and one connect, answered. Then rounds of three connects.
+    assert values["drums_latency_probes_sent_total", "icmp"] == values["drums_latency_probes_lost_total", "icmp"] \
+        == echoes == 3, (values, echoes)
+    sent = values["drums_latency_probes_sent_total", "tcp"]
+    assert values["drums_latency_probes_lost_total", "tcp"] == 0 and sent >= 4 and (sent - 1) % 3 == 0, values
+    assert sent <= connects <= sent + 3, (sent, connects)  # a round may be under way as the job is read
+    assert ("drums_latency_rtt_mean_seconds", "tcp") in values and ("drums_latency_rtt_mean_seconds", "icmp") not in values
 
 
 def test_a_latency_job_to_a_drums_agent_measures_how_far_its_clock_is_from_ours(agent):

@@ -175,42 +175,44 @@ class LatencyProbe(Probe):
         while not w.stop.is_set():
             began = time.monotonic()
             try:
-                result = self._round(target, w, method)
+                results = self._round(target, w, method)
             except (OSError, icmplib.ICMPLibError) as e:
                 if str(e) != w.error:
                     log.warning("latency to %s: %s", target, e)
                 w.error = str(e)
-                result = Round(method if method != "auto" else "icmp", [], w.count)  # all lost
-            if method == "auto" and result.method == "tcp":
+                results = [Round(method if method != "auto" else "icmp", [], w.count)]  # all lost
+            if method == "auto" and results[-1].method == "tcp" and results[-1].rtts:
                 method = "tcp"
             clock = clock_offset(target, w.port)
             with self._lock:
                 if self._watches.get(target) is not w:
                     return  # unwatched while this round ran
-                self._last[target] = result
+                self._last[target] = results[-1]
                 if clock is None:
                     self._clocks.pop(target, None)
                 else:
                     self._clocks[target] = clock
-                totals = self._totals.setdefault((target, result.method), [0, 0])
-                totals[0] += result.sent
-                totals[1] += result.sent - len(result.rtts)
+                for result in results:  # every probe sent is counted, under the method that sent it
+                    totals = self._totals.setdefault((target, result.method), [0, 0])
+                    totals[0] += result.sent
+                    totals[1] += result.sent - len(result.rtts)
             w.stop.wait(max(0.0, w.interval - (time.monotonic() - began)))
 
-    def _round(self, target: str, w: Watch, method: str) -> Round:
+    def _round(self, target: str, w: Watch, method: str) -> list[Round]:
+        """The round's probes, by method: the last is what the round measured."""
         if method == "tcp":
-            return tcp_round(target, w.port, w.count)
+            return [tcp_round(target, w.port, w.count)]
         try:
             result = icmp_round(target, w.count)
         except icmplib.SocketPermissionError:
             if method == "icmp":
                 raise
-            return tcp_round(target, w.port, w.count)  # no ICMP socket for this process
+            return [tcp_round(target, w.port, w.count)]  # no ICMP socket for this process
         if method == "auto" and not result.rtts:
-            answered = tcp_round(target, w.port, 1)
-            if answered.rtts:  # the host is there: ICMP is filtered on the way
-                return tcp_round(target, w.port, w.count)
-        return result
+            # Unanswered: one TCP connect tells a host that is there (ICMP filtered on the way, and
+            # TCP from the next round on) from one that is not.
+            return [result, tcp_round(target, w.port, 1)]
+        return [result]
 
     def collect(self, snap: Snapshot) -> None:
         with self._lock:
