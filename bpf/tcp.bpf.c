@@ -182,6 +182,16 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
+// tcp:tcp_retransmit_synack (sk, req): a listener's SYN-ACK sent again, which the kernel counts in
+// its retransmitted segments (tcp_rtx_synack) though no connection has it yet: the host's alone.
+int on_retransmit_synack(struct bpf_raw_tracepoint_args *ctx)
+{
+    struct tcp_totals_t *tot = totals();
+    if (tot)
+        __sync_fetch_and_add(&tot->retransmits, 1);
+    return 0;
+}
+
 static __always_inline void count_reset(u64 sk, int sent)
 {
     struct tcp_totals_t *tot = totals();

@@ -39,7 +39,8 @@ CONN_RTT = Metric("drums_tcp_connection_smoothed_rtt_seconds", GAUGE,
                   ("local", "remote"), additive=False)
 # The per-connection counters, in the order of the map value's counts.
 CONN_GROUP = (CONN_RETRANSMITS, CONN_STATE_CHANGES, CONN_RESETS_SENT, CONN_RESETS_RECEIVED)
-RETRANSMITS = Metric("drums_tcp_retransmits_total", COUNTER, "TCP segments retransmitted on this host")
+RETRANSMITS = Metric("drums_tcp_retransmits_total", COUNTER,
+                     "TCP segments retransmitted on this host, a listener's SYN-ACKs among them (as nstat's TcpRetransSegs)")
 RESETS_SENT = Metric("drums_tcp_resets_sent_total", COUNTER, "TCP resets sent by this host")
 RESETS_RECEIVED = Metric("drums_tcp_resets_received_total", COUNTER,
                          "TCP resets received by connections of this host")
@@ -57,7 +58,7 @@ ESTABLISHED, TCP_CLOSE = 1, 7
 RTT_INTERVAL = 5.0
 _TOTALS_FMT = "<16Q"
 _U64 = struct.Struct("<Q")
-EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_send_reset", "tcp_receive_reset")
+EVENTS = ("inet_sock_set_state", "tcp_retransmit_skb", "tcp_retransmit_synack", "tcp_send_reset", "tcp_receive_reset")
 # What names a connection in its head's words: all but its state and the padding at the end.
 _NAME_MASK = np.full(_HEAD_WORDS, ~np.uint64(0), np.uint64)
 _NAME_MASK[_STATE_WORD] = ~np.uint64(0xFFFF << _STATE_SHIFT)
@@ -139,7 +140,8 @@ class TcpProbe(BpfProbe):
     paths = (
         AttachPath("raw_tracepoint",
                    tuple(("raw_tracepoint", e, f) for e, f in zip(
-                       EVENTS, ("on_state", "on_retransmit", "on_send_reset", "on_receive_reset"))),
+                       EVENTS, ("on_state", "on_retransmit", "on_retransmit_synack", "on_send_reset",
+                                "on_receive_reset"))),
                    needs_tracepoints(*EVENTS),
                    "Linux >= 5.7 (raw tracepoint links; tcp_send_reset and tcp_receive_reset since 5.5)"),
     )
