@@ -9,8 +9,8 @@ VENV=${VENV:-.venv}
 HEADERS_DIR=${DRUMS_HEADERS_DIR:-/var/cache/drums/kernel-headers}
 APT_PACKAGES=(python3-bpfcc python3-venv libbpf1 bpftool iproute2)
 # For the tests: Prometheus and VictoriaMetrics run the mixin, Graphviz draws the graph, Chromium
-# loads the agent's page, tmux runs `drums top` in a terminal.
-[ "${DRUMS_SETUP_TEST:-0}" = 1 ] && APT_PACKAGES+=(prometheus victoria-metrics iperf3 tcpdump graphviz chromium tmux)
+# loads the agent's page, tmux runs `drums top` in a terminal, gcc builds a clock a process preloads.
+[ "${DRUMS_SETUP_TEST:-0}" = 1 ] && APT_PACKAGES+=(prometheus victoria-metrics iperf3 tcpdump graphviz chromium tmux gcc libc6-dev)
 # For make test-kernels: qemu boots the matrix's kernels (virtme-ng, pinned in the test lock, drives
 # it and wants a static busybox for the guest's first steps), kmod indexes their modules.
 [ "${DRUMS_SETUP_KERNELS:-0}" = 1 ] && APT_PACKAGES+=(qemu-system-x86 busybox-static kmod)

@@ -213,6 +213,54 @@ def test_the_age_of_a_message_when_taken_is_what_the_subscriber_measures_from_it
     assert transport_p50 <= p50  # received before it was taken
 
 
+# Compiled into a shared library that a process preloads: its realtime clock 5 s ahead, as another
+# host's may be (no clock of this host can be set apart).
+AHEAD = r"""
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <time.h>
+int clock_gettime(clockid_t id, struct timespec *ts)
+{
+    static int (*real)(clockid_t, struct timespec *);
+    if (!real)
+        real = (int (*)(clockid_t, struct timespec *))dlsym(RTLD_NEXT, "clock_gettime");
+    int ret = real(id, ts);
+    if (ret == 0 && id == CLOCK_REALTIME)
+        ts->tv_sec += 5;
+    return ret;
+}
+"""
+
+
+def test_messages_stamped_in_the_receivers_future_are_skewed_not_timed(lab, ros_nodes, tmp_path):
+    """A publisher whose clock is 5 s ahead stamps its messages after the subscriber took them: each
+    is counted in drums_ros_delivery_skewed_total (as the receiver finds each stamp in its future),
+    and none in the delivery times, which would be negative."""
+    url, _ = lab
+    shim = tmp_path / "ahead.so"
+    (tmp_path / "ahead.c").write_text(AHEAD)
+    subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(shim), str(tmp_path / "ahead.c"), "-ldl"], check=True)
+    sender, receiver = "/stamper_ahead", "/receiver_behind"
+    listening = ros_nodes("receiver", receiver[1:])
+    metronome = ros_nodes("metronome", sender[1:], env={"LD_PRELOAD": str(shim), "DRUMS_TEST_BURST": "50",
+                                                        "DRUMS_TEST_PERIODS_MS": "10", "DRUMS_TEST_BURST_SUBSCRIBERS": "1"})
+    started(url, (receiver, listening), (sender, metronome))
+    metronome.go()
+    wait_until(lambda: metronome.count() == 50, "the beats published", timeout=15)
+    time.sleep(0.5)  # the last ones taken
+    transports = listening.times("transports")
+    assert len(transports) >= 40 and all(t < -4e9 for t in transports), transports[:3]  # the receiver's own view
+
+    def skewed():
+        rows = {dict(k)["publisher"]: v for k, v in samples(scrape(url), "drums_ros_delivery_skewed_total").items()
+                if dict(k)["topic"] == "/beat" and dict(k)["pid"] == str(listening.pid)}
+        assert list(rows.values()) == [len(transports)], rows
+    eventually(skewed, timeout=10)
+    edge = {"topic": "/beat", "publisher": sender, "subscriber": receiver}
+    for histogram in ("drums_edge_delivery_age_seconds", "drums_edge_delivery_transport_seconds"):
+        assert value(url, histogram + "_count", **edge) in (None, 0)
+
+
 def test_a_path_through_three_nodes_takes_the_sum_of_its_ages_and_reaction(lab, ros_nodes):
     """camera -> detector -> planner: the metronome's stamp travels in the message through the
     reactor (which sleeps 15 ms and publishes what it took), so the receiver at the end measures
