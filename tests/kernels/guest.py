@@ -53,9 +53,11 @@ def main(out: str, headers: str, time_scale: str, tests: list[str]) -> int:
     seen["paths"] = paths_offered()
     seen["doctor_s"] = round(time.monotonic() - started, 1)
     started = time.monotonic()
-    pytest = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "--durations=15", "-m", "kernel",
-                             "--junitxml", os.path.join(out, "junit.xml"), *tests],
-                            stdout=open(os.path.join(out, "pytest.log"), "w"), stderr=subprocess.STDOUT)
+    # A line a test, written as it ends: the host can follow a run that takes half an hour.
+    pytest = subprocess.run([sys.executable, "-m", "pytest", "-v", "-p", "no:cacheprovider", "-o", "addopts=",
+                             "--durations=15", "-m", "kernel", "--junitxml", os.path.join(out, "junit.xml"), *tests],
+                            stdout=open(os.path.join(out, "pytest.log"), "w"), stderr=subprocess.STDOUT,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
     seen["pytest_status"] = pytest.returncode
     seen["tests_s"] = round(time.monotonic() - started, 1)
     with open(os.path.join(out, "guest.json"), "w") as f:
