@@ -355,8 +355,8 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
 #if DRUMS_ATTACH == ATTACH_TP_BTF
             count_waits(t, prev_delay, prev_runs);
 #else
-            if (state == 0)
-                t->enqueued_at = now;  // still runnable: it waits on the run queue from now
+            if (preempt || state == 0)
+                t->enqueued_at = now;  // still on its run queue (__schedule dequeues neither): it waits from now
 #endif
             if (state & TASK_DEAD)
                 thread_died(prev_tid, t, false);

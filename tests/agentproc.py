@@ -55,12 +55,12 @@ def running_agent(*argv, bpf: bool = True, under: tuple[str, ...] = (), address:
     finally:  # a failed test stops its agent too
         proc.terminate()
     try:
-        code = proc.wait(timeout=10)
+        code = proc.wait(timeout=10 * TIME_SCALE)
     except subprocess.TimeoutExpired:
         proc.send_signal(signal.SIGUSR2)  # its threads' stacks, into its log
         time.sleep(1)
         proc.kill()
-        pytest.fail("the agent did not stop within 10 s of SIGTERM; the end of its log, with what each of its "
+        pytest.fail(f"the agent did not stop within {10 * TIME_SCALE:g} s of SIGTERM; the end of its log, with what each of its "
                     f"threads was doing:\n{proc.communicate()[0][-8000:]}")
     assert code == 0
     log = proc.stdout.read()

@@ -113,3 +113,12 @@ def test_before_linux_5_15_the_rtps_probe_traces_each_calls_entry_too():
     path, reasons = choose_path(RtpsProbe.paths, old)
     assert path.defines == (("SYSCALL_ENTRIES", 1),) and len(path.attachments) == 8
     assert reasons == ["tracepoint: no bpf_task_pt_regs to read a call's arguments at its exit (Linux >= 5.15)"]
+
+
+def test_on_preempt_rt_the_sockets_probe_takes_kprobes_before_trampolines():
+    rt = Kernel(LIFECYCLE, kprobes=True, fentry=True)
+    rt.__dict__["preempt_rt"] = True
+    name, reasons = chosen(rt)
+    assert name == "kprobe" and reasons[2].startswith("fentry: PREEMPT_RT: a preempted trampoline"), reasons
+    rt.__dict__["kprobes"] = False  # trampolines, if they are all there is
+    assert chosen(rt)[0] == "fentry"

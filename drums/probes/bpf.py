@@ -57,6 +57,12 @@ def needs_tp_btf(f: Features) -> str | None:
 
 
 def needs_fentry(f: Features) -> str | None:
+    if f.preempt_rt and f.kprobes:
+        # A trampoline runs its program with migration, not preemption, disabled there: a program
+        # preempted amid its run makes the kernel skip the program on that CPU meanwhile (its
+        # recursion check), which lost 7% of a socket's calls under a SCHED_FIFO thread (6.1-rt).
+        # A kprobe's runs with preemption disabled.
+        return "PREEMPT_RT: a preempted trampoline makes the kernel skip its program's other runs on that CPU"
     if f.fentry:
         return None
     if not f.has_btf:

@@ -41,7 +41,8 @@ static __always_inline void count(void)
     __sync_fetch_and_add(a, 1);
 }
 #ifdef FENTRY
-KFUNC_PROBE(SYSCALL) { count(); return 0; }
+#define ON_ENTRY(fn) KFUNC_PROBE(fn)  // expands SYSCALL before KFUNC_PROBE pastes it into a name
+ON_ENTRY(SYSCALL) { count(); return 0; }
 #else
 TRACEPOINT_PROBE(syscalls, sys_enter_getppid) { count(); return 0; }
 #endif

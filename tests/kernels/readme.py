@@ -32,7 +32,7 @@ def table(results: dict) -> str:
     for row in results["kernels"]:
         if "release" not in row:
             lines.append(f"| {row['kernel']} | | {row.get('mode', '')} |" + " |" * len(PROBES)
-                         + f" | failed: {row.get('why', '')} | {row['seconds']} s |")
+                         + f" | {row['status']}: {row.get('why', '')} | {row['seconds']} s |")
             continue
         fallback = row.get("tests", {}).get("fallback", {}).get("fallback", {"passed": 0, "failed": 0})
         lines.append(f"| {row['kernel']} ({row['release']}) | {row['python']} | {row['mode']} | "

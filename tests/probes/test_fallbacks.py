@@ -248,7 +248,7 @@ def _command(child, line) -> str:
 
 
 @pytest.mark.kernel
-def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, collect):
+def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, collect, features):
     probe = ProcSchedProbe(proctable)
     probe.start()
     assert (probe.status.attached, probe.status.attach_type) == (True, "proc")
@@ -281,14 +281,15 @@ def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, coll
         for t, (vol, invol) in truth.items():
             labels = (pid, str(t), comm(child.pid, t))
             assert (threads[labels + ("voluntary",)], threads[labels + ("involuntary",)]) == (vol, invol)
-            # Off the CPU, every switch out was followed by one wait on a run queue that ended in
-            # running, and the first run followed one too: pcount counts exactly those waits.
-            assert runs[labels] == vol + invol
-            # Their time, as the kernel summed it (a wait can take 0 ns on an idle host: the run
-            # queue's clock need not move between a thread's wakeup and its run).
+            # The waits and their time, as the kernel counted and summed them (a wait can take 0 ns
+            # on an idle host: the run queue's clock need not move between a wakeup and the run).
             with open(f"/proc/{pid}/task/{t}/schedstat") as f:
-                waited = int(f.read().split()[1]) / 1e9
-            assert abs(snap.values(THREAD_RUNQ)[labels] - waited) <= 1e-9, (labels, waited)
+                _, waited, pcount = (int(x) for x in f.read().split())
+            assert runs[labels] == pcount and abs(snap.values(THREAD_RUNQ)[labels] - waited / 1e9) <= 1e-9
+            # Off the CPU, every switch out was followed by one wait on a run queue that ended in
+            # running, and the first run followed one too: pcount counts exactly those waits. Not on
+            # PREEMPT_RT, where 4 of 2,640 switches of a thread were seen with no wait counted.
+            assert runs[labels] == vol + invol or features.preempt_rt and 0 <= vol + invol - runs[labels] <= 0.01 * (vol + invol)
         process = snap.values(PROCESS_SWITCHES)
         assert process[pid, name, "voluntary"] == sum(v for v, _ in truth.values())
         assert process[pid, name, "involuntary"] == sum(i for _, i in truth.values())
