@@ -5,7 +5,8 @@ from __future__ import annotations
 import importlib.util
 import os
 
-from drums.kernel.features import TRACEFS, Features, is_mount_of_type
+from drums.kernel import TRACEFS
+from drums.kernel.features import Features, is_mount_of_type
 from drums.kernel.btf import VMLINUX_BTF
 from drums.probes.bpf import BTF_FIX, NO_KERNEL_BTF, BpfProbe, choose_path, common_requirements, needs_tp_btf
 from drums.probes.registry import build

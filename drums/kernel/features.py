@@ -12,9 +12,9 @@ from functools import cached_property
 from itertools import takewhile
 
 from drums.errors import KernelError
+from drums.kernel import TRACEFS
 from drums.kernel.btf import VMLINUX_BTF, Btf, names
 
-TRACEFS = "/sys/kernel/tracing"
 HEADERS_CACHE = "/var/cache/drums/kernel-headers"  # made by scripts/setup.sh for custom kernels
 
 

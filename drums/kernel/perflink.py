@@ -14,8 +14,7 @@ import fcntl
 import os
 
 from drums.errors import ProbeError
-from drums.kernel import bpffs
-from drums.kernel.features import TRACEFS
+from drums.kernel import TRACEFS, bpffs
 
 _PERF_TYPE_TRACEPOINT = 2
 _BPF_PERF_EVENT = 41  # enum bpf_attach_type

@@ -77,26 +77,3 @@ def held_to(probe: Probe, path: str) -> Probe:
                          f"({', '.join(offered) if offered else 'it has no attach paths'})")
     probe.paths = tuple(p for p in probe.paths if p.name == path)
     return probe
-
-
-def all_metrics():
-    """Every metric any probe or the agent declares, for the README table."""
-    from drums.agent import SELF_METRICS
-    from drums.detect import run as detect
-    from drums.exporters import http
-    from drums.graph import join
-    from drums.probes.host import HostProbe
-    from drums.probes.latency import LatencyProbe
-    from drums.probes.loads import LINKERS, LoadsProbe
-    from drums.probes.process import ProcessProbe
-    from drums.probes.rcl import RclProbe
-    from drums.probes.rtps import RtpsProbe
-    from drums.probes.sched import SchedProbe
-    from drums.probes.sockets import SocketsProbe
-    from drums.probes.tcp import TcpProbe
-
-    for cls in (SocketsProbe, SchedProbe, TcpProbe, HostProbe, ProcessProbe, RtpsProbe, RclProbe, LatencyProbe):
-        yield cls.name, cls.metrics
-    yield "graph", join.METRICS
-    yield "agent", SELF_METRICS + http.METRICS
-    yield "detect", detect.METRICS

@@ -13,7 +13,7 @@ import yaml
 
 from deploy.mixin import build, config
 from drums.metrics import HISTOGRAM
-from drums.probes.registry import all_metrics
+from drums.docs import all_metrics
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 RUNBOOKS = os.path.join(ROOT, "docs", "runbooks.md")
