@@ -167,7 +167,7 @@ class Agent:
 
     def stop(self, unload: bool) -> None:
         for probe in self.probes + self._replaced:
-            if unload and hasattr(probe, "unload"):
+            if unload:
                 probe.unload()
             else:
                 probe.stop()
@@ -227,10 +227,7 @@ class Agent:
     def tcp_changes(self) -> int | None:
         """TCP state changes on the host as the tcp probe counts them; None without it (the auto
         graph dumps the connections again only when this moved)."""
-        for probe in self.probes:
-            if probe.status.attached and hasattr(probe, "transitions"):
-                return probe.transitions()
-        return None
+        return next((n for n in (p.transitions() for p in self.probes if p.status.attached) if n is not None), None)
 
     def _want_rtt(self) -> None:
         """RTT is read for the connections that have series of their own, and the graph's edges."""
@@ -238,8 +235,7 @@ class Agent:
         if self.graph is not None:
             pairs |= {(c.local, c.remote) for c in self.graph.connections() if c.local and c.remote}
         for probe in self.probes:
-            if hasattr(probe, "want_rtt"):
-                probe.want_rtt(pairs)
+            probe.want_rtt(pairs)
 
     def _want_deadlines(self) -> None:
         """The Deadline QoS of the graph's publishers and subscriptions, for the probe that counts
@@ -251,16 +247,14 @@ class Agent:
                 if 0 < ns < INFINITE_NS:
                     deadlines[e.id[:GID_HEX]] = ns
         for probe in self.probes:
-            if hasattr(probe, "want_deadlines"):
-                probe.want_deadlines(deadlines)
+            probe.want_deadlines(deadlines)
 
     def _read(self, names: set[str]) -> Snapshot:
         """The rows of the probes called `names`."""
         self.proctable.refresh(self._renamed(), complete=True)
         pids = self._process_pids()
         for probe in self.probes:
-            if hasattr(probe, "set_pids"):
-                probe.set_pids(pids)
+            probe.set_pids(pids)
         raw = Snapshot()
         for probe in self.probes:
             if not probe.status.attached or probe.name not in names:
@@ -286,11 +280,14 @@ class Agent:
         sched probe saw them; None (list /proc and read every name) without it, or when it lost
         some."""
         for probe in self.probes:
-            if probe.status.attached and hasattr(probe, "renamed"):
+            if probe.status.attached:
                 try:
-                    return probe.renamed()
+                    renamed = probe.renamed()
                 except Exception as e:  # noqa: BLE001 - as a failed collect: the names are read anew
                     log.warning("probe %s: renamed processes unread: %s", probe.name, e)
+                    return None
+                if renamed is not None:
+                    return renamed
         return None
 
     def _say_losses(self, probe: Probe) -> None:

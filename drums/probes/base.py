@@ -39,3 +39,28 @@ class Probe:
 
     def stop(self) -> None:
         pass
+
+    def unload(self) -> None:
+        """Stop and leave nothing loaded in the kernel (a BPF probe removes its pins)."""
+        self.stop()
+
+    # What the agent tells a probe, or asks of it, at each collect; a probe that has no use for it
+    # keeps these.
+
+    def set_pids(self, pids) -> None:
+        """The processes of the chosen ones that the probe reads (those it reads one by one)."""
+
+    def want_rtt(self, connections: set[tuple[str, str]]) -> None:
+        """The (local, remote) connections whose round-trip time is wanted."""
+
+    def want_deadlines(self, deadlines: dict[str, int]) -> None:
+        """The Deadline QoS, ns, of the graph's endpoints by GID."""
+
+    def renamed(self) -> set[int] | None:
+        """The processes that came or may have been renamed since the last collect; None where the
+        probe cannot tell."""
+        return None
+
+    def transitions(self) -> int | None:
+        """The host's TCP state changes so far; None where the probe does not count them."""
+        return None
