@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from drums import units
+from drums import exposition, units
 
 # Families that say what the agent (or this detector, scraped by the same Prometheus) is and does
 # rather than what the robot does, families whose value is an identity (a start time) or a
@@ -36,18 +36,7 @@ CHURN = re.compile(r"context_switches|runqueue_waits|runqueue_latency_seconds_co
 # histogram's sum and count: its rate times its mean), which swing with that load too.
 DETAIL = re.compile(r"^drums_(thread|socket)_|context_switches|runqueue|_publish_period_|_reaction_|_delivery_")
 
-_LABEL = re.compile(r'([a-zA-Z_][a-zA-Z0-9_]*)="((?:[^"\\]|\\.)*)"')
-_ESCAPE = re.compile(r"\\(.)")
-
 KIB, MIB = 1024.0, 1024.0 ** 2
-
-
-def labels_of(text: str) -> dict[str, str]:
-    """The labels of a series written as `name{a="1",b="2"}`."""
-    brace = text.find("{")
-    if brace < 0:
-        return {}
-    return {k: _ESCAPE.sub(lambda m: "\n" if m[1] == "n" else m[1], v) for k, v in _LABEL.findall(text, brace)}
 
 
 def floors(name: str, counter: bool) -> tuple[float, float]:
@@ -111,7 +100,7 @@ class Series:
     def labels(self) -> dict[str, str]:
         """Parsed when asked (for the few series flagged, and edges): ten thousand dicts kept would
         be most of the detector's memory."""
-        return labels_of(self.text)
+        return exposition.labels(self.text)
 
     @property
     def what(self) -> str:

@@ -10,7 +10,8 @@ import urllib.parse
 from dataclasses import dataclass, field
 
 from drums.client import Agent, AgentError
-from drums.detect.series import labels_of, watched
+from drums import exposition
+from drums.detect.series import watched
 from drums.errors import DrumsError
 
 NODE_INFO = "drums_node_info"
@@ -36,40 +37,36 @@ def parse_exposition(source: str, at: float, text: str, detail: bool = False) ->
     """A Reading of a Prometheus text page (the agent's own: no timestamps, one value per line);
     `detail`: with the per-thread and per-socket series."""
     reading = Reading(source, at)
+    for family, kind in exposition.types(text).items():
+        if kind == "counter":
+            reading.counters.add(family)
+        elif kind == "histogram":
+            reading.counters.update((family + "_count", family + "_sum"))
+    try:
+        _read_samples(reading, text, detail)
+    except ValueError as e:
+        raise SourceError(f"{source}: /metrics is not Prometheus text: {e}") from None
+    return reading
+
+
+def _read_samples(reading: Reading, text: str, detail: bool) -> None:
     verdict: dict[str, bool] = {}  # family -> watched
-    for line in text.splitlines():
-        if not line:
-            continue
-        if line[0] == "#":
-            parts = line.split(" ", 3)
-            if len(parts) == 4 and parts[1] == "TYPE":
-                if parts[3] == "counter":
-                    reading.counters.add(parts[2])
-                elif parts[3] == "histogram":
-                    reading.counters.update((parts[2] + "_count", parts[2] + "_sum"))
-            continue
-        space = line.rfind(" ")
-        brace = line.find("{", 0, space)
-        name = line[:brace] if brace >= 0 else line[:space]
+    for name, series, value in exposition.samples(text):
         if name == NODE_INFO:
-            labels = labels_of(line[:space])
+            labels = exposition.labels(series)
             if labels.get("node") and labels.get("pid"):
                 reading.nodes[labels["node"]] = labels["pid"]
             continue
         if name == STARTED:
-            pid = labels_of(line[:space]).get("pid")
+            pid = exposition.labels(series).get("pid")
             if pid:
-                reading.started[pid] = float(line[space + 1:])
+                reading.started[pid] = float(value)
             continue
         ok = verdict.get(name)
         if ok is None:
             ok = verdict[name] = watched(name, detail)
         if ok:
-            try:
-                reading.series[line[:space]] = float(line[space + 1:])
-            except ValueError:
-                raise SourceError(f"{source}: a /metrics line without a number: {line[:80]!r}") from None
-    return reading
+            reading.series[series] = float(value)
 
 
 class AgentSource:

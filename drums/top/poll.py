@@ -9,7 +9,7 @@ import json
 from dataclasses import dataclass, field
 
 from drums.client import Agent, AgentError
-from drums.top import exposition
+from drums import exposition
 
 # From /metrics: processes (those without a node too), sockets, and the run-queue and publish
 # period histograms (the graph carries a histogram's count and sum only, and a percentile needs
@@ -57,7 +57,7 @@ def graph_poll(graph: dict, graph_at: float, metrics_text: str, metrics_at: floa
     for e in graph["edges"]:
         if e.get("kind") == "connection":
             poll.edges[e["topic"], e["publisher"], e["subscriber"]] = e
-    poll.metrics = exposition.parse(metrics_text, METRICS)
+    poll.metrics = exposition.rows(metrics_text, METRICS)
     return poll
 
 

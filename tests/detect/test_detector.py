@@ -2,11 +2,14 @@
 on which entity, and what it leaves alone (noise, a node's restart, ignored kinds)."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
+import pytest
 
 from drums.detect import checks
 from drums.detect.detector import Detector
-from drums.detect.sources import Reading, parse_exposition
+from drums.detect.sources import Reading, SourceError, parse_exposition
 
 EDGE = 'drums_edge_received_bytes_total{topic="/image",publisher="/camera",subscriber="/processor"}'
 MEMORY = 'drums_node_resident_memory_bytes{node="%s"}'
@@ -157,6 +160,10 @@ def test_the_agents_page_is_read_with_its_types_nodes_and_without_its_own_or_det
     assert set(detail) - set(r.series) == {'drums_thread_cpu_seconds_total{pid="7",tid="8",thread="cam"}',
                                            'drums_process_runqueue_latency_seconds_sum{pid="7",process="cam"}',
                                            'drums_process_runqueue_latency_seconds_count{pid="7",process="cam"}'}
+    for bad, said in (("drums_host_load 0.5\nnonsense", "a line without a value: 'nonsense'"),
+                      ('drums_host_load{period="1m"} many', "could not convert string to float: 'many'")):
+        with pytest.raises(SourceError, match=f"^robot: /metrics is not Prometheus text: {re.escape(said)}$"):
+            parse_exposition("robot", T0, bad)
 
 
 def test_what_one_fault_moves_downstream_is_one_incident_named_by_the_link():

@@ -7,7 +7,7 @@ import math
 from drums.client import Sample
 from drums.exporters import prometheus
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Snapshot
-from drums.top.exposition import parse
+from drums.exposition import rows as parse
 from drums.top.losses import Losses
 from drums.top.model import CONNECTING, DOWN, STALE, UP, Model
 from drums.top.poll import Poll
