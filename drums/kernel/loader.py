@@ -103,7 +103,13 @@ def load_and_pin(req: LoadRequest) -> None:
     os.rename(tmp, req.pin_dir)
 
 
-def load_in_child(req: LoadRequest, timeout: float = 60) -> None:
+# Seconds a probe may take to compile and load before it is given up: half a second on a PC, tens
+# of seconds on a small board or under emulation (the sockets probe took over 60 s there beside
+# another VM).
+COMPILE_TIMEOUT = 600
+
+
+def load_in_child(req: LoadRequest, timeout: float = COMPILE_TIMEOUT) -> None:
     """Run load_and_pin in a child process so that LLVM never enters the agent."""
     try:
         proc = subprocess.run([sys.executable, "-m", "drums.kernel.loader"], input=json.dumps(asdict(req)),

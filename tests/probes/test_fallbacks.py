@@ -288,8 +288,8 @@ def test_proc_sched_matches_thread_and_process_time_and_switches(proctable, coll
             assert runs[labels] == pcount and abs(snap.values(THREAD_RUNQ)[labels] - waited / 1e9) <= 1e-9
             # Off the CPU, every switch out was followed by one wait on a run queue that ended in
             # running, and the first run followed one too: pcount counts exactly those waits. Not on
-            # PREEMPT_RT, where 4 of 2,640 switches of a thread were seen with no wait counted.
-            assert runs[labels] == vol + invol or features.preempt_rt and 0 <= vol + invol - runs[labels] <= 0.01 * (vol + invol)
+            # PREEMPT_RT, where a few switches of a thread go with no wait counted (seen: 4 of 2,640, 1 of 62).
+            assert runs[labels] == vol + invol or features.preempt_rt and 0 <= vol + invol - runs[labels] <= 4 + 0.01 * (vol + invol)
         process = snap.values(PROCESS_SWITCHES)
         assert process[pid, name, "voluntary"] == sum(v for v, _ in truth.values())
         assert process[pid, name, "involuntary"] == sum(i for _, i in truth.values())
