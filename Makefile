@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 9969
 
-.PHONY: setup setup-test run test test-kernels bench soak readme lock mixin demo demo-stop clean
+.PHONY: setup setup-test run test test-kernels test-chroot bench soak readme lock mixin demo demo-stop clean
 
 setup:
 	@scripts/setup.sh
@@ -28,11 +28,18 @@ test: setup-test
 # The portable tests (marked kernel) on each kernel of tests/kernels/matrix.py, booted under qemu
 # (KVM where it works, else emulation: minutes a kernel), and on this host's own; their rows go to
 # tests/kernels/results.json and the README's platform table. KERNELS=6.1,5.10 picks some, CI=1
-# the ones .ci/run runs, MINUTES_LEFT=N starts none that would not end within N minutes.
+# the ones .ci/run runs, each probe on the path the agent takes only (CI's time), MINUTES_LEFT=N
+# starts none that would not end within N minutes.
 test-kernels: setup-test
 	@DRUMS_SETUP_KERNELS=1 scripts/setup.sh
 	$(PY) -m tests.kernels.run $(if $(CI),--ci) $(if $(KERNELS),--kernels $(KERNELS)) $(if $(MINUTES_LEFT),--minutes $(MINUTES_LEFT))
 	$(PY) -m tests.kernels.readme README.md
+
+# The whole of make test, from a fresh clone, in a Debian root file system of another release made
+# with debootstrap (its Python, bcc and packages; this machine's kernel): SUITE=trixie is Python 3.13.
+SUITE ?= trixie
+test-chroot:
+	@SUITE=$(SUITE) scripts/test-in-chroot.sh
 
 # The monitoring mixin: rules, alerts and dashboards rendered from deploy/mixin/config.yaml into
 # deploy/mixin/out (checked in; a test fails when they differ from what the code renders).
