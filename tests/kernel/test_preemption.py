@@ -95,8 +95,10 @@ def test_a_plain_add_loses_updates_where_programs_are_preempted_and_an_atomic_on
             c.kill()
             c.wait()
         b.cleanup()
-    assert atomic == calls, (atomic, calls)
+    # Every call ran the program; on fentry so may a rare other use of the function by these
+    # processes (seen: 1 in 967,442 calls on 5.10). Both adds saw the same runs.
+    assert calls <= atomic <= calls + 8 if features.fentry else atomic == calls, (atomic, calls)
     if features.fentry and features.preempt_rt:
-        assert plain < calls, (plain, calls)  # seen: ...
+        assert plain < atomic, (plain, atomic)  # seen: ...
     else:  # no preemption amid a program: a tracepoint's, or anything on a kernel that is not fully preemptible
-        assert plain == calls, (plain, calls)
+        assert plain == atomic, (plain, atomic)
