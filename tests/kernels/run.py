@@ -215,8 +215,7 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
     row: dict = {"kernel": name, "commit": commit, "date": time.strftime("%Y-%m-%d"),
                  "robots": "this machine's own kernel" if k is None else k.robots,
                  "paths_tested": "the agent's" if first_paths else "every one offered"}
-    if first_paths:
-        os.environ["DRUMS_TEST_PATHS"] = "first"  # the guest's environment is this process's
+    paths = "DRUMS_TEST_PATHS=first " if first_paths else ""  # set in the guest (its environment is its own)
     started = time.monotonic()
     try:
         with tempfile.TemporaryDirectory(prefix="drums-kernel-") as out:
@@ -224,12 +223,13 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
                 from drums.kernel.features import Features
                 row["mode"] = "none (the host)"
                 status = subprocess.run([sys.executable, "-m", "tests.kernels.guest", out,
-                                         Features().kernel_headers or "", "1", *TESTS], cwd=CHECKOUT).returncode
+                                         Features().kernel_headers or "", "1", *TESTS], cwd=CHECKOUT,
+                                        env=dict(os.environ, DRUMS_TEST_PATHS="first" if first_paths else "")).returncode
                 console = ""
             else:
                 vmlinuz, headers = unpack(k)
                 row["mode"] = "KVM" if kvm else "software emulation"
-                command = (f"{VENV_BIN}/python -m tests.kernels.guest {out} {headers} {1 if kvm else TIME_SCALE} "
+                command = (f"{paths}{VENV_BIN}/python -m tests.kernels.guest {out} {headers} {1 if kvm else TIME_SCALE} "
                            f"{' '.join(TESTS)} >{out}/log 2>&1")
                 status, console = _vng(vmlinuz, bool(kvm), command, out, timeout)
             seen_path = os.path.join(out, "guest.json")
