@@ -34,8 +34,11 @@ struct writer_counts_t {
     u64 samples;       // sequence numbers seen for the first time: repairs and resends are not samples
     u64 sample_bytes;  // the serialized size of each of those samples
     u64 wire_bytes;    // serialized payload in every datagram: each destination, each repair
-    s64 last_sn;
+    s64 last_sn;       // the highest sequence number seen
+    u64 seen;          // bit i: last_sn - i was seen. A repair of a lost sample comes after later
+                       // ones; it is a sample if it is one of the SEEN_WINDOW before the highest
 };
+#define SEEN_WINDOW 64
 
 struct segment_t {
     u64 base;
@@ -118,11 +121,20 @@ static __always_inline void count_sample(struct writer_key_t *key, s64 sn, u64 s
         return;
     }
     __sync_fetch_and_add(&c->wire_bytes, bytes);
-    if (size && sn > c->last_sn) {
+    if (!size)
+        return;
+    if (sn > c->last_sn) {
+        u64 ahead = sn - c->last_sn;
+        c->seen = ahead < SEEN_WINDOW ? c->seen << ahead | 1 : 1;
         c->last_sn = sn;
-        __sync_fetch_and_add(&c->samples, 1);
-        __sync_fetch_and_add(&c->sample_bytes, size);
+    } else {
+        u64 behind = c->last_sn - sn;
+        if (behind >= SEEN_WINDOW || c->seen & 1ULL << behind)
+            return;  // a resend, or a sequence number too old to tell
+        c->seen |= 1ULL << behind;
     }
+    __sync_fetch_and_add(&c->samples, 1);
+    __sync_fetch_and_add(&c->sample_bytes, size);
 }
 
 static __always_inline void parse(struct datagram_t *dg, u64 total, u32 direction)

@@ -4,7 +4,8 @@ topic and node.
 
 A writer is its GUID: 12 bytes of participant prefix and 4 of entity id, written here as 32 hex
 digits, as the ROS 2 adapter writes endpoint GIDs. A sample is a sequence number seen for the
-first time, and its bytes are its serialized size (CDR with the 4-byte encapsulation header, as
+first time (in whatever order: a repair of a lost sample comes after later ones; within 64 of the
+highest seen), and its bytes are its serialized size (CDR with the 4-byte encapsulation header, as
 the DATA or DATA_FRAG header says); wire bytes count the payload in every datagram, so copies to
 several readers and repairs of lost fragments show as wire bytes above sample bytes.
 """
@@ -42,7 +43,7 @@ _BY_DIRECTION = ((SAMPLES_SENT, SENT_BYTES, SENT_WIRE_BYTES),
 
 # Map layouts, as in bpf/rtps.bpf.c.
 _KEY = struct.Struct("<II16s")
-_COUNTS = struct.Struct("<QQQq")
+_COUNTS = struct.Struct("<QQQqQ")
 _U32 = struct.Struct("<I")
 
 

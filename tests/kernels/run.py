@@ -37,7 +37,7 @@ VENV_BIN = os.path.join(CHECKOUT, ".venv", "bin")
 # per-topic counts of rclpy nodes.
 TESTS = ("tests/probes", "tests/kernel/test_preemption.py", "tests/graph/test_topics.py", "tests/test_agent.py")
 PROBE_OF_FILE = {"test_sockets": "sockets", "test_sched": "sched", "test_tcp": "tcp", "test_topics": "rcl",
-                 "test_fallbacks": "fallback", "test_attach_paths": "sockets"}
+                 "test_fallbacks": "fallback", "test_attach_paths": "sockets", "test_rtps": "rtps"}
 BOOT_TIMEOUT = 45 * 60  # seconds a kernel may take to boot and run the tests under emulation
 # How much longer than on this machine a wait may take under emulation (DRUMS_TEST_TIME_SCALE): ten
 # times as a rule, twenty for an agent compiling its probes on 5.10, whose 9p root is slower still.
