@@ -1,4 +1,6 @@
-// Shared by every Drums BPF program: attach path numbers and the ABI constants the programs use.
+// Shared by every Drums BPF program: attach path numbers, the ABI constants the programs use, and
+// the maps of dropped events and change marks. The loader writes this file into each program's
+// text (drums/kernel/loader.py): bcc rewrites map calls only in the text it compiles.
 // Constants are spelled out rather than taken from headers that may belong to another kernel;
 // every one of them is part of the stable user-space ABI.
 #ifndef DRUMS_H
@@ -138,6 +140,49 @@ static __always_inline u64 process_start_as(const int typed, u64 task)
     return start;
 }
 #define process_start(task) process_start_as(TYPED, task)
+#endif
+
+// Events lost to a full map, by reason (the program's DROPS of them, numbered by its DROP_*
+// constants): every program that has them declares DROPS before including this file.
+#ifdef DROPS
+BPF_ARRAY(dropped, u64, DROPS);
+
+static __always_inline void count_drop(int which)
+{
+    u64 *d = dropped.lookup(&which);
+    if (d)
+        __sync_fetch_and_add(d, 1);
+}
+#endif
+
+// Which entries of a probe's main map changed since the agent last read them, so that a scrape
+// reads those and not the thousands that sat idle (drums/probes/entries.py, Marked): for programs
+// that declare their map's key type as MARKED_KEY. The agent moves the generation on at each read
+// and takes the keys marked in the one before; an entry is marked once per generation (its first
+// change, or when it is gone: `marked` 0), in the set of the generation's parity, while the agent
+// empties the other. generation[0]: the generation; [1]: marks lost to a full set (the agent then
+// reads the map whole).
+#ifdef MARKED_KEY
+BPF_ARRAY(generation, u64, 2);
+BPF_HASH(changed_even, MARKED_KEY, u8, 16384);
+BPF_HASH(changed_odd, MARKED_KEY, u8, 16384);
+
+static __always_inline void mark_changed(MARKED_KEY key, u64 *marked)
+{
+    int zero = 0, lost = 1;
+    u64 *g = generation.lookup(&zero);
+    if (!g || (marked && *marked == *g + 1))
+        return;
+    u64 gen = *g;
+    if (marked)
+        *marked = gen + 1;  // + 1: an entry made with marked 0 is not yet marked in generation 0
+    u8 yes = 1;
+    if (gen & 1 ? changed_odd.update(&key, &yes) : changed_even.update(&key, &yes)) {
+        u64 *n = generation.lookup(&lost);
+        if (n)
+            __sync_fetch_and_add(n, 1);
+    }
+}
 #endif
 
 // The tracepoint records of syscalls:sys_enter_* and sys_exit_* (stable since they exist).

@@ -7,22 +7,18 @@
 //
 // The call is rare (a process start, a library load): nothing here runs on a hot path.
 #include <uapi/linux/ptrace.h>
+#define DROPS 1
 #include "drums.h"
 
 // The processes to look at, a u32 each (16 bytes a record with its header): 2,048 records, far
 // more than processes start while the agent reads one memory map. When it is full the agent
 // reads every process's map again.
 BPF_RINGBUF_OUTPUT(loads, 8);
-BPF_ARRAY(dropped, u64, 1);
 
 int on_debug_state(struct pt_regs *ctx)
 {
     u32 tgid = bpf_get_current_pid_tgid() >> 32;
-    if (loads.ringbuf_output(&tgid, sizeof(tgid), 0)) {
-        int zero = 0;
-        u64 *d = dropped.lookup(&zero);
-        if (d)
-            __sync_fetch_and_add(d, 1);
-    }
+    if (loads.ringbuf_output(&tgid, sizeof(tgid), 0))
+        count_drop(0);
     return 0;
 }

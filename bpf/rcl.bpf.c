@@ -11,6 +11,7 @@
 // names each handle (an rcl_publisher_t or rcl_subscription_t address) by reading its topic name
 // from the process's memory.
 #include <uapi/linux/ptrace.h>
+#define DROPS 5
 #include "drums.h"
 
 #define PUBLISHED 0
@@ -136,14 +137,6 @@ static __always_inline struct took_t *took_of_thread(int create)
 // read. A PID that shares a slot only costs its publishes that lookup.
 #define TAKERS 4096
 BPF_ARRAY(takers, u8, TAKERS);
-BPF_ARRAY(dropped, u64, 5);
-
-static __always_inline void count_drop(int which)
-{
-    u64 *d = dropped.lookup(&which);
-    if (d)
-        __sync_fetch_and_add(d, 1);
-}
 
 static __always_inline void count(struct handle_key_t *key)
 {

@@ -13,6 +13,8 @@
 // a program; raw tracepoint programs time the waits themselves.
 //
 // Task offsets (TASK_*_OFF) come from BTF.
+#define DROPS 3
+#define MARKED_KEY u32
 #include "drums.h"
 
 // Run-queue latency histogram: slot i counts waits of [2^i, 2^(i+1)) microseconds (slot 0 also
@@ -86,50 +88,11 @@ BPF_PERCPU_ARRAY(oncpu, struct oncpu_t, 1);
 // while none came or went, it does not list /proc at all.
 BPF_HASH(renamed, u32, u64, 16384);
 
-// Which threads' entries changed (counted, renamed, made or freed) since the agent last read
-// them, so that a scrape looks those up and not the thousands that slept: the generations of
-// bpf/sockets.bpf.c's marks, keyed by thread ID. [0]: the generation; [1]: marks lost to a full set.
-BPF_ARRAY(generation, u64, 2);
-BPF_HASH(changed_even, u32, u8, 16384);
-BPF_HASH(changed_odd, u32, u8, 16384);
-
-// Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
-// main file, so each program declares this map and its helper itself.)
-BPF_ARRAY(dropped, u64, 3);
-
-static __always_inline void count_drop(int which)
-{
-    u64 *d = dropped.lookup(&which);
-    if (d)
-        __sync_fetch_and_add(d, 1);
-}
-
 static __always_inline void mark_renamed(u32 tgid)
 {
     u64 now = bpf_ktime_get_ns();
     if (renamed.update(&tgid, &now) != 0)
         count_drop(DROP_RENAMED);  // the agent then reads every name again
-}
-
-// Marked once per generation (an entry made with marked 0 is not yet marked in generation 0);
-// `t` 0: the entry is gone.
-static __always_inline void mark_changed(u32 tid, struct thread_sched_t *t)
-{
-    int zero = 0;
-    u64 *g = generation.lookup(&zero);
-    if (!g || (t && t->marked == *g + 1))
-        return;
-    u64 gen = *g;
-    if (t)
-        t->marked = gen + 1;
-    u8 yes = 1;
-    int err = gen & 1 ? changed_odd.update(&tid, &yes) : changed_even.update(&tid, &yes);
-    if (err) {
-        int lost = 1;
-        u64 *n = generation.lookup(&lost);
-        if (n)
-            __sync_fetch_and_add(n, 1);
-    }
 }
 
 #if THREAD_SLOTS > 1
@@ -175,7 +138,7 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, st
         u64 was = __sync_val_compare_and_swap((u64 *)t, 0, *(u64 *)&fresh);
         if (was == 0) {
             *t = fresh;
-            mark_changed(tid, t);
+            mark_changed(tid, &t->marked);
             return t;
         }
         if (was == *(u64 *)&fresh)
@@ -190,7 +153,7 @@ static __always_inline struct thread_sched_t *thread_entry(u32 tid, u64 task, st
     }
     t = thread_sched.lookup(&tid);
     if (t)
-        mark_changed(tid, t);
+        mark_changed(tid, &t->marked);
     return t;
 }
 
@@ -361,7 +324,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
             if (state & TASK_DEAD)
                 thread_died(prev_tid, t, false);
             else
-                mark_changed(prev_tid, t);  // after its counts: a look at the mark sees them
+                mark_changed(prev_tid, &t->marked);  // after its counts: a look at the mark sees them
         } else if (state & TASK_DEAD) {
             // Folded at exit: the slice it ran since then joins its process's totals.
             u32 tgid = 0;
@@ -380,7 +343,7 @@ int on_switch(struct bpf_raw_tracepoint_args *ctx)
         if (t && t->enqueued_at) {
             count_wait(t, now - t->enqueued_at);
             t->enqueued_at = 0;
-            mark_changed(next_tid, t);
+            mark_changed(next_tid, &t->marked);
         }
     }
 #endif
@@ -461,7 +424,7 @@ int on_rename(struct bpf_raw_tracepoint_args *ctx)
     struct thread_sched_t *t = thread_of(tid);
     if (t) {
         bpf_probe_read_kernel_str(t->comm, sizeof(t->comm), (void *)ctx->args[1]);
-        mark_changed(tid, t);
+        mark_changed(tid, &t->marked);
     }
     return 0;
 }

@@ -12,6 +12,8 @@
 // never from the installed headers, which may belong to another kernel. DRUMS_ATTACH picks the
 // attach path chosen by drums/probes/sockets.py: 6 (tp_btf) or 1 (raw) = the sock_send/recv_length
 // tracepoints (kernel >= 6.6), 2 = fexit, 3 = kprobes on the families' sendmsg and recvmsg.
+#define DROPS 2
+#define MARKED_KEY u64
 #include "drums.h"
 
 #define CLASS_TCP 0
@@ -70,45 +72,6 @@ BPF_HASH(socket_traffic, u64, struct socket_traffic_t, 24576);
 BPF_F_TABLE("array", u32, struct socket_traffic_t, socket_slots, SOCKET_SLOTS, BPF_F_MMAPABLE);
 // Counts of closed sockets (and of calls on sockets without an entry), per owner, until it is reaped.
 BPF_HASH(closed_traffic, u32, struct process_traffic_t, 16384);
-
-// Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
-// main file, so each program declares this map and its helper itself.)
-BPF_ARRAY(dropped, u64, 2);
-
-static __always_inline void count_drop(int which)
-{
-    u64 *d = dropped.lookup(&which);
-    if (d)
-        __sync_fetch_and_add(d, 1);
-}
-
-// Which sockets changed since the agent last read them, so that a scrape reads those and not the
-// ten thousand that sat idle. The agent moves the generation on at each read and takes the keys
-// marked in the one before; a socket is marked once per generation (its first count, or its
-// entry's deletion), in the set of the generation's parity, while the agent empties the other.
-// [0]: the generation; [1]: marks lost to a full set (the agent then reads the map whole).
-BPF_ARRAY(generation, u64, 2);
-BPF_HASH(changed_even, u64, u8, 16384);
-BPF_HASH(changed_odd, u64, u8, 16384);
-
-static __always_inline void mark_changed(u64 id, struct socket_traffic_t *s)
-{
-    int zero = 0;
-    u64 *g = generation.lookup(&zero);
-    if (!g || (s && s->marked == *g + 1))
-        return;
-    u64 gen = *g;
-    if (s)
-        s->marked = gen + 1;  // + 1: an entry made with marked 0 is not yet marked in generation 0
-    u8 yes = 1;
-    int err = gen & 1 ? changed_odd.update(&id, &yes) : changed_even.update(&id, &yes);
-    if (err) {
-        int lost = 1;
-        u64 *n = generation.lookup(&lost);
-        if (n)
-            __sync_fetch_and_add(n, 1);
-    }
-}
 
 static __always_inline u16 classify(u16 family, u16 protocol)
 {
@@ -376,7 +339,7 @@ static __always_inline void count_as(const int typed, u64 sk, u64 id, int ret, i
     }
     // Marked after its counts: the agent may take the mark and look the entry up at any moment, and
     // a count made after that look would wait for the socket's next call to be marked again.
-    mark_changed(id, s);
+    mark_changed(id, &s->marked);
 }
 
 static __always_inline void count(u64 sk, int ret, int flags, int is_send)

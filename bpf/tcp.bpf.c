@@ -3,6 +3,8 @@
 // agent from tcp_info. All hooks are on slow paths, never on the data path.
 //
 // Offsets of struct sock fields come from BTF.
+#define DROPS 2
+#define MARKED_KEY u64
 #include "drums.h"
 
 #define TCP_STATES 13  // TCP_ESTABLISHED (1) .. TCP_NEW_SYN_RECV (12)
@@ -37,47 +39,9 @@ BPF_TABLE("lru_hash", u64, struct tcp_conn_t, tcp_conns, 32768);
 // preemption, disabled, and another program on its CPU can come between a load and its store.
 BPF_PERCPU_ARRAY(tcp_totals, struct tcp_totals_t, 1);
 
-// Events lost to a full map, by reason; exported per probe. (bcc rewrites map calls only in the
-// main file, so each program declares this map and its helper itself.)
-BPF_ARRAY(dropped, u64, 2);
-
-static __always_inline void count_drop(int which)
-{
-    u64 *d = dropped.lookup(&which);
-    if (d)
-        __sync_fetch_and_add(d, 1);
-}
-
 static __always_inline void read_identity(struct tcp_conn_t *c, u64 sk)
 {
     read_endpoints(sk, &c->family, &c->netns, &c->lport, &c->rport, c->laddr, c->raddr);
-}
-
-// Which connections changed since the agent last read them, so that a scrape reads those and not
-// the ten thousand that sat idle: as in bpf/sockets.bpf.c (a connection is marked once per
-// generation, in the set of the generation's parity, while the agent empties the other).
-// [0]: the generation; [1]: marks lost to a full set (the agent then reads the map whole).
-BPF_ARRAY(generation, u64, 2);
-BPF_HASH(changed_even, u64, u8, 16384);
-BPF_HASH(changed_odd, u64, u8, 16384);
-
-static __always_inline void mark_changed(u64 sk, struct tcp_conn_t *c)
-{
-    int zero = 0;
-    u64 *g = generation.lookup(&zero);
-    if (!g || (c && c->marked == *g + 1))
-        return;
-    u64 gen = *g;
-    if (c)
-        c->marked = gen + 1;  // + 1: an entry made with marked 0 is not yet marked in generation 0
-    u8 yes = 1;
-    int err = gen & 1 ? changed_odd.update(&sk, &yes) : changed_even.update(&sk, &yes);
-    if (err) {
-        int lost = 1;
-        u64 *n = generation.lookup(&lost);
-        if (n)
-            __sync_fetch_and_add(n, 1);
-    }
 }
 
 static __always_inline struct tcp_conn_t *conn_entry(u64 sk)
@@ -145,7 +109,7 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
         read_identity(c, sk);
     c->state = newstate;
     __sync_fetch_and_add(&c->state_changes, 1);
-    mark_changed(sk, c);
+    mark_changed(sk, &c->marked);
     return 0;
 }
 
@@ -175,7 +139,7 @@ int on_retransmit(struct bpf_raw_tracepoint_args *ctx)
         c = conn_entry(sk);
     }
     if (c)
-        mark_changed(sk, c);
+        mark_changed(sk, &c->marked);
     struct tcp_totals_t *tot = totals();
     if (tot)
         __sync_fetch_and_add(&tot->retransmits, moved);
@@ -203,7 +167,7 @@ static __always_inline void count_reset(u64 sk, int sent)
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c) {
         __sync_fetch_and_add(sent ? &c->resets_sent : &c->resets_received, 1);
-        mark_changed(sk, c);
+        mark_changed(sk, &c->marked);
     }
 }
 

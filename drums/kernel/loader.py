@@ -39,6 +39,23 @@ class LoadRequest:
     headers: str | None = None
 
 
+def program_text(source: str) -> str:
+    """A program's text with bpf/drums.h written in where it is included: bcc rewrites map calls
+    (`dropped.lookup(...)`) only in the text it is given, and drums.h has the maps all programs share.
+    #line directives keep compile errors pointing at the files' own lines."""
+    def read(name: str) -> str:
+        try:
+            with open(os.path.join(BPF_DIR, name)) as f:
+                return f.read()
+        except OSError as e:
+            raise ProbeError(f"BPF source {name} not found in {BPF_DIR}: {e.strerror}") from None
+    lines = read(source).splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        if line.strip() == '#include "drums.h"':
+            lines[i] = f'#line 1 "drums.h"\n{read("drums.h")}#line {i + 2} "{source}"\n'
+    return "".join(lines)
+
+
 def _compile(req: LoadRequest):
     if req.headers:
         os.environ["BCC_KERNEL_SOURCE"] = req.headers
@@ -46,9 +63,8 @@ def _compile(req: LoadRequest):
         from bcc import BPF
     except ImportError:
         raise ProbeError("bcc is not installed (Debian/Ubuntu: apt-get install python3-bpfcc)") from None
-    path = os.path.join(BPF_DIR, req.source)
     try:
-        return BPF(src_file=path.encode(), cflags=req.cflags + [f"-I{BPF_DIR}"])
+        return BPF(text=program_text(req.source).encode(), cflags=req.cflags + [f"-I{BPF_DIR}"])
     except Exception as e:  # bcc raises bare Exception for compile and verifier errors
         raise ProbeError(f"{req.source}: {str(e).splitlines()[0] if str(e) else 'failed to load'}") from None
 

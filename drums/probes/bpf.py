@@ -171,13 +171,7 @@ class BpfProbe(Probe):
         raise NotImplementedError
 
     def _stamp(self, path: AttachPath) -> str:
-        h = hashlib.sha256()
-        for name in (self.source, "drums.h"):
-            try:
-                with open(os.path.join(loader.BPF_DIR, name), "rb") as f:
-                    h.update(f.read())
-            except OSError as e:
-                raise ProbeError(f"BPF source {name} not found in {loader.BPF_DIR}: {e.strerror}") from None
+        h = hashlib.sha256(loader.program_text(self.source).encode())
         h.update(f"{path.name}\0{path.defines}\0{self.features.kernel_release}\0{_boot_id()}\0"
                  f"{sorted(self.options.items())}".encode())
         return h.hexdigest()[:16]

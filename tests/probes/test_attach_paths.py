@@ -9,7 +9,7 @@ import re
 
 import pytest
 
-from drums.kernel.loader import BPF_DIR
+from drums.kernel.loader import BPF_DIR, program_text
 from drums.probes.bpf import ATTACH_DEFINES, AttachPath
 from drums.probes.sched import SchedProbe
 from drums.probes.sockets import SocketsProbe
@@ -26,7 +26,7 @@ def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
     probe = SocketsProbe(features, proctable)
     (path,) = [p for p in probe.paths if p.name == "kprobe"]
     defines = dict(probe.offsets(features.btf), DRUMS_ATTACH=ATTACH_DEFINES["kprobe"])
-    b = BPF(src_file=os.path.join(BPF_DIR, probe.source).encode(),
+    b = BPF(text=program_text(probe.source).encode(),
             cflags=[f"-D{k}={v}" for k, v in defines.items()] + [f"-I{BPF_DIR}"])
     try:
         functions = [fn for kind, _, fn in path.attachments if kind in ("kprobe", "kretprobe")]
