@@ -142,6 +142,7 @@ class PinnedMap:
         _check(libbpf().bpf_obj_get_info_by_fd(self.fd, ctypes.byref(info), ctypes.byref(size)), "map info")
         self.type = info.type
         self.key_size = info.key_size
+        self.declared_value_size = info.value_size
         self.max_entries = info.max_entries
         self.ncpus = possible_cpus() if info.type in PERCPU_TYPES else 1
         # The kernel rounds each per-CPU value up to 8 bytes.

@@ -26,6 +26,15 @@ from drums.probes.entries import Entries, Marked, Matched
 
 log = logging.getLogger("drums")
 
+# The maps of bpf/drums.h, as `maps` entries: events lost, by reason; and the change marks, keyed
+# as the map whose entries they mark.
+DROPPED = {"dropped": (4, 8)}
+
+
+def change_marks(key: object) -> dict[str, tuple[object, object]]:
+    return {"generation": (4, 8), "changed_even": (key, 1), "changed_odd": (key, 1)}
+
+
 # Values of DRUMS_ATTACH in bpf/drums.h.
 ATTACH_DEFINES = {"raw_tracepoint": 1, "fentry": 2, "kprobe": 3, "tracepoint": 4, "uprobe": 5, "tp_btf": 6}
 
@@ -147,10 +156,14 @@ def _boot_id() -> str:
 
 
 class BpfProbe(Probe):
-    """Subclasses set source, maps and paths, give their BTF offsets, and decode their maps."""
+    """Subclasses set source, maps and paths, give their BTF offsets, and decode their maps.
+
+    `maps` names the maps the probe opens, each with the layout it reads it by: (key, value), each a
+    struct.Struct, numpy dtype or size in bytes (None: not read by layout). This is the one layout
+    source on the Python side; start() checks it against the map the C source made."""
 
     source = ""
-    maps: tuple[str, ...] = ()
+    maps: dict[str, tuple[object, object] | None] = {}
     paths: tuple[AttachPath, ...] = ()
     options: dict[str, int] = {}  # -D definitions that choose what the programs do: part of the pins' name
 
@@ -227,9 +240,24 @@ class BpfProbe(Probe):
                            for m in self.maps}
             self.programs = {fn: os.dup(fds[f"prog_{fn}"]) for kind, _, fn in attachments
                              if kind in loader.PROGRAMS}
+        try:
+            self._check_layouts()
+        except ProbeError:
+            self.stop()
+            raise
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
+
+    def _check_layouts(self) -> None:
+        for name, layout in self.maps.items():
+            if layout is None:
+                continue
+            expected = tuple(n if isinstance(n, int) else getattr(n, "itemsize", None) or n.size for n in layout)
+            m = self.opened[name]
+            if (m.key_size, m.declared_value_size) != expected:
+                raise ProbeError(f"map {name}: bpf/{self.source} makes entries of {m.key_size}+{m.declared_value_size}"
+                                 f" bytes, drums reads {expected[0]}+{expected[1]} (key+value): the two disagree")
 
     def _request(self, path: AttachPath, attachments: list[tuple[str, str, str]], pin_dir: str) -> loader.LoadRequest:
         defines = dict(self.offsets(self.features.btf), **self.options, **dict(path.defines),

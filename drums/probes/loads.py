@@ -20,7 +20,7 @@ from drums.kernel import elf, perflink
 from drums.kernel.btf import Btf
 from drums.kernel.ringbuf import RingBuffer
 from drums.metrics import Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_uprobes
+from drums.probes.bpf import DROPPED, AttachPath, BpfProbe, needs_uprobes
 from drums.proctable import MappedLibraries, mapped_file
 
 log = logging.getLogger("drums")
@@ -33,7 +33,7 @@ RESCAN_EVERY = 1.0  # seconds: the least time between two readings of every map 
 class LoadsProbe(BpfProbe):
     name = "loads"
     source = "loads.bpf.c"
-    maps = ("loads", "dropped")
+    maps = {"loads": None, **DROPPED}  # a ring buffer
     metrics = ()
     paths = (
         AttachPath("uprobe", (("program", "", "on_debug_state"),), needs_uprobes,

@@ -24,7 +24,7 @@ from drums.errors import ProbeError
 from drums.kernel import elf, perflink
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_uprobes
+from drums.probes.bpf import DROPPED, AttachPath, BpfProbe, needs_uprobes
 from drums.proctable import MappedLibraries, ProcessTable, mapped_file
 
 LIBRARY = "librcl.so"
@@ -192,8 +192,9 @@ def timing_histogram(slots: np.ndarray, total_ns: int, edges: tuple[np.ndarray, 
 class RclProbe(BpfProbe):
     name = "rcl"
     source = "rcl.bpf.c"
-    maps = ("handles", "periods", "deadlines", "deadlines_known", "reactions", "deliveries", "realtime_offset",
-            "dropped")
+    maps = {"handles": (_KEY, _U64), "periods": (_KEY, _TIMING), "deadlines": (_KEY, _U64), "deadlines_known": (4, 4),
+            "reactions": (_REACTION_KEY, _TIMING), "deliveries": (_DELIVERY_KEY, _DELIVERY),
+            "realtime_offset": (4, _S64), **DROPPED}
     metrics = (PUBLISHED, TAKEN, PERIOD, MISSED, TAKE_MISSED, REACTION, TRANSPORT, AGE, SKEWED)
     paths = (
         AttachPath("uprobe", tuple(("program", "", p) for p in PROGRAMS), needs_uprobes,

@@ -15,7 +15,7 @@ import struct
 
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Metric, Snapshot
-from drums.probes.bpf import AttachPath, BpfProbe, needs_all, needs_tracepoints
+from drums.probes.bpf import DROPPED, AttachPath, BpfProbe, needs_all, needs_tracepoints
 from drums.proctable import MappedLibraries, ProcessTable
 
 # Libraries whose processes speak RTPS: Fast DDS (2.x and 3.x), Cyclone DDS, Connext, and rcl for
@@ -65,7 +65,7 @@ def _needs_task_pt_regs(f) -> str | None:
 class RtpsProbe(BpfProbe):
     name = "rtps"
     source = "rtps.bpf.c"
-    maps = ("watched", "writers", "dropped")
+    maps = {"watched": (_U32, 1), "writers": (_KEY, _COUNTS), **DROPPED}
     metrics = _BY_DIRECTION[0] + _BY_DIRECTION[1]
     paths = (
         AttachPath("tracepoint", _EXITS, needs_all(_needs_task_pt_regs, needs_tracepoints(*_EVENTS)),

@@ -13,8 +13,8 @@ import numpy as np
 from drums.arrays import among, distinct, within
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
-from drums.probes.bpf import (TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
-                              offset_defines, typed)
+from drums.probes.bpf import (DROPPED, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
+                              change_marks, offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
@@ -132,8 +132,9 @@ def _thread_labels(id_: int, comm: bytes) -> tuple[tuple[str, ...], ...]:
 class SchedProbe(BpfProbe):
     name = "sched"
     source = "sched.bpf.c"
-    maps = ("thread_sched", "thread_slots", "exited_sched", "oncpu", "renamed", "dropped", "generation",
-            "changed_even", "changed_odd")
+    maps = {"thread_sched": (_U32, _THREAD_VALUE), "thread_slots": (_U32, _THREAD_VALUE),
+            "exited_sched": (_U32, _PROCESS_VALUE), "oncpu": (4, _ONCPU), "renamed": (_U32, _U64),
+            **change_marks(_U32), **DROPPED}
     metrics = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                THREAD_SWITCHES)
     paths = (typed(_RAW, without=("sched_wakeup",),

@@ -20,9 +20,9 @@ from drums.kernel import bpffs, sockdiag
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import (SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
+from drums.probes.bpf import (DROPPED, SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
                               needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints,
-                              offset_defines, typed)
+                              change_marks, offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable, comm
 
@@ -241,7 +241,8 @@ class _Identity:
 class SocketsProbe(BpfProbe):
     name = "sockets"
     source = "sockets.bpf.c"
-    maps = ("socket_traffic", "socket_slots", "generation", "changed_even", "changed_odd", "closed_traffic", "dropped")
+    maps = {"socket_traffic": (_U64, _SOCKET_VALUE), "socket_slots": (_U32, _SOCKET_VALUE),
+            "closed_traffic": (_U32, _PROCESS_VALUE), **change_marks(_U64), **DROPPED}
     metrics = tuple(SOCKET.values()) + tuple(PROCESS.values())
     paths = (
         typed(_RAW),

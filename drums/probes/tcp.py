@@ -20,7 +20,8 @@ from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, GAUGE, Columns, Metric, Snapshot
 from drums.netfmt import endpoint, parse_endpoint
 from drums.probes.base import Probe
-from drums.probes.bpf import SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, needs_tracepoints, offset_defines
+from drums.probes.bpf import (DROPPED, SOCK_ENDPOINT_FIELDS, AttachPath, BpfProbe, change_marks, needs_tracepoints,
+                              offset_defines)
 from drums.probes.entries import Entries, Matched, Remembered
 
 CONN_LABELS = ("local", "remote", "netns")
@@ -134,7 +135,8 @@ def _connection_labels(head: bytes) -> tuple[str, str, str]:
 class TcpProbe(BpfProbe):
     name = "tcp"
     source = "tcp.bpf.c"
-    maps = ("tcp_conns", "tcp_totals", "dropped", "generation", "changed_even", "changed_odd")
+    maps = {"tcp_conns": (_U64, _CONN_VALUE), "tcp_totals": (4, struct.calcsize(_TOTALS_FMT)),
+            **change_marks(_U64), **DROPPED}
     metrics = (CONN_RETRANSMITS, CONN_RESETS_SENT, CONN_RESETS_RECEIVED, CONN_STATE_CHANGES, CONN_RTT, RETRANSMITS, RESETS_SENT,
                RESETS_RECEIVED, STATE_ENTERED)
     paths = (

@@ -83,3 +83,21 @@ def test_without_sched_info_the_sched_probe_times_waits_on_raw_tracepoints(featu
         assert "the tp_btf path did not load" in warning and "CONFIG_SCHED_INFO" in warning, warning
     finally:
         probe.unload()
+
+
+@pytest.mark.kernel
+def test_a_map_read_by_another_layout_than_its_programs_make_refuses_to_start(features, proctable):
+    from drums.errors import ProbeError
+    from drums.probes.rtps import _KEY, RtpsProbe
+
+    class Stale(RtpsProbe):  # as if bpf/rtps.bpf.c had grown its counts without the Python side
+        maps = {**RtpsProbe.maps, "writers": (_KEY, 32)}
+
+    probe = Stale(features, proctable, pin_root=f"{TEST_PIN_ROOT}_stale")
+    try:
+        with pytest.raises(ProbeError, match=r"^map writers: bpf/rtps.bpf.c makes entries of 24\+40 bytes, "
+                                             r"drums reads 24\+32 \(key\+value\): the two disagree$"):
+            probe.start()
+        assert not probe.opened and not probe.status.attached
+    finally:
+        probe.unload()
