@@ -70,3 +70,10 @@ def primary_address() -> str:
         return socket.gethostbyname(name)
     except OSError:
         return name
+
+
+def is_loopback(address: str) -> bool:
+    try:
+        return address == "localhost" or ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return False

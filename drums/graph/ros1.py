@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import http.client
-import ipaddress
 import os
 import re
 import socket
@@ -33,7 +32,7 @@ from defusedxml.xmlrpc import DefusedExpatParser
 from drums.errors import GraphError, KernelError
 from drums.graph.adapter import Adapter
 from drums.graph.model import Connection, Endpoint, GraphState, Host, Node, Process, Topic
-from drums.netfmt import endpoint
+from drums.netfmt import endpoint, is_loopback
 from drums.probes.tcp import established
 from drums.proctable import ProcessTable
 
@@ -75,13 +74,6 @@ def _where(uri: str) -> tuple[str, int | None]:
         return (url.hostname or "", url.port) if url.scheme == "http" else ("", None)
     except ValueError:
         return "", None
-
-
-def _loopback(host: str) -> bool:
-    try:
-        return host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def parse_info(text) -> tuple[int, str, int] | None:
@@ -374,7 +366,7 @@ class Ros1Adapter(Adapter):
     def _host(self, uri: str) -> str:
         """The host a slave URI names; this host's name when it names one of this host's addresses."""
         host = _where(uri)[0]
-        return self._here if _loopback(host) or host in self._local else host
+        return self._here if is_loopback(host) or host in self._local else host
 
     def poll(self) -> GraphState:
         deadline = time.monotonic() + self.timeout
@@ -410,7 +402,7 @@ class Ros1Adapter(Adapter):
                 state.processes.append(Process(host, slave.pid, self.table.name(slave.pid) if host == self._here else ""))
         # This host may be named several ways (127.0.0.1, localhost, its name): the address is one
         # that other hosts can use too where a node gives one.
-        state.hosts = [Host(h, min(names, key=lambda a: (_loopback(a), a))) for h, names in sorted(named.items())]
+        state.hosts = [Host(h, min(names, key=lambda a: (is_loopback(a), a))) for h, names in sorted(named.items())]
         state.processes = sorted(set(state.processes), key=lambda p: (p.host, p.pid))
         self._pids = {slave.uri: self._pids[slave.uri] for slave in slaves.values() if slave.uri in self._pids}
 
