@@ -65,8 +65,7 @@ def run(args, token: str) -> int:
     graph = Graph()
     follower = Follower(adapter, graph)
     agent = Agent(probes, proctable, selection, budget, graph, adapter_name)
-    if hasattr(adapter, "tcp_changes"):  # the auto graph reads again only what the probes say moved
-        adapter.tcp_changes, adapter.ran = agent.tcp_changes, proctable.cpu_seconds
+    adapter.hear_from(agent.tcp_changes, proctable.cpu_seconds)
     done = threading.Event()  # set by SIGINT or SIGTERM, even while the probes are still loading
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())

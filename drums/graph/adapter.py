@@ -37,6 +37,10 @@ class Adapter:
     def stop(self) -> None:
         pass
 
+    def hear_from(self, tcp_changes: Callable[[], int | None], ran: Callable[[], dict[int, float] | None]) -> None:
+        """What the agent's probes can tell an adapter that reads the host itself (see AutoAdapter):
+        a count that moves when a TCP socket changes state, and each process's CPU seconds."""
+
 
 class ChildAdapter(Adapter):
     """An adapter whose middleware client runs in a child process (`python -m <module>`) that

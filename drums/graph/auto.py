@@ -69,6 +69,9 @@ class AutoAdapter(Adapter):
         self._unowned = empty
         self._read_at = self._full_at = float("-inf")
 
+    def hear_from(self, tcp_changes, ran) -> None:
+        self.tcp_changes, self.ran = tcp_changes, ran
+
     def _read_owners(self, everyone: bool) -> bool:
         """Read the open files of every process that may hold other sockets than at its last read:
         one not read before, or that ran since (the sched probe says), or every one when the probe
