@@ -55,10 +55,11 @@ demo: setup-test
 demo-stop:
 	@demo/demo.sh stop
 
-# Every benchmark; their tables go to bench/results.json, and from there into the README.
+# Every benchmark; their tables go to bench/results.json, and from there into the README. NAB=PATH: a
+# checkout of github.com/numenta/NAB for bench/nab.py (the detector on the Numenta Anomaly Benchmark).
 bench: setup-test
 	@DRUMS_SETUP_TEST=1 DRUMS_SETUP_BENCH=1 scripts/setup.sh
-	$(PY) bench/run_all.py
+	NAB=$(NAB) $(PY) bench/run_all.py
 	$(PY) bench/readme.py README.md
 
 # A soak, apart from make bench for its length: the agent under churn for MINUTES (default 30),

@@ -34,6 +34,7 @@ BENCHMARKS = (
     ("stream_bandwidth", ["--seconds", "3"]),
     ("http_robustness", ["--seconds", "5"]),
     ("detect", ["--ticks", "5", "--series-quality", "50"]),
+    ("nab", []),  # NAB from $NAB (make bench NAB=PATH)
 )
 TIMEOUT = 600  # seconds; the longest benchmarks (agent_cost, workload_overhead) take about 6 minutes
 
