@@ -1,9 +1,10 @@
 """ROS 2 /diagnostics end to end: `drums agent --graph ros2 --diagnostics-config FILE` beside a ROS 2
 node that burns a core and one that idles, each in a process of its own, and a subscriber process
 that records each DiagnosticArray together with the CPU time the busy process had really used
-(psutil) when the array arrived.
+(psutil) when the array arrived; and a publisher and a subscriber whose QoS cannot connect.
 
-Run as a module, this file is those processes: `python -m tests.test_diagnostics busy|idle|listen PID`.
+Run as a module, this file is those processes: `python -m tests.test_diagnostics
+busy|idle|listen PID|offer RELIABILITY|request`.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from urllib.parse import urlsplit
 import psutil
 import pytest
 
-from tests.agentproc import running_agent, scrape
+from tests.agentproc import running_agent, samples, scrape
 from tests.conftest import ros_domain_id
 
 INTERVAL = 0.5
@@ -116,6 +117,36 @@ def _publisher(url: str) -> psutil.Process:
     assert [c.name() for c in children] == ["drums-graph"], children
     assert "--diagnostics" in children[0].cmdline()
     return children[0]
+
+
+def _qos_rows(url: str) -> dict:
+    rows = samples(scrape(url), "drums_edge_qos_incompatible")
+    return {(labels["publisher"], labels["subscriber"], labels["policy"]): value
+            for labels, value in ((dict(key), value) for key, value in rows.items()) if labels["topic"] == "/offered"}
+
+
+@pytest.mark.lane2
+def test_a_subscription_whose_qos_cannot_connect_is_an_error_until_the_publisher_offers_what_it_asks(roles):
+    offer = roles("offer", "best_effort")  # on /offered, to a subscriber that requests reliable
+    request = roles("request")
+    with running_agent("--graph", "ros2", "--diagnostics") as url:
+        listener = roles("listen", str(request.pid))
+
+        def says(sub_level: int, pub_level: int):
+            def until(records):
+                s = records[-1]["statuses"]
+                return (s.get("drums: /request", {}).get("level"), s.get("drums: /offer", {}).get("level")) == \
+                    (sub_level, pub_level)
+            return until
+        status = _arrays(listener, says(ERROR, WARN), 40)[-1]["statuses"]
+        assert status["drums: /request"]["message"] == "QoS reliability incompatible: nothing from /offer on /offered"
+        assert status["drums: /offer"]["message"] == "QoS reliability incompatible: /request on /offered cannot connect"
+        assert _qos_rows(url) == {("/offer", "/request", "reliability"): 1}
+        # The publisher comes back offering what the subscriber asks: the edge is compatible.
+        offer.stop()
+        roles("offer", "reliable")
+        _arrays(listener, says(OK, OK), 40)
+        assert _qos_rows(url) == {("/offer", "/request", "none"): 0}
 
 
 @pytest.mark.lane2  # half a minute of its own: make test runs it beside the rest
@@ -274,6 +305,16 @@ def main() -> None:
     node = rclpy.create_node(role)
     if role == "listen":
         _listen(node, psutil.Process(int(sys.argv[2])))
+    elif role in ("offer", "request"):
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from std_msgs.msg import String
+        if role == "offer":
+            reliability = ReliabilityPolicy.BEST_EFFORT if sys.argv[2] == "best_effort" else ReliabilityPolicy.RELIABLE
+            publisher = node.create_publisher(String, "/offered", QoSProfile(depth=10, reliability=reliability))
+            node.create_timer(0.1, lambda: publisher.publish(String(data="x")))
+        else:
+            node.create_subscription(String, "/offered", lambda _: None,
+                                     QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     elif role == "busy":
         threading.Thread(target=_burn, daemon=True).start()
     threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()

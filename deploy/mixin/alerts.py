@@ -182,6 +182,10 @@ def edge_alerts(cfg: Config) -> list[dict]:
               f"Retransmits on {w.edge}",
               f"{{{{ $value | humanizePercentage }}}} of the bytes on the {w.edge} are repairs (RTPS) or "
               f"TCP retransmits, for {cfg.retransmit_for}: the link loses packets."),
+        alert(cfg, "DrumsQoSIncompatible", cfg.series("drums_edge_qos_incompatible") + " == 1",
+              cfg.qos_incompatible_for, "critical", f"QoS {cfg.label('policy')} keeps apart the {w.edge}",
+              f"The subscriber gets no message from the publisher on the {w.edge}: their "
+              f"{cfg.label('policy')} QoS policies cannot connect."),
     ]
 
 

@@ -62,6 +62,7 @@ class Config:
     edge_bandwidth_collapse_for: Duration
     retransmit_ratio: float
     retransmit_for: Duration
+    qos_incompatible_for: Duration
     tcp_mss_bytes: float
     map_fill_ratio: float
     map_fill_for: Duration

@@ -3,8 +3,10 @@ diagnostic_msgs/DiagnosticArray, with a status per ROS node that has a process o
 ("drums: /talker") and one for the host ("drums: host <name>"), hardware_id the host's name.
 
 Each status is OK, WARN or ERROR by thresholds: a value above `warn` or `error` crosses it, and
-the message names each crossing ("cpu 97% > 95%"), else says "ok". Defaults, each replaceable in a
-YAML file given with --diagnostics-config (null: not checked):
+the message names each crossing ("cpu 97% > 95%"), else says "ok". A node whose subscription's
+QoS cannot connect to a publisher is an ERROR ("QoS reliability incompatible: nothing from /camera on
+/image"), the publisher a WARN. Defaults, each replaceable in a YAML file given with
+--diagnostics-config (null: not checked):
 
     interval: 1                                   # seconds between arrays (0.1-3600)
     node:                                         # of the node's process, shared by its nodes
@@ -227,6 +229,13 @@ class Diagnostics:
         for kind, metric in (("published", join.TOPIC_PUBLISHED), ("taken", join.TOPIC_TAKEN)):
             for (topic, node), value in snap.series.get(metric, ()):
                 topics[node].append((f"{kind} messages/s {topic}", value))
+        # An edge whose QoS cannot connect: its subscriber gets nothing (an error), its publisher
+        # misses a reader (a warning).
+        problems = defaultdict(list)
+        for (topic, publisher, subscriber, policy), value in snap.series.get(join.EDGE_QOS_INCOMPATIBLE, ()):
+            if value:
+                problems[subscriber].append((ERROR, f"QoS {policy} incompatible: nothing from {publisher} on {topic}"))
+                problems[publisher].append((WARN, f"QoS {policy} incompatible: {subscriber} on {topic} cannot connect"))
         out = []
         for (node, pid, process, _, shares), _ in sorted(snap.series.get(join.NODE_INFO, ())):
             if not pid:
@@ -251,7 +260,7 @@ class Diagnostics:
                 per_second = rate((pid, node, key), value)
                 if per_second is not None:
                     values[key] = per_second
-            out.append(self._status(f"drums: {node}", "node", values, checks))
+            out.append(self._status(f"drums: {node}", "node", values, checks, problems.get(node, ())))
         out.append(self._status(f"drums: host {self.host}", "host", *self._host(snap, rate)))
         self._previous, self._previous_at, self._previous_read_at = counters, at, snap.read_at or 0.0
         return out
@@ -290,8 +299,9 @@ class Diagnostics:
                     checks[key] = per_second
         return values, checks
 
-    def _status(self, name: str, section: str, values: dict, checks: dict) -> dict:
-        level, crossed = OK, []
+    def _status(self, name: str, section: str, values: dict, checks: dict, problems=()) -> dict:
+        """`problems`: (level, text) of what is wrong besides the thresholds' checks."""
+        level, crossed = max((p for p, _ in problems), default=OK), [text for _, text in problems]
         for key, value in checks.items():
             what, unit, _, _ = THRESHOLDS[section, key]
             warn, error = self.config.limits[section, key]

@@ -160,11 +160,13 @@ def dot(g: nx.MultiDiGraph, snap: Snapshot | None = None, rates: dict | None = N
     # Publisher -> topic -> subscriber where the topic is drawn, from the connections and from
     # endpoints without one yet; a connection of a topic that is not drawn (ROS 1 or auto graphs)
     # goes straight from node to node.
-    pubs, subs, direct = set(), set(), []
+    pubs, subs, direct, apart = set(), set(), [], []
     for u, v, _, data in g.edges(keys=True, data=True):
         if data["kind"] == "connection" and u in shown and v in shown:
             c = data["entity"]
-            if c.topic in topics:
+            if c.incompatible():
+                apart.append(c)  # no data flows: said as such, from node to node
+            elif c.topic in topics:
                 pubs.add((c.topic, c.publisher))
                 subs.add((c.topic, c.subscriber))
             else:
@@ -196,6 +198,10 @@ def dot(g: nx.MultiDiGraph, snap: Snapshot | None = None, rates: dict | None = N
         label = "  ".join(x for x in (c.topic, _flow(None, got)) if x)
         lines.append(f"  {quote('node:' + c.publisher)} -> {quote('node:' + c.subscriber)} "
                      f"{_attrs(label=label, penwidth=_penwidth(got))};")
+    for c in sorted(apart, key=lambda c: (c.topic, c.publisher, c.subscriber)):
+        label = f"{c.topic}: QoS {', '.join(c.incompatible())} incompatible"
+        lines.append(f"  {quote('node:' + c.publisher)} -> {quote('node:' + c.subscriber)} "
+                     f"{_attrs(label=label, style='dashed', color='#cc0000', fontcolor='#cc0000')};")
     lines.append("}")
     return "\n".join(lines) + "\n"
 

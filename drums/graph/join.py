@@ -81,6 +81,12 @@ EDGE_RETRANSMITS = Metric("drums_edge_tcp_retransmits_total", COUNTER,
                           "TCP segments retransmitted on the connection's socket", EDGE)
 EDGE_RTT = Metric("drums_edge_tcp_rtt_seconds", GAUGE, "Smoothed RTT of the connection's TCP socket", EDGE,
                   additive=False)
+EDGE_QOS_INCOMPATIBLE = Metric("drums_edge_qos_incompatible", GAUGE,
+                               "1 for each QoS policy that keeps the publisher's and the subscriber's endpoints on "
+                               "the topic from connecting (ROS 2: reliability, durability, deadline, liveliness, "
+                               "liveliness_lease): the subscriber gets none of its messages; a compatible edge has "
+                               "policy \"none\" at 0. Exported by the subscriber's host",
+                               EDGE + ("policy",), additive=False)
 TOPIC_DEADLINE = Metric("drums_topic_deadline_seconds", GAUGE,
                         "The Deadline QoS the node's publisher on the topic offers (ROS 2): the longest it "
                         "promises to go without publishing; only publishers with a deadline", TOPIC, additive=False)
@@ -92,7 +98,7 @@ UNKNOWN = "unknown"
 METRICS = (NODE_INFO, NODE_CPU, NODE_MEMORY, NODE_SWITCHES, NODE_RUNQ, NODE_REACTION, TOPIC_PUBLISHED, TOPIC_TAKEN,
            TOPIC_PUBLISH_PERIOD, TOPIC_DEADLINES_MISSED, TOPIC_TAKE_DEADLINES_MISSED, TOPIC_SAMPLES_SENT,
            TOPIC_SENT_BYTES, TOPIC_SENT_WIRE_BYTES, EDGE_SAMPLES, EDGE_RECEIVED_BYTES, EDGE_RECEIVED_WIRE_BYTES, EDGE_TRANSPORT, EDGE_AGE, EDGE_SENT_BYTES,
-           EDGE_RETRANSMITS, EDGE_RTT, TOPIC_DEADLINE, UNATTRIBUTED)
+           EDGE_RETRANSMITS, EDGE_RTT, EDGE_QOS_INCOMPATIBLE, TOPIC_DEADLINE, UNATTRIBUTED)
 
 _FIRST = itemgetter(0)
 INFINITE_NS = 1 << 62  # rmw's "no deadline" is the largest duration it can hold
@@ -197,6 +203,11 @@ def join(nodes: list[Node], endpoints: list[Endpoint], connections: list[Connect
         out.rows(metric).extend(rows.items())
     for kind in ("publisher", "subscriber"):
         out.add(UNATTRIBUTED, (kind,), unknown[kind])
+    for c in connections:
+        if c.qos_check and c.subscriber in pid_of:
+            edge = (c.topic, c.publisher, c.subscriber)
+            policies = c.incompatible()
+            out.rows(EDGE_QOS_INCOMPATIBLE).extend([(edge + (p,), 1) for p in policies] or [(edge + ("none",), 0)])
     _socket_edges(connections, raw, out)
 
 

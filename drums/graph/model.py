@@ -81,6 +81,24 @@ class Connection:
     remote: str = ""
     qos_check: str = ""  # the middleware's QoS compatibility verdict: "ok", or why not
 
+    def incompatible(self) -> tuple[str, ...]:
+        """The QoS policies that keep the two ends apart (the middleware's ERRORs; its WARNINGs,
+        where a side's policy is the system default, may connect), in the order it gave them."""
+        found = []
+        for verdict in self.qos_check.split(";"):
+            if verdict.startswith("ERROR:"):
+                text = verdict.lower()
+                policy = next((p for words, p in QOS_POLICIES if words in text), "other")
+                if policy not in found:
+                    found.append(policy)
+        return tuple(found)
+
+
+# What an rmw incompatibility (rmw_dds_common's reasons, Galactic on) names: the first match wins.
+QOS_POLICIES = (("reliab", "reliability"), ("best effort", "reliability"), ("durab", "durability"),
+                ("transient local", "durability"), ("deadline", "deadline"), ("lease duration", "liveliness_lease"),
+                ("liveliness", "liveliness"), ("lifespan", "lifespan"))
+
 
 ENTITIES = {"host": Host, "process": Process, "node": Node, "topic": Topic, "endpoint": Endpoint,
             "connection": Connection}

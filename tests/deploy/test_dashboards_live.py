@@ -37,7 +37,10 @@ NODES = (("talker", ("talker",), {"DRUMS_TEST_DEADLINE_MS": "200"}),
          ("processor", ("processor",), SMALL_IMAGES),
          ("sink", ("sink",), SMALL_IMAGES),
          ("leaker", ("leaker",), {}),
-         ("flooder", ("flooder", "--ros-args", "--disable-stdout-logs"), {}))
+         ("flooder", ("flooder", "--ros-args", "--disable-stdout-logs"), {}),
+         # a best-effort talker and a listener that asks for reliable messages: they cannot connect
+         ("hasty", ("talker", "hasty", "--ros-args", "-r", "chatter:=hasty_chatter"), {"DRUMS_TEST_BEST_EFFORT": "1"}),
+         ("strict", ("listener", "strict", "--ros-args", "-r", "chatter:=hasty_chatter"), {}))
 OUR_NODES = sorted(f"/{role}" for role, _, _ in NODES)
 
 
@@ -153,7 +156,7 @@ def test_template_variables_list_the_live_robot_host_nodes_and_topics(live):
     strangers = set(api(live, "label/topic/values", **{"match[]": unnamed}))
     # A node publishes /parameter_events as it starts, which may be before the agent's probes are
     # in: it may be missing.
-    ours = {"/chatter", "/image", "/processed", "/rosout"}
+    ours = {"/chatter", "/image", "/processed", "/rosout", "/hasty_chatter"}
     assert found["topic"] - {"/parameter_events"} == (ours | strangers) - {"/parameter_events"}
 
 
@@ -168,7 +171,7 @@ def test_every_rule_evaluates_without_error_on_live_data(live):
     # A rule that fails (e.g. many-to-many matching) records nothing and only says so here.
     rules = [rule for group in api(live, "rules")["groups"] for rule in group["rules"]]
     assert [(r["name"], r.get("lastError")) for r in rules if r["health"] != "ok"] == []
-    assert len(rules) == 50
+    assert len(rules) == 51
 
 
 def test_the_leaker_and_the_flooder_trip_their_alerts(live):
@@ -186,3 +189,14 @@ def test_the_leaker_and_the_flooder_trip_their_alerts(live):
     growth = {r["metric"]["node"]: float(r["value"][1])
               for r in instant(live, f'drums:node_resident_memory_bytes:deriv30m{{node=~"{"|".join(OUR_NODES)}"}}')}
     assert all(10 * growth[n] < growth["/leaker"] for n, _, _ in leaking if n != "/leaker"), (leaking, growth)
+
+
+def test_a_subscription_whose_qos_cannot_connect_fires_its_alert(live):
+    # Last in this module: the alert wants its condition for a minute (the lab has run a while by now).
+    def firing():
+        alerts = [(a["metric"]["publisher"], a["metric"]["subscriber"], a["metric"]["topic"], a["metric"]["policy"],
+                   a["metric"]["alertstate"]) for a in instant(live, 'ALERTS{alertname="DrumsQoSIncompatible"}')]
+        assert alerts == [("/hasty", "/strict", "/hasty_chatter", "reliability", "firing")], alerts
+    eventually(firing, timeout=90)
+    compatible = instant(live, 'drums_edge_qos_incompatible{topic="/chatter"}')
+    assert [(r["metric"]["policy"], r["value"][1]) for r in compatible] == [("none", "0")], compatible

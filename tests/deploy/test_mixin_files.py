@@ -117,7 +117,7 @@ def test_every_alert_has_a_severity_its_annotations_and_a_runbook_section():
     alerts = alerting_rules()
     names = sorted({rule["alert"] for rule in alerts})
     assert sorted(sections) == names == sorted(re.findall(r"^## (\S+)$", text, re.MULTILINE))
-    assert len(names) == 22
+    assert len(names) == 23
     for rule in alerts:
         assert rule["labels"]["severity"] in ("critical", "warning", "info"), rule["alert"]
         assert rule["annotations"]["runbook_url"] == f"{cfg.runbook_url}#{rule['alert'].lower()}"

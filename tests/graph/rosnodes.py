@@ -85,7 +85,7 @@ def forwards(node, pub):
 
 
 def qos():
-    """Reliable, with a history of at least 100 messages (a whole burst if longer), and the
+    """Reliable (best effort with $DRUMS_TEST_BEST_EFFORT set), with a history of at least 100 messages (a whole burst if longer), and the
     Deadline QoS $DRUMS_TEST_DEADLINE_MS if set. A reliable writer sends again only what its
     history still holds, and a subscriber's history drops the oldest messages its callback has not
     taken yet: with a depth of 10, a sink on a busy host missed 6 of 30 samples of 1 MB over UDP, and
@@ -93,8 +93,10 @@ def qos():
     (10 messages) would."""
     from rclpy.duration import Duration
     from rclpy.qos import QoSProfile
+    from rclpy.qos import ReliabilityPolicy
     deadline = int(os.environ.get("DRUMS_TEST_DEADLINE_MS", "0"))
-    return QoSProfile(depth=max(100, burst), deadline=Duration(nanoseconds=deadline * 1_000_000))
+    reliability = ReliabilityPolicy.BEST_EFFORT if os.environ.get("DRUMS_TEST_BEST_EFFORT") else ReliabilityPolicy.RELIABLE
+    return QoSProfile(depth=max(100, burst), deadline=Duration(nanoseconds=deadline * 1_000_000), reliability=reliability)
 
 
 def make(role: str, name: str) -> Node:

@@ -140,3 +140,17 @@ def test_drums_graph_draws_svg_of_a_static_graph(tmp_path):
                           str(tmp_path / "g.yaml"), "--format", "svg"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stderr == "", out.stderr
     assert {"/planner", "/cmd_vel"} <= texts(out.stdout)
+
+
+def test_a_pair_whose_qos_cannot_connect_is_a_dashed_arrow_with_the_policies():
+    state = ros2_state()
+    state.connections.append(Connection("/image", "/camera", "/planner", "dds", qos_check=(
+        "ERROR: Best effort publisher and reliable subscription;"
+        "ERROR: Volatile publisher and transient local subscription;")))
+    g = Graph()
+    g.update(state)
+    text = draw.dot(g.snapshot())
+    assert ('"node:/camera" -> "node:/planner" [label="/image: QoS reliability, durability incompatible", '
+            'style="dashed", color="#cc0000", fontcolor="#cc0000"]') in text
+    assert '"topic:/image" -> "node:/detector"' in text  # the compatible subscriber as before
+    assert "/image: QoS reliability, durability incompatible" in texts(drawn(state))
