@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from drums.detect import checks
+from drums.detect import checks, detector
 from drums.detect.detector import Detector
 from drums.detect.sources import Reading, SourceError, parse_exposition
 
@@ -91,6 +91,22 @@ def test_an_anomaly_ends_once_calm_for_the_hold_time():
     ended = next(i for i, e in events if e.kind == "ended")
     assert 115 + 30 <= ended <= 115 + 30 + checks.TAIL + 1
     assert d.active == {} and d.flagged == 1
+
+
+def test_a_series_that_repeats_its_anomaly_must_outdo_it_until_it_has_been_calm_for_hours():
+    robot = Robot()
+    bursts = {100: 3e6, 350: 3e6, 600: 2e6, 850: 10e6, 1100: 3e6}  # bytes/s for 15 s from each tick
+
+    def burst(i, r):
+        r.bandwidth = next((b for start, b in bursts.items() if start <= i < start + 15), 1e6)
+    d = Detector()
+    started = [i for i, e in run(d, robot, 1300, burst) if e.kind == "anomaly"]
+    # The first two are news; then only one worse than the worst so far (the 10 MB/s one).
+    assert [min(bursts, key=lambda b: abs(b - i)) for i in started] == [100, 350, 850], started
+    calm = int(detector.MEMORY * np.log(3 / 1.5)) + 100  # till three anomalies fade to fewer than 1.5
+    bursts = {calm: 3e6}
+    started = [i for i, e in run(d, robot, calm + 100, burst) if e.kind == "anomaly"]
+    assert len(started) == 1 and calm <= started[0] <= calm + 10, started
 
 
 def test_graph_changes_are_reported_and_a_restarted_node_is_left_to_settle():
