@@ -310,6 +310,19 @@ def settle(pid: int, timeout: float = 5.0) -> None:
         time.sleep(0.005)
 
 
+def quiet(pid: int, take, read) -> tuple:
+    """take() and read() (plus the process's schedstat) while no thread of `pid` runs: once its
+    threads sleep, and again until the process's CPU time stood still across both. A thread seen
+    asleep may be waiting for the GIL and run a moment later (under emulation, 16 ms between the
+    probe's collect and the reading of /proc)."""
+    for _ in range(50):
+        settle(pid)
+        ran = process_schedstat(pid)
+        snap, seen = take(), read()
+        if process_schedstat(pid) == ran:
+            return snap, (*seen, ran)
+    raise AssertionError(f"threads of {pid} kept running")
+
 
 def value(snap, metric: str, **labels):
     rows = series(snap, metric, **labels)
@@ -358,9 +371,8 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     child = spawn(BURN_IN_THREAD, 0.8)
     pid, tid = child.pid, child.read()["tid"]
     task = f"/proc/{pid}/task/{tid}"
-    settle(pid)
-    before = collect(sched_probe)
-    k_before, sw_before, proc_before = schedstat(pid, tid), ctxt_switches(task), process_schedstat(pid)
+    before, (k_before, sw_before, proc_before) = quiet(pid, lambda: collect(sched_probe),
+                                                        lambda: (schedstat(pid, tid), ctxt_switches(task)))
 
     # A rival spinning on the burner's CPU: a thread alone on a CPU may spin 0.8 s unpreempted (seen on
     # a quiet host), and the involuntary switches are part of what is compared.
@@ -372,9 +384,8 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     finally:
         rival.kill()
         rival.wait()
-    settle(pid)
-    after = collect(sched_probe)
-    k_after, sw_after, proc_after = schedstat(pid, tid), ctxt_switches(task), process_schedstat(pid)
+    after, (k_after, sw_after, proc_after) = quiet(pid, lambda: collect(sched_probe),
+                                                    lambda: (schedstat(pid, tid), ctxt_switches(task)))
 
     labels = {"pid": pid, "tid": tid}
     assert set(series(after, THREAD_CPU, **labels)) == {(str(pid), str(tid), "burner")}  # renamed after start
