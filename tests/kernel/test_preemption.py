@@ -1,11 +1,14 @@
 """Why every read-modify-write in Drums' programs is atomic, even of per-CPU data: on a PREEMPT_RT
-kernel a BPF trampoline (fentry) runs its program with migration, not preemption, disabled, so the
-program of one task can be preempted between its load and its store by the same program run for
-another task on that CPU. (Tracepoint and kprobe programs run with preemption disabled there too.)
-Here a per-CPU counter is added to on a syscall, plainly and atomically, while processes on one CPU
-make the call and a SCHED_FIFO process preempts them: the atomic add loses nothing anywhere, and the
-plain one loses updates on an RT kernel's fentry path."""
+kernel a BPF trampoline (fentry) runs its program with migration, not preemption, disabled, so a
+program can be preempted between its load and its store by another program on that CPU that adds
+to the same data. (A program is not run again on a CPU where it is preempted: the kernel skips the
+call and counts a recursion miss, since 5.12. Tracepoint and kprobe programs run with preemption
+disabled there too.) Here a per-CPU counter is added to, plainly and atomically, by a program on
+getppid, which processes on one CPU call, and one on getrusage, which a SCHED_FIFO process preempting
+them calls: the atomic add loses nothing anywhere, and the plain one loses updates on an RT
+kernel's fentry path."""
 import ctypes
+import json
 import os
 import subprocess
 import sys
@@ -38,18 +41,21 @@ static __always_inline void count(void)
     __sync_fetch_and_add(a, 1);
 }
 #ifdef FENTRY
-// What getppid(2) calls to name the parent (task_tgid_vnr inlines to it): a function in every
-// kernel's BTF, where the syscall's own wrapper need not be (Debian's 6.1 has no __x64_sys_getppid).
+// What getppid(2) and getrusage(2) call (task_tgid_vnr inlines to the first): functions in every
+// kernel's BTF, where the syscalls' own wrappers need not be (Debian's 6.1 has no __x64_sys_getppid),
+// and with no struct passed by value (5.10's trampolines take none: from_kuid_munged's kuid_t).
 KFUNC_PROBE(__task_pid_nr_ns) { count(); return 0; }
+KFUNC_PROBE(getrusage) { count(); return 0; }
 #else
 TRACEPOINT_PROBE(syscalls, sys_enter_getppid) { count(); return 0; }
+TRACEPOINT_PROBE(syscalls, sys_enter_getrusage) { count(); return 0; }
 #endif
 """
 
-# Pinned to CPU 1, it calls getppid until told to stop (argv[1] "fifo": as a SCHED_FIFO process
-# that sleeps half a millisecond between calls), then says how many calls it made.
+# Pinned to CPU 1, it calls getppid until told to stop (argv[1] "fifo": getrusage, as a SCHED_FIFO
+# process that sleeps half a millisecond between calls), then says how many calls it made.
 CALLER = r"""
-import os, select, sys, time
+import os, resource, select, sys, time
 os.sched_setaffinity(0, {1})
 fifo = sys.argv[1] == "fifo"
 if fifo:
@@ -59,12 +65,24 @@ sys.stdin.readline()
 n = 0
 while not select.select([sys.stdin], [], [], 0)[0]:
     for _ in range(1 if fifo else 1000):
-        os.getppid()
+        resource.getrusage(resource.RUSAGE_SELF) if fifo else os.getppid()
         n += 1
     if fifo:
         time.sleep(0.0005)
 print(n, flush=True)
 """
+
+
+def recursion_misses(fd: int) -> int:
+    """Calls the kernel skipped because the program was already running on that CPU (bpftool says
+    so of a program from Linux 5.12, and only when there were some)."""
+    from drums.kernel.bpffs import libbpf
+    head = (ctypes.c_uint32 * 2)()  # struct bpf_prog_info begins: type, id
+    size = ctypes.c_uint32(ctypes.sizeof(head))
+    assert libbpf().bpf_obj_get_info_by_fd(fd, head, ctypes.byref(size)) == 0
+    shown = subprocess.run(["bpftool", "-j", "prog", "show", "id", str(head[1])], capture_output=True, text=True,
+                           check=True)
+    return json.loads(shown.stdout).get("recursion_misses", 0)
 
 
 @pytest.mark.kernel
@@ -90,14 +108,19 @@ def test_a_plain_add_loses_updates_where_programs_are_preempted_and_an_atomic_on
             c.stdin.flush()
         calls = sum(int(c.stdout.readline()) for c in callers)
         plain, atomic = sum(b[b"plain"][0]), sum(b[b"atomic"][0])
+        missed = sum(recursion_misses(f.fd) for name, f in b.funcs.items() if name.startswith(b"kfunc"))
     finally:
         for c in callers:
             c.kill()
             c.wait()
         b.cleanup()
-    # Every call ran the program; on fentry so may a rare other use of the function by these
+    # Every call ran a program, but those the kernel skipped on fentry (its program preempted on that
+    # CPU: 89% of them on 6.1-rt under emulation); so may a rare other use of the functions by these
     # processes (seen: 1 in 967,442 calls on 5.10). Both adds saw the same runs.
-    assert calls <= atomic <= calls + 8 if features.fentry else atomic == calls, (atomic, calls)
+    if features.fentry:
+        assert calls <= atomic + missed <= calls + 8, (atomic, missed, calls)
+    else:
+        assert (atomic, missed) == (calls, 0), (atomic, missed, calls)
     if features.fentry and features.preempt_rt:
         assert plain < atomic, (plain, atomic)  # seen: ...
     else:  # no preemption amid a program: a tracepoint's, or anything on a kernel that is not fully preemptible

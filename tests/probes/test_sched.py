@@ -59,19 +59,18 @@ def name_thread(name):
 '''
 
 # A thread named "burner" says its tid; on "go" it burns argv[1] seconds of CPU, says what it measured
-# and sleeps until the child's stdin closes.
+# and sleeps until the child's stdin closes. It reads stdin itself: the main thread sleeps throughout,
+# and the burner is all that runs between its "go" and its answer.
 BURN_IN_THREAD = r'''
-go = threading.Event()
 def worker():
     name_thread("burner")
     say(tid=threading.get_native_id())
-    go.wait()
+    sys.stdin.readline()
     say(cpu=burn(float(sys.argv[1])))
-    threading.Event().wait()
+    sys.stdin.read()
+    os._exit(0)
 threading.Thread(target=worker, daemon=True).start()
-sys.stdin.readline()
-go.set()
-sys.stdin.read()
+threading.Event().wait()
 '''
 
 # A thread says its tid and waits; on "go" it ends, and the child says so once the kernel has let it go.
