@@ -39,9 +39,9 @@ NODES = (("talker", ("talker",), {"DRUMS_TEST_DEADLINE_MS": "200"}),
          ("leaker", ("leaker",), {}),
          ("flooder", ("flooder", "--ros-args", "--disable-stdout-logs"), {}),
          # a best-effort talker and a listener that asks for reliable messages: they cannot connect
-         ("hasty", ("talker", "hasty", "--ros-args", "-r", "chatter:=hasty_chatter"), {"DRUMS_TEST_BEST_EFFORT": "1"}),
-         ("strict", ("listener", "strict", "--ros-args", "-r", "chatter:=hasty_chatter"), {}))
-OUR_NODES = sorted(f"/{role}" for role, _, _ in NODES)
+         ("talker", ("hasty", "--ros-args", "-r", "chatter:=hasty_chatter"), {"DRUMS_TEST_BEST_EFFORT": "1"}),
+         ("listener", ("strict", "--ros-args", "-r", "chatter:=hasty_chatter"), {}))
+OUR_NODES = sorted(f"/{names[0]}" for _, names, _ in NODES)  # (role, node names and ROS arguments, env)
 
 
 def dashboards() -> dict[str, dict]:
