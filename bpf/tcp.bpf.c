@@ -79,8 +79,10 @@ int on_state(struct bpf_raw_tracepoint_args *ctx)
     if (protocol != IPPROTO_TCP)
         return 0;  // the tracepoint also fires for SCTP and MPTCP subflows' parents
     struct tcp_totals_t *tot = totals();
-    if (tot && newstate < TCP_STATES)
-        __sync_fetch_and_add(&tot->entered[newstate], 1);
+    u64 state = newstate;
+    OPAQUE(state);  // one register checked and used: LLVM 19 checked one copy and indexed with another
+    if (tot && state < TCP_STATES)
+        __sync_fetch_and_add(&tot->entered[state], 1);
     struct tcp_conn_t *c = tcp_conns.lookup(&sk);
     if (c && c->state == TCP_CLOSE && newstate != TCP_CLOSE) {
         // The struct sock now holds a new connection (the kernel reuses them at once): the closed
