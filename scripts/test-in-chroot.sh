@@ -40,6 +40,8 @@ bind() {  # bind(source, options): the host's source at the same path inside
 }
 cleanup() { for m in "${mounted[@]}"; do umount -R "$m" 2>/dev/null || umount -lR "$m"; done; }
 trap cleanup EXIT
+# The root a mount of its own, as a system's is: `ip netns exec` remounts / (--make-rslave).
+mount --bind "$ROOT" "$ROOT" && mounted=("$ROOT" "${mounted[@]}")
 mkdir -p "$ROOT/proc" "$ROOT/tmp"
 mount -t proc proc "$ROOT/proc" && mounted=("$ROOT/proc" "${mounted[@]}")
 mount -t tmpfs tmpfs "$ROOT/tmp" && mounted=("$ROOT/tmp" "${mounted[@]}")
