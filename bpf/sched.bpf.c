@@ -52,11 +52,12 @@ struct thread_sched_t {
     char comm[16];
 };
 
-// Exited threads of one process. The PID of a process that was just reaped can go to a new process
-// before sched_process_free frees this entry: process_start tells the two apart.
+// Exited threads of one process, kept after it ended until the agent has read its final totals
+// (and deleted the entry): process_start tells it from a later process that got its PID.
 struct exited_sched_t {
     u64 process_start;
     struct sched_t s;
+    char comm[16];  // the leader's name when it exited: the agent may never have seen the process
 };
 
 // Threads whose slot (below) another live thread holds, or all of them before Linux 5.12. 16,384
@@ -67,7 +68,7 @@ BPF_HASH(thread_sched, u32, struct thread_sched_t, 16384);
 // are in thread_sched). Taken with a compare-and-swap of its first word (Linux >= 5.12; elsewhere
 // THREAD_SLOTS is 1 and no slot is used); memory-mapped, so the agent reads it in place.
 BPF_F_TABLE("array", u32, struct thread_sched_t, thread_slots, THREAD_SLOTS, BPF_F_MMAPABLE);
-// Threads that exited, folded per process until the process is reaped.
+// Threads that exited, folded per process until the agent read the ended process's totals.
 BPF_HASH(exited_sched, u32, struct exited_sched_t, 16384);
 // The current task of each CPU and its runtime when it was switched in: the agent reads the runtime
 // of a thread that keeps its CPU (it may not switch out for seconds) from /proc, and a thread's last
@@ -171,14 +172,16 @@ static __always_inline void fold(struct sched_t *into, struct sched_t *from)
 }
 
 // Fold a thread that is gone into its process and free its entry. `create` is false after the
-// thread has left its thread group: its process may have been reaped already, and an entry made
-// then would never be freed.
+// thread has left its thread group: its process may have ended and been read by the agent already.
 static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool create)
 {
     u32 tgid = t->tgid;
     struct exited_sched_t *p = exited_sched.lookup(&tgid);
     if (p && p->process_start != t->process_start) {
-        exited_sched.delete(&tgid);  // left by the process that had this PID before
+        // Left by the process that had this PID before, which ended since the agent's last read:
+        // what it did then is lost.
+        exited_sched.delete(&tgid);
+        count_drop(DROP_PROCESS);
         p = 0;
     }
     if (!p && create) {
@@ -188,8 +191,11 @@ static __always_inline void thread_died(u32 tid, struct thread_sched_t *t, bool 
         if (!p)
             count_drop(DROP_PROCESS);
     }
-    if (p)
+    if (p) {
         fold(&p->s, &t->s);
+        if (tid == tgid)
+            __builtin_memcpy(p->comm, t->comm, sizeof(p->comm));
+    }
 #if THREAD_SLOTS > 1
     struct thread_sched_t *own = slot_of(tid);
     if (own && own->tid == tid) {
@@ -438,11 +444,3 @@ int on_fork(struct bpf_raw_tracepoint_args *ctx)
     return 0;
 }
 
-// sched:sched_process_free (task): a reaped process leader takes its folded totals with it.
-int on_task_free(struct bpf_raw_tracepoint_args *ctx)
-{
-    u32 tgid = leader_tgid(ctx->args[0]);
-    if (tgid)
-        exited_sched.delete(&tgid);
-    return 0;
-}

@@ -54,12 +54,13 @@ struct socket_traffic_t {
     u64 id;           // in a slot, the socket that owns it; 0 in a free slot and in socket_traffic
 };
 
-// What a process's sockets counted that their entries no longer hold. The PID of a process that was
-// just reaped can go to a new process before sched_process_free frees this entry: process_start
-// tells the two apart.
+// What a process's sockets counted that their entries no longer hold, kept after it ended until the
+// agent has read its final totals (and deleted the entry): process_start tells it from a later
+// process that got its PID.
 struct process_traffic_t {
     u64 process_start;
     struct traffic_t by_class[NCLASSES];
+    char comm[16];  // its name when it last closed a socket: the agent may never have seen the process
 };
 
 // Sockets whose slot (below) another socket holds, or all of them before Linux 5.12. With the
@@ -70,7 +71,8 @@ BPF_HASH(socket_traffic, u64, struct socket_traffic_t, 24576);
 // compare-and-swap of its `id` (Linux >= 5.12; elsewhere SOCKET_SLOTS is 1 and no slot is used);
 // all zero while free. Memory-mapped, so the agent reads it in place.
 BPF_F_TABLE("array", u32, struct socket_traffic_t, socket_slots, SOCKET_SLOTS, BPF_F_MMAPABLE);
-// Counts of closed sockets (and of calls on sockets without an entry), per owner, until it is reaped.
+// Counts of closed sockets (and of calls on sockets without an entry), per owner, until the agent has
+// read them after it ended.
 BPF_HASH(closed_traffic, u32, struct process_traffic_t, 16384);
 
 static __always_inline u16 classify(u16 family, u16 protocol)
@@ -104,7 +106,10 @@ static __always_inline void fold(u32 tgid, u64 start, u16 klass, struct traffic_
         return;
     struct process_traffic_t *p = closed_traffic.lookup(&tgid);
     if (p && p->process_start != start) {
-        closed_traffic.delete(&tgid);  // left by the process that had this PID before
+        // Left by the process that had this PID before, which ended since the agent's last read:
+        // what it did then is lost.
+        closed_traffic.delete(&tgid);
+        count_drop(DROP_PROCESS);
         p = 0;
     }
     if (!p) {
@@ -113,10 +118,13 @@ static __always_inline void fold(u32 tgid, u64 start, u16 klass, struct traffic_
         p = closed_traffic.lookup(&tgid);
     }
     OPAQUE(klass);
-    if (p)
-        add_traffic(&p->by_class[klass & (NCLASSES - 1)], t);
-    else
+    if (!p) {
         count_drop(DROP_PROCESS);
+        return;
+    }
+    add_traffic(&p->by_class[klass & (NCLASSES - 1)], t);
+    if (bpf_get_current_pid_tgid() >> 32 == tgid)
+        bpf_get_current_comm(p->comm, sizeof(p->comm));
 }
 
 // What names a socket in the maps: its struct sock's address, as a number. A typed program (tp_btf)
@@ -747,11 +755,3 @@ int forget_gone(struct bpf_raw_tracepoint_args *ctx)
     return forget_socket(ctx->args[0], ctx);
 }
 
-// sched:sched_process_free (task): a reaped process leader takes its closed sockets' counts with it.
-int on_task_free(struct bpf_raw_tracepoint_args *ctx)
-{
-    u32 tgid = leader_tgid(ctx->args[0]);
-    if (tgid)
-        closed_traffic.delete(&tgid);
-    return 0;
-}

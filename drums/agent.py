@@ -127,6 +127,7 @@ class Agent:
         self.graph_adapter = graph_adapter
         self.proctable = proctable
         self.selection = selection or Selection()
+        self._chose: set[str] = set()  # the PIDs the last collect chose
         self.budget = budget or Budget({})
         self._lock = threading.Lock()
         self._last: Snapshot | None = None  # what collect() or recent() gave last
@@ -252,6 +253,12 @@ class Agent:
     def _read(self, names: set[str]) -> Snapshot:
         """The rows of the probes called `names`."""
         self.proctable.refresh(self._renamed(), complete=True)
+        for probe in self.probes:
+            if probe.status.attached:
+                try:
+                    self.proctable.tell_ended(probe.ended())
+                except Exception as e:  # noqa: BLE001 - the names only: its collect says what failed
+                    log.warning("probe %s: ended processes unread: %s", probe.name, e)
         pids = self._process_pids()
         for probe in self.probes:
             probe.set_pids(pids)
@@ -313,7 +320,9 @@ class Agent:
         if self.selection.name_patterns:  # an rclpy node's process is named "python": its nodes say more
             for n in self.graph.entities("node") if self.graph else ():
                 nodes.setdefault(n.pid, []).append(n.name)
-        return {pid for pid in pt.pids() if self.selection.matches(
+        # The agent's own command line names the patterns it was given: it is chosen by PID only.
+        own = os.getpid()
+        return {pid for pid in pt.pids() if (pid != own or pid in self.selection.pids) and self.selection.matches(
             pid, [pt.name(pid), *(pt.cmdline(pid) if self.selection.name_patterns else ()), *nodes.get(pid, ())])}
 
     def _process_pids(self) -> list[int]:
@@ -330,6 +339,8 @@ class Agent:
     def _select(self, snap: Snapshot) -> Snapshot:
         pids = self._chosen()
         chosen = {str(pid) for pid in pids}
+        chosen |= self._ended_chosen(snap, chosen)
+        self._chose = chosen
         out = Snapshot()
         out.unread = snap.unread
         for metric, rows in snap.singles.items():
@@ -339,6 +350,23 @@ class Agent:
                 out.groups[metrics] = rows.of_processes(pids) if rows.pids is not None else rows
             else:
                 out.group_rows(metrics).extend(_of_chosen(metrics[0], rows, chosen))
+        return out
+
+    def _ended_chosen(self, snap: Snapshot, chosen: set[str]) -> set[str]:
+        """The processes that ended since the last collect and are chosen, whose rows show their
+        final totals: those chosen then, and those whose rows' name is (they started and ended in
+        between; their command lines, nodes and cgroups are gone with them)."""
+        alive, out = {str(pid) for pid in self.proctable.pids()}, set()
+        for metric, rows in snap.singles.items():
+            if "pid" not in metric.labels or "process" not in metric.labels:
+                continue
+            i, j = metric.labels.index("pid"), metric.labels.index("process")
+            for labels, _ in rows:
+                pid = labels[i]
+                if pid in chosen or pid in out or pid in alive or not pid.isdigit():
+                    continue
+                if pid in self._chose or self.selection.matches(int(pid), [labels[j]]):
+                    out.add(pid)
         return out
 
     def _self_metrics(self, snap: Snapshot) -> None:

@@ -6,6 +6,11 @@ rate()), unless a folded one becomes more than twice as active. A counter's `oth
 backwards: it is kept as a running total that each folded row adds its growth to, so a row that
 leaves it (its entity ended, or got its own series) leaves what it added.
 
+A counter's series counts from zero, as Prometheus' increase() counts a new series: what an entity
+counted before its series began is in `other`, and a series that ends (its entity lost its slot)
+shows what it counted until then while `other` goes on from there. So the sum of a counter's
+series, `other`'s and those of entities that ended included, is what the entities counted.
+
 The budget remembers each row between collects and does per-row work only for rows that changed:
 on an idle host with ten thousand processes' rows a collect is a few dict and set operations. A
 probe that tells its rows as changes to those of its last collect (Snapshot.changes) spares it even
@@ -57,14 +62,14 @@ def kind_of(metric: Metric) -> str | None:
     return None
 
 
+def _went_back(new, old) -> bool:
+    """Whether a counter went back: its labels now name a new entity, such as a reused PID."""
+    return new.count < old.count if isinstance(new, Histogram) else new < old
+
+
 def _growth(new, old):
-    """How much a counter grew since `old`: all of it when it went back (its labels now name a new
-    entity, such as a reused PID), so `other` only ever grows."""
-    if old is None:
-        return new
-    if isinstance(new, Histogram):
-        return new if new.count < old.count else new - old
-    return new if new < old else new - old
+    """How much a counter grew since `old`: all of it when it went back, so `other` only ever grows."""
+    return new if old is None or _went_back(new, old) else new - old
 
 
 def _change(new, old):
@@ -93,6 +98,12 @@ class _Group:
         # thousand sockets of one row each, without ten thousand sets (6 MB)
         self._rows_of: dict = {}
         self.folded: dict = {}  # labels -> the values of that row summed into `other` so far
+        # Counters that add up count from zero in a series of their own, what they counted before being
+        # in `other`: labels of a kept row -> its values (a tuple) when its series began
+        self.rebased = self.counters and self.additive
+        self.base: dict = {}
+        self.resume: dict = {}  # labels of a row whose series ended while it lives -> what it showed last
+        self.before: dict = {}  # labels of the rows changed at this collect -> their values at the last
         self._other: dict = {}  # dimension values -> (metrics, labels of the `other` row)
         self._changed: list = []  # rows new or changed at this collect, as they came
         self._gone: set = set()  # and labels of rows gone
@@ -131,6 +142,7 @@ class _Group:
             gone = last.keys() - now.keys()
         self.mark = told.mark if told is not None else None
         came_as = self._changed = changed  # as they came: a single metric's value, a group's tuple
+        self.before = {labels: last.get(labels) for labels, _ in changed} if self.rebased else {}
         self._gone = gone
         if self.single:
             changed = [(labels, (value,)) for labels, value in changed]
@@ -183,21 +195,31 @@ class _Group:
         values = (self.last if rows is None else rows).get(labels)
         return (values,) if self.single and values is not None else values
 
+    def shown(self, labels: tuple, values):
+        """A kept row's values as its series shows them (as they came: a value or a tuple)."""
+        base = self.base.get(labels)
+        if base is None:
+            return values
+        if self.single:
+            return values - base[0]
+        return tuple(v - b for v, b in zip(values, base))
+
     def emit(self, out: Snapshot, entities: set) -> None:
-        """The rows of these entities, as they came: those of the last emit brought up to date with
-        this collect's changes, or made anew when the entities are not those of the last or when
-        more rows changed than are emitted (the changes of entities not kept are passed over)."""
-        emitted = self._emitted
+        """The rows of these entities: those of the last emit brought up to date with this
+        collect's changes, or made anew when the entities are not those of the last or when more
+        rows changed than are emitted (the changes of entities not kept are passed over)."""
+        emitted, shown = self._emitted, self.shown
         if entities != self._emitted_for or len(self._changed) + len(self._gone) > len(emitted):
             last, rows_of = self.last, self.rows_of
-            emitted = self._emitted = {labels: (labels, last[labels])
+            emitted = self._emitted = {labels: (labels, shown(labels, last[labels]))
                                        for entity in entities for labels in rows_of(entity)}
             self._emitted_for = set(entities)
         else:
             entity_of = self.entity_of
             for labels in self._gone:
                 emitted.pop(labels, None)
-            emitted.update((row[0], row) for row in self._changed if entity_of(row[0]) in entities)
+            emitted.update((labels, (labels, shown(labels, values))) for labels, values in self._changed
+                           if entity_of(labels) in entities)
         (out.rows(self.metrics[0]) if self.single else out.group_rows(self.metrics)).extend(emitted.values())
 
 
@@ -220,9 +242,15 @@ class _Columnar:
         self.sorted = np.empty(0, np.int64)  # ids[order]
         self.last = np.empty((0, len(metrics)), np.int64)  # each row's values at the last collect
         # Whether it is in `other`: then its values there are `last`, for a row not kept that changed
-        # adds its growth to `other` at once.
+        # adds its growth to `other` at once. A new row is, with nothing in it yet.
         self.infold = np.empty(0, bool)
+        # A kept row's values when its series began (what it counted before is in `other`): its
+        # series shows its values less these, from zero, or from what it showed when it last ended
+        # (`resume`: a series that comes back does not go back).
+        self.base = np.empty((0, len(metrics)), np.int64)
+        self.resume = np.empty((0, len(metrics)), np.int64)
         self.totals: dict[int, np.ndarray] = {}  # dimension (an index of dim_names) -> its `other`
+        self.others: set[int] = set()  # the dimensions whose `other` row was given
         self.entity_of = _entity_getter(labels, kind)
         # The rows given for the kept at the last collect, ids ascending, with those ids and their
         # stamps (Columns.stamps), where the Columns had them
@@ -252,9 +280,11 @@ class _Columnar:
             new[order[self.sorted[pos] == ascending]] = False
             # take: four times faster than indexing with an array
             self.last, self.infold = self.last.take(src, axis=0), self.infold.take(src)
+            self.base, self.resume = self.base.take(src, axis=0), self.resume.take(src, axis=0)
         else:
             self.last, self.infold = np.zeros((len(ids), self.last.shape[1]), np.int64), np.zeros(len(ids), bool)
-        self.last[new], self.infold[new] = 0, False
+            self.base, self.resume = np.zeros_like(self.last), np.zeros_like(self.last)
+        self.last[new], self.infold[new], self.base[new], self.resume[new] = 0, True, 0, 0
         self.ids, self.order, self.sorted = ids, order, ascending
         return new
 
@@ -274,7 +304,7 @@ class _Columnar:
         hundred threads kept, few of which ran) and the same tuple for the render to compare."""
         self.own = own
         if cols.stamps is None:
-            return cols.rows(own.tolist())
+            return self._made(cols, own)
         ids, stamps = cols.ids[own], cols.stamps(own)
         self.own_stamps = stamps
         at, same = np.zeros(len(own), np.intp), np.zeros(len(own), bool)
@@ -283,13 +313,17 @@ class _Columnar:
             same = (self.given_ids[at] == ids) & (self.given_stamps[at] == stamps).all(axis=1)
             same[np.searchsorted(own, changed[within(changed, own)])] = False
         # Each row picked in one pass from the last rows followed by the new ones.
-        made = cols.rows(own[~same].tolist())
+        made = self._made(cols, own[~same])
         at[~same] = len(self.given) + np.arange(len(made))
         out = list(map((self.given + made).__getitem__, at.tolist()))
         order = np.argsort(ids)
         self.given_ids, self.given_stamps = ids[order], stamps[order]
         self.given = list(map(out.__getitem__, order.tolist()))
         return out
+
+    def _made(self, cols: Columns, at: np.ndarray) -> list[tuple]:
+        """The rows at these indices, made anew: each counts from where its series began."""
+        return list(zip(cols.labels(at.tolist()), shown(cols.values[at] - self.base[at], cols.units)))
 
     def as_before(self, cols: Columns) -> bool:
         """Whether the kept rows of these Columns, whose ids and values are those of the last, are
@@ -312,6 +346,10 @@ class _KindState:
     totals: dict = field(default_factory=dict)  # (metrics, labels of other) -> values
     members: dict = field(default_factory=dict)  # the same key -> rows summed into it now (for gauges)
     folded_total: int = 0  # entities that went into `other`, ever
+    # Whether the kind's first collect is done: what its entities counted before it is no one's
+    # news, but an `other` row that begins later begins at 0, as every series does.
+    begun: bool = False
+    others: set = field(default_factory=set)  # the keys of `totals` whose row was given
     # Where the kind comes as Columns: its groups, its entities (ascending) at the last collect, and
     # those kept by their labels as a kind given as rows names them (ids are the probe's), and
     # those that only the groups beside the columns have, shown too.
@@ -364,6 +402,7 @@ class Budget:
                 by_kind[kind][metrics] = (rows, False)
         for kind, groups in by_kind.items():
             self._apply_kind(self.kinds[kind], kind, groups, snap.changes, snap.unread, out)
+            self.kinds[kind].begun = True
         return out
 
     def _apply_kind(self, st: _KindState, kind: str, groups: dict, told: dict, unread: set, out: Snapshot) -> None:
@@ -402,14 +441,23 @@ class Budget:
         kept = st.kept
         promoted, demoted = kept - was_kept, was_kept - kept
         for g, changed, gone in seen:
-            g.emit(out, kept)
             if g.additive:
                 self._fold(st, g, changed, gone, promoted, demoted)
+            # The demoted rows' series end with what they counted until now, `other` goes on from there.
+            g.emit(out, kept | demoted if g.rebased else kept)
+            for e in demoted if g.rebased else ():
+                for labels in g.rows_of(e):
+                    values, base = g.values(labels), g.base.pop(labels, None)  # (a row new now has none)
+                    g.resume[labels] = values if base is None else tuple(v - b for v, b in zip(values, base))
         st.folded_total += sum(e not in kept for e in new) + len(demoted)
         for key, values in st.totals.items():
             metrics, labels = key
             if metrics in held:
                 continue
+            if key not in st.others:  # a counter's new `other` row shows 0 (what went into it, at the next)
+                st.others.add(key)
+                if st.begun and all(m.kind in (COUNTER, HISTOGRAM) for m in metrics):
+                    values = [v - v for v in values]
             if len(metrics) == 1:
                 out.rows(metrics[0]).append((labels, values[0]))
             else:
@@ -487,10 +535,15 @@ class Budget:
         Columns, the rows changed, own) of each."""
         st.named = set()
         for c, cols, changed, own in seen:
-            rows = c.rows(cols, own, changed)
-            st.named.update(map(c.entity_of, map(_LABELS, rows)))
-            c.emitted = rows + self._fold_columns(c, cols, changed, own, c.rows_of(cols, demoted))
-            out.group_rows(c.metrics).extend(c.emitted)
+            left, had = c.rows_of(cols, demoted), len(c.others)
+            others = self._fold_columns(c, cols, changed, own, left, st.begun)
+            # The demoted rows' series end with what they counted until now, `other` goes on from there.
+            at = np.sort(np.concatenate((own, left)))
+            rows = c.rows(cols, at, changed)
+            st.named.update(c.entity_of(row[0]) for row, of_own in zip(rows, ~within(at, left)) if of_own)
+            out.group_rows(c.metrics).extend(rows + others)
+            # Not given again as they are: the demoted are not shown again, nor a new `other` row at 0.
+            c.emitted = None if len(left) or (st.begun and len(c.others) > had) else rows + others
             c.mark = cols.told[1] if cols.told else None
 
     @classmethod
@@ -506,29 +559,42 @@ class Budget:
 
     @staticmethod
     def _fold_columns(c: _Columnar, cols: Columns, changed: np.ndarray, own: np.ndarray,
-                      demoted: np.ndarray) -> list[tuple]:
+                      demoted: np.ndarray, from_zero: bool) -> list[tuple]:
         """A group's `other` rows: what each row not kept counted since it last added to it (all of
-        it if it is new, just left its own series, or went back); one that gets its own series
-        leaves in it what it added."""
-        vals = cols.values
-        c.infold[own] = False
+        it if it went back). A row that gets its own series adds what it counted until now, and its
+        series counts from zero; one `demoted` adds nothing now: its series shows what it counted
+        one last time, and `other` goes on from there. With `from_zero`, an `other` row new now
+        shows 0 (what went into it shows at the next collect)."""
+        vals, last, infold = cols.values, c.last, c.infold
+        starting = own[infold[own]]
         enters = np.zeros(len(cols.ids), bool)  # (a mask, not setdiff1d and union1d, which import numpy.ma)
         enters[changed] = True
         enters[own] = False
-        enters[demoted] = True
+        enters[demoted] = False
+        enters[starting] = True
         entering = np.flatnonzero(enters)
-        now, was = vals[entering], np.where(c.infold[entering, None], c.last[entering], 0)
+        now, was = vals[entering], np.where(infold[entering, None], last[entering], 0)
         steps, into = np.where(now < was, now, now - was), cols.dims[entering]
         sums = np.zeros((len(c.dim_names), len(c.metrics)), np.int64)
         np.add.at(sums, into, steps)
         for d in np.flatnonzero(np.bincount(into, minlength=len(c.dim_names))).tolist():
             c.totals[d] = c.totals.get(d, 0) + sums[d]
-        c.infold[entering] = True
-        c.last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
+        infold[entering] = True
+        going = own[~infold[own]]  # kept rows that had their series: one that went back (a reused id) goes on
+        c.base[going] -= np.where(vals[going] < last[going], last[going], 0)
+        c.base[starting] = vals[starting] - c.resume[starting]
+        c.resume[demoted] = vals[demoted] - c.base[demoted]
+        infold[own] = False
+        infold[demoted] = True
+        last[changed] = vals[changed]  # the budget's own copy: the probe's arrays may be written over
         if not c.totals:
             return []
         dims = list(c.totals)
-        return list(zip(map(c.other_labels, dims), shown(np.array([c.totals[d] for d in dims]), c.units)))
+        sums = np.array([c.totals[d] for d in dims])
+        if from_zero:
+            sums[[d not in c.others for d in dims]] = 0
+        c.others.update(dims)
+        return list(zip(map(c.other_labels, dims), shown(sums, c.units)))
 
     @staticmethod
     def _beside_columns(st: _KindState, kind: str, groups: dict, out: Snapshot) -> None:
@@ -564,8 +630,33 @@ class Budget:
     @staticmethod
     def _fold(st: _KindState, g: _Group, changed: list, gone: set, promoted: set, demoted: set) -> None:
         """Bring the `other` rows of the group up to date. A counter's `other` keeps what every
-        entity that left it (ended, or got its own series) had summed into it; a gauge's is the sum
-        of the entities folded now."""
+        entity that left it (ended, or got its own series) had summed into it, and takes what an
+        entity counted before its series began; a gauge's is the sum of the entities folded now."""
+        kept, entity_of = st.kept, g.entity_of
+        if g.rebased:
+            for labels in gone:
+                g.folded.pop(labels, None)
+                g.base.pop(labels, None)
+                g.resume.pop(labels, None)
+            starting = {labels: g.values(labels) for e in promoted for labels in g.rows_of(e)}
+            starting.update((labels, values) for labels, values in changed
+                            if labels not in g.base and entity_of(labels) in kept)
+            for labels, values in changed:  # a kept row that went back (a reused PID): its series goes on
+                base, old = g.base.get(labels), g.before.get(labels)
+                if base is not None and old is not None and labels not in starting:
+                    g.base[labels] = tuple(b - o if _went_back(v, o) else b
+                                           for v, o, b in zip(values, (old,) if g.single else old, base))
+            entering = {labels: values for labels, values in changed
+                        if entity_of(labels) not in kept and entity_of(labels) not in demoted}
+            entering.update(starting)
+            for e in demoted:  # their series show what they counted until now: `other` goes on from there
+                g.folded.update((labels, g.values(labels)) for labels in g.rows_of(e))
+            Budget._fold_rows(st, g, entering)
+            for labels, values in starting.items():
+                resume = g.resume.pop(labels, None)
+                g.base[labels] = values if resume is None else tuple(v - r for v, r in zip(values, resume))
+                del g.folded[labels]
+            return
         leaving = [labels for labels in gone if labels in g.folded]
         leaving += [labels for e in promoted for labels in g.rows_of(e) if labels in g.folded]
         for labels in leaving:
@@ -576,10 +667,14 @@ class Budget:
                 st.members[key] -= 1
                 if not st.members[key]:
                     del st.totals[key], st.members[key]
-        kept, entity_of = st.kept, g.entity_of
         entering = {labels: values for labels, values in changed if entity_of(labels) not in kept}
         for e in demoted:
             entering.update((labels, g.values(labels)) for labels in g.rows_of(e))
+        Budget._fold_rows(st, g, entering)
+
+    @staticmethod
+    def _fold_rows(st: _KindState, g: _Group, entering: dict) -> None:
+        """Add to `other` what each of these rows grew by since it last went into it."""
         if not entering:
             return
         if any(isinstance(v, Histogram) for v in next(iter(entering.values()))):

@@ -67,6 +67,10 @@ class ProcessTable:
         self.proc = proc
         self.netns = netns(proc, "self") if os.environ.get(OWN_NETNS) == "1" else None
         self._names: dict[int, str] = {}
+        # The PIDs that left the table at the last refresh, with their names (a probe whose kernel
+        # maps keep an ended process's final totals shows them once, and names it so), and those
+        # of processes that started and ended between two refreshes, as the kernel told them.
+        self._ended: dict[int, str] = {}
         self._cmdlines: dict[int, list[str]] = {}  # read when first asked for, kept while the PID lives
         # PIDs in other network namespaces at the last listing -> (when first found there, whether a
         # later listing found it there too)
@@ -93,6 +97,7 @@ class ProcessTable:
         if complete and renamed is not None and not renamed and self.refreshes:
             self.refreshes += 1
             self._renamed_at(set())
+            self._ended = {}
             return
         alive = set(self.listing())
         known = {} if renamed is None else self._names
@@ -108,6 +113,7 @@ class ProcessTable:
         self.refreshes += 1
         self._told = self._told and (renamed is None or isinstance(renamed, set))
         self._new_at = {pid: self._new_at.get(pid, 0) if pid in known else self.refreshes for pid in alive}
+        self._ended = {pid: name for pid, name in self._names.items() if pid not in alive}
         self._names = {pid: known.get(pid) or comm(self.proc, pid) for pid in alive}
         self._renamed_at(None if renamed is None else alive - known.keys())
         self._cmdlines = {pid: line for pid, line in self._cmdlines.items() if pid in alive and pid in known}
@@ -184,6 +190,16 @@ class ProcessTable:
 
     def name(self, pid: int) -> str:
         return self._names.get(pid, "")
+
+    def ended_name(self, pid: int) -> str:
+        """The name of a process that ended since the last refresh but one ("" if unknown)."""
+        return self._ended.get(pid, "")
+
+    def tell_ended(self, names: dict[int, str]) -> None:
+        """Told by a probe: processes that ended since the last refresh, with their names as the
+        kernel knew them (those that started and ended in between were never listed)."""
+        for pid, name in names.items():
+            self._ended.setdefault(pid, name)
 
     def cmdline(self, pid: int) -> list[str]:
         """The command line joined with spaces, as one string in a list ([] for a kernel thread)."""

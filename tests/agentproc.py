@@ -99,6 +99,19 @@ def samples(text: str, name: str) -> dict[tuple, float]:
     return out
 
 
+def series_begun(url: str, name: str, pid: int) -> float:
+    """Wait until the process has a series of `name` and return its value. A series counts from
+    where it began (what the process counted before is in `other`): a test that counts a process's
+    work exactly has the agent see it first, idle."""
+    from tests.conftest import eventually
+
+    def begun() -> float:
+        found = [v for labels, v in samples(scrape(url), name).items() if dict(labels).get("pid") == str(pid)]
+        assert found, f"no series of {name} for pid {pid} yet"
+        return sum(found)
+    return eventually(begun, timeout=10)
+
+
 def counters(text: str) -> dict[str, float]:
     """Every sample of a counter (and of a histogram's buckets, count and sum) in a scrape, by its
     name and labels as written."""

@@ -20,7 +20,7 @@ import pytest
 
 from drums.client import Agent
 from drums.selfcost import MEMORY_EVERY
-from tests.agentproc import free_port, running_agent, samples, scrape, serving
+from tests.agentproc import free_port, running_agent, samples, scrape, series_begun, serving
 from tests.conftest import TEST_PIN_ROOT, eventually, offered_paths
 
 
@@ -109,7 +109,7 @@ def test_without_kernel_btf_the_agent_counts_with_the_btf_file_it_is_given(tmp_p
     """A kernel built without BTF (Raspberry Pi OS's): the agent, with /sys/kernel/btf hidden in a
     mount namespace of its own, takes its struct offsets from the file it is given (a copy of this
     kernel's BTF, as pahole would make it), each BPF probe takes a path that needs no kernel BTF,
-    and the bytes a child sends and the CPU it burns are counted exactly."""
+    and the bytes a child sends and the CPU it burns once its series began are counted exactly."""
     from drums.kernel.features import Features
     from drums.probes import sched, sockets, tcp
     btf = tmp_path / "vmlinux.btf"
@@ -129,16 +129,27 @@ def test_without_kernel_btf_the_agent_counts_with_the_btf_file_it_is_given(tmp_p
             child = subprocess.Popen([sys.executable, "-c", f"""
 import socket, sys, time
 s = socket.create_connection(("127.0.0.1", {server.getsockname()[1]}))
+s.send(b"a")
+print(flush=True); sys.stdin.readline()
 s.sendall(b"b" * {size})
 end = time.process_time() + 0.5
 while time.process_time() < end: pass
 print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             conn, _ = server.accept()
-            got = 0
-            while got < size:
-                got += len(conn.recv(1 << 20))
             child.stdout.readline()
+            clock = ((~child.pid) << 3) | 2  # its process CPU clock
             try:
+                # The child sleeps: its CPU time is the kernel's own runtime at its last switch-out.
+                series_begun(url, "drums_process_socket_sent_bytes_total", child.pid)
+                series_begun(url, "drums_process_cpu_seconds_total", child.pid)
+                began = time.clock_gettime(clock)
+                child.stdin.write("go\n")
+                child.stdin.flush()
+                got = 0
+                while got < size + 1:
+                    got += len(conn.recv(1 << 20))
+                child.stdout.readline()
+
                 def counted():
                     text = scrape(url)
                     sent = {dict(k)["pid"]: v for k, v in samples(text, "drums_process_socket_sent_bytes_total").items()}
@@ -147,8 +158,7 @@ print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subpr
                     assert sent.get(pid) == size and cpu.get(pid, 0) > 0, (sent.get(pid), cpu.get(pid))
                     return cpu[pid]
                 cpu = eventually(counted, timeout=10)
-                # The child sleeps: its CPU time is the kernel's own runtime at its last switch-out.
-                kernel = time.clock_gettime(((~child.pid) << 3) | 2)  # its process CPU clock
+                kernel = time.clock_gettime(clock) - began
                 assert abs(cpu - kernel) <= 1e-6, (cpu, kernel)
             finally:
                 child.stdin.close()
@@ -158,13 +168,19 @@ print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subpr
 
 def test_exited_process_series_gone_within_two_scrapes(agent):
     child = subprocess.Popen([sys.executable, "-c", "import sys, time\n"
-                              "while time.process_time() < 0.3: pass\n"
+                              "print(time.process_time(), flush=True); sys.stdin.readline()\n"
+                              "end = time.process_time() + 0.3\n"
+                              "while time.process_time() < end: pass\n"
                               "print(time.process_time(), flush=True)\nsys.stdin.read()"],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     pid = str(child.pid)
-    burned = float(child.stdout.readline())
+    began = float(child.stdout.readline())
+    series_begun(agent, "drums_process_cpu_seconds_total", child.pid)
+    child.stdin.write("go\n")
+    child.stdin.flush()
+    burned = float(child.stdout.readline()) - began
     cpu = samples(scrape(agent), "drums_process_cpu_seconds_total")
-    assert any(dict(k)["pid"] == pid and burned <= v <= burned + 0.05 for k, v in cpu.items()), (burned, cpu)
+    assert any(dict(k)["pid"] == pid and burned - 0.05 <= v <= burned + 0.05 for k, v in cpu.items()), (burned, cpu)
     child.stdin.close()
     child.wait()
     gone_after = None
@@ -570,6 +586,7 @@ def test_each_probes_maps_kernel_memory_is_said_and_none_of_it_is_counted_as_the
 
 SENDER = ("import socket, sys\nsrv = socket.create_server(('127.0.0.1', 0))\n"
           "c = socket.create_connection(srv.getsockname()); s, _ = srv.accept()\n"
+          "c.send(b'x'); s.recv(1)\nprint('ready', flush=True); sys.stdin.readline()\n"
           "c.sendall(b'x' * 12345); s.recv(1 << 16)\nprint('sent', flush=True)\nsys.stdin.read()")
 
 
@@ -587,6 +604,10 @@ def test_a_second_agent_or_an_unload_on_the_same_pins_is_refused_and_the_first_k
         sender = subprocess.Popen([sys.executable, "-c", SENDER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                   text=True)
         try:
+            assert sender.stdout.readline() == "ready\n"
+            series_begun(url, "drums_process_socket_sent_bytes_total", sender.pid)
+            sender.stdin.write("go\n")
+            sender.stdin.flush()
             assert sender.stdout.readline() == "sent\n"
             key = (("pid", str(sender.pid)), ("process", os.path.basename(sys.executable)[:15]), ("protocol", "tcp"))
 

@@ -61,6 +61,11 @@ class Probe:
         probe cannot tell."""
         return None
 
+    def ended(self) -> dict[int, str]:
+        """The processes that ended since the last collect, with their names, where the probe's
+        kernel maps keep them until then; read before any probe collects."""
+        return {}
+
     def transitions(self) -> int | None:
         """The host's TCP state changes so far; None where the probe does not count them."""
         return None

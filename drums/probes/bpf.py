@@ -398,6 +398,11 @@ SOCK_ENDPOINT_FIELDS = {
 }
 
 
+def comm_text(comm: bytes) -> str:
+    """A task's name as a BPF program copied it (16 bytes, NUL-padded)."""
+    return comm.split(b"\0", 1)[0].decode(errors="replace")
+
+
 class ProcessTotals:
     """A process's totals from two maps: its exited threads (folded per process by the kernel) and
     its live threads. A process is its PID and its start time, so the folded threads of a process

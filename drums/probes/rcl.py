@@ -24,7 +24,7 @@ from drums.errors import ProbeError
 from drums.kernel import elf, perflink
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Histogram, Metric, Monotonic, Snapshot
-from drums.probes.bpf import DROPPED, AttachPath, BpfProbe, needs_uprobes
+from drums.probes.bpf import DROPPED, AttachPath, BpfProbe, comm_text, needs_uprobes
 from drums.proctable import MappedLibraries, ProcessTable, mapped_file
 
 LIBRARY = "librcl.so"
@@ -126,7 +126,7 @@ def _string(mem, address: int, prefix: bytes) -> str | None:
     data = _read(mem, address, 256) if address else None
     if data is None or not data.startswith(prefix) or b"\0" not in data:
         return None
-    return data.split(b"\0", 1)[0].decode(errors="replace")
+    return comm_text(data)
 
 
 def endpoint_of(pid: int, handle: int) -> tuple[str, str] | None:

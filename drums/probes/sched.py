@@ -2,6 +2,8 @@
 (bpf/sched.bpf.c), read from one map per collect instead of thousands of /proc files.
 
 Process totals include threads that exited, so they never go backwards while the process lives.
+A process that ended shows its final totals at the next collect, once: the kernel keeps them
+(with its name, for one that started and ended between two collects) until the agent has read them.
 """
 from __future__ import annotations
 
@@ -13,8 +15,8 @@ import numpy as np
 from drums.arrays import among, distinct, within
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, HISTOGRAM, Changes, Columns, Histogram, Metric, Snapshot, highest
-from drums.probes.bpf import (DROPPED, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, needs_tracepoints,
-                              change_marks, offset_defines, typed)
+from drums.probes.bpf import (DROPPED, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, ProcessTotals, change_marks,
+                              comm_text, needs_tracepoints, offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable
 
@@ -49,7 +51,7 @@ PROCESS_METRICS = (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES)  # those made as
 
 _SCHED = "5Q24I"  # struct sched_t
 _THREAD_VALUE = struct.Struct("<IIQQQQQQ" + _SCHED + "16s")  # struct thread_sched_t
-_PROCESS_VALUE = struct.Struct("<Q" + _SCHED)
+_PROCESS_VALUE = struct.Struct("<Q" + _SCHED + "16s")  # struct exited_sched_t
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 DROP_RENAMED = 2  # the index of bpf/sched.bpf.c's count of marks lost to a full `renamed` map
@@ -91,7 +93,7 @@ class _Made:
 
 # The scheduler tracepoints, with the programs that count them.
 _PROGRAMS = (("sched_switch", "on_switch"), ("sched_wakeup", "on_wakeup"), ("sched_wakeup_new", "on_wakeup"),
-             ("sched_process_free", "on_task_free"), ("task_rename", "on_rename"),
+             ("task_rename", "on_rename"),
              ("sched_process_exec", "on_exec"), ("sched_process_exit", "on_exit"), ("sched_process_fork", "on_fork"))
 _RAW = AttachPath("raw_tracepoint", tuple(("raw_tracepoint", tp, fn) for tp, fn in _PROGRAMS),
                   needs_tracepoints(*(tp for tp, _ in _PROGRAMS)),
@@ -125,7 +127,7 @@ class _ThreadLabels:
 
 
 def _thread_labels(id_: int, comm: bytes) -> tuple[tuple[str, ...], ...]:
-    thread = str(id_ >> 32), str(id_ & 0xFFFFFFFF), comm.split(b"\0", 1)[0].decode(errors="replace")
+    thread = str(id_ >> 32), str(id_ & 0xFFFFFFFF), comm_text(comm)
     return (thread, *(thread + (kind,) for kind in SWITCH_KINDS))
 
 
@@ -281,20 +283,28 @@ class SchedProbe(BpfProbe):
             self._rows, self._remake = [{} for _ in PROCESS_METRICS], True
             raise
 
+    def ended(self) -> dict[int, str]:
+        pt, out = self.proctable, {}
+        keys, values, _ = self.read("exited_sched")
+        for (tgid,), (*_, comm) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
+            if not pt.alive(tgid) and not pt.belongs(tgid):
+                out[tgid] = comm_text(comm)
+        return out
+
     def _collect(self, snap: Snapshot) -> None:
         pt = self.proctable
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
         exited: dict[int, bytes] = {}
+        ended: list[tuple[bytes, bytes]] = []  # the entries of processes that ended: read once, then deleted
         keys, values, _ = self.read("exited_sched")
         size = _PROCESS_VALUE.size
         for i, (tgid,) in enumerate(_U32.iter_unpack(keys)):
+            value = values[i * size:(i + 1) * size]
             if pt.alive(tgid):
-                exited[tgid] = values[i * size:(i + 1) * size]
-            elif not pt.belongs(tgid):
-                # sched_process_free of the leader deletes the entry, but on a busy machine the free
-                # of one of its threads may come after it and fold into a new one: the process is
-                # gone, so is its entry.
-                self.opened["exited_sched"].delete(_U32.pack(tgid))
+                exited[tgid] = value
+            elif not pt.belongs(tgid):  # ended (not one that started after the table's listing)
+                exited[tgid] = value
+                ended.append((keys[4 * i:4 * i + 4], value))
         # The thread entries matched against the last read in bulk: only processes with a thread
         # new, changed, gone or on a CPU now are made again.
         running = self._running()
@@ -308,10 +318,11 @@ class SchedProbe(BpfProbe):
         m.rows[new] = tgids[new].tolist()  # kept with each thread, for the collect that finds it gone
         self._threads.keep(m, np.ones(len(m.keys), bool))
         made, cpu = self._made, self._cpu
-        alive = pt.alive_among(distinct(tgids).tolist()) | exited.keys()
-        ended = made.keys() - alive
-        was = [made.pop(tgid) for tgid in ended]  # ended, and made again: their last rows
-        for tgid in ended:
+        alive = pt.alive_among(distinct(tgids).tolist())
+        shown = alive | exited.keys()  # and the processes that ended since the last collect, once more
+        gone = made.keys() - shown
+        was = [made.pop(tgid) for tgid in gone]  # gone, and made again: their last rows
+        for tgid in gone:
             del cpu[tgid]
         # Made again: a process new, with a thread new, changed, gone or on a CPU, with exited threads
         # whose entry changed, or renamed since the last collect; of a thousand, few.
@@ -321,9 +332,13 @@ class SchedProbe(BpfProbe):
         suspects = alive if renamed is None or remake else \
             (alive - made.keys()) | (alive & (dirty | exited.keys() | renamed))
         again = {}
-        for tgid in suspects:
-            seen = (exited.get(tgid), pt.name(tgid))
+        for tgid in suspects | (shown - alive):
             before = made.get(tgid)
+            if tgid in alive:
+                name = pt.name(tgid)
+            else:  # ended: named as it was, or as the kernel last knew it
+                name = before.seen[1] if before is not None else pt.ended_name(tgid)
+            seen = (exited.get(tgid), name)
             if remake or before is None or tgid in dirty or before.seen != seen:
                 again[tgid] = seen
         threads: dict[int, list[tuple[int, bytes]]] = {tgid: [] for tgid in again}
@@ -351,6 +366,8 @@ class SchedProbe(BpfProbe):
             snap.changes[(metric,)] = Changes(self._collects - 1, self._collects, changed, gone)
         self._thread_columns(snap, m, tgids, among(tgids, alive), running)
         pt.ran(dict(cpu))
+        if ended:  # read: the next collect finds them gone (or, if a late thread folded, once more)
+            self.opened["exited_sched"].delete_unchanged(ended)
         self.read_dropped()
 
     def _thread_columns(self, snap: Snapshot, m: Matched, tgids: np.ndarray, alive: np.ndarray,
@@ -394,7 +411,7 @@ class SchedProbe(BpfProbe):
                 last[start] = (cpus[i][1], runqs[i][1], *(n for _, n in switches[i * kinds:(i + 1) * kinds]))
         totals = ProcessTotals()
         if exited is not None:
-            start, *s = _PROCESS_VALUE.unpack(exited)
+            start, *s, _comm = _PROCESS_VALUE.unpack(exited)
             totals.add_exited(tgid, start, s)
         rows: dict[Metric, list] = {metric: [] for metric in PROCESS_METRICS}
         for tid, raw in live:

@@ -20,9 +20,9 @@ from drums.kernel import bpffs, sockdiag
 from drums.kernel.btf import Btf
 from drums.metrics import COUNTER, Columns, Metric, Monotonic, Snapshot
 from drums.netfmt import endpoint
-from drums.probes.bpf import (DROPPED, SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, needs_all,
-                              needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints,
-                              change_marks, offset_defines, typed)
+from drums.probes.bpf import (DROPPED, SOCK_ENDPOINT_FIELDS, TASK_IDENTITY_FIELDS, AttachPath, BpfProbe, change_marks,
+                              comm_text, needs_all, needs_fentry, needs_kprobes, needs_test_run, needs_tracepoints,
+                              offset_defines, typed)
 from drums.probes.entries import Entries, Matched, Remembered
 from drums.proctable import ProcessTable, comm
 
@@ -52,7 +52,7 @@ PROCESS = {c: Metric(f"drums_process_socket_{c}_total", COUNTER,
 # the owner's start, and in a slot the slot's owner.
 _SOCKET_VALUE = struct.Struct("<QIIHHHHHHI16s16s6QQQQ")
 _IDENTITY = struct.Struct("<QIIHHHHHHI16s16s")  # the head of _SOCKET_VALUE: what names the socket
-_PROCESS_VALUE = struct.Struct("<Q24Q")
+_PROCESS_VALUE = struct.Struct("<Q24Q16s")  # struct process_traffic_t
 _U64 = struct.Struct("<Q")
 _WORD = (1 << 64) - 1
 _U32 = struct.Struct("<I")
@@ -80,11 +80,9 @@ SPLICE_READS = ("tcp_splice_read", "unix_stream_splice_read")
 SENDPAGES = ("inet_sendpage", "unix_stream_sendpage")
 # On Linux >= 6.6 only splice's reads miss the tracepoints: the syscall's entry and exit count them.
 SPLICE_EVENTS = ("sys_enter_splice", "sys_exit_splice")
-_LIFECYCLE_EVENTS = ("inet_sock_set_state", "sched_process_free")
-LIFECYCLE = tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(_LIFECYCLE_EVENTS, ("on_tcp_state", "on_task_free"))) + (
-    ("run", "", "forget_gone"),  # the agent's, for sockets freed without a tracepoint (see _forget)
-)
-_NEEDS_LIFECYCLE = needs_all(needs_test_run, needs_tracepoints(*_LIFECYCLE_EVENTS))
+LIFECYCLE = (("raw_tracepoint", "inet_sock_set_state", "on_tcp_state"),
+             ("run", "", "forget_gone"))  # the agent's, for sockets freed without a tracepoint (see _forget)
+_NEEDS_LIFECYCLE = needs_all(needs_test_run, needs_tracepoints("inet_sock_set_state"))
 _RAW = AttachPath("raw_tracepoint",
                   tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv")))
                   + tuple(("tracepoint", f"syscalls:{e}", fn) for e, fn in zip(SPLICE_EVENTS, ("on_splice_enter",
@@ -263,6 +261,7 @@ class SocketsProbe(BpfProbe):
         self.proctable = proctable
         self.proc_net_unix = proc_net_unix
         self._monotonic = Monotonic()
+        self._named: dict[int, str] = {}  # the name of each process the last collect gave totals of
         self._fds_read_at: dict[int, float] = {}
         self._tcp_checked_at = float("-inf")
         self._netns: int | None = None  # this process's network namespace: the one sock_diag lists
@@ -411,21 +410,23 @@ class SocketsProbe(BpfProbe):
 
     def _process_totals(self, snap: Snapshot, closed_keys: bytes, closed_values: bytes, forgotten: dict) -> None:
         """Per process and protocol: its live sockets' counts (_live_totals), what its closed sockets
-        left in closed_traffic, and what this collect forgot since it read that."""
+        left in closed_traffic, and what this collect forgot since it read that. A process that
+        ended shows its final totals once: the kernel keeps its closed_traffic until it is read
+        here after the process ended, and deleted (unless a socket it owned folded into it since:
+        then it shows again, and goes at the next collect)."""
         pt = self.proctable
         totals = dict(self._live_totals)
         for key, row in forgotten.items():
             _add(totals, key, row)
-        # A process's closed_traffic goes when the kernel reaps it, unless a socket it owned (and
-        # handed on) closes after that: such are deleted here.
-        ended = []
+        ended, comms = [], {}
         size = _PROCESS_VALUE.size
-        for i, ((tgid,), (start, *flat)) in enumerate(zip(_U32.iter_unpack(closed_keys),
-                                                           _PROCESS_VALUE.iter_unpack(closed_values))):
+        for i, ((tgid,), (start, *flat, comm)) in enumerate(zip(_U32.iter_unpack(closed_keys),
+                                                                 _PROCESS_VALUE.iter_unpack(closed_values))):
             if not pt.alive(tgid):
-                if not pt.belongs(tgid):  # not one that started after the table's listing
-                    ended.append((closed_keys[4 * i: 4 * i + 4], closed_values[size * i: size * (i + 1)]))
-                continue
+                if pt.belongs(tgid):  # one that started after the table's listing: the next collect's
+                    continue
+                ended.append((closed_keys[4 * i: 4 * i + 4], closed_values[size * i: size * (i + 1)]))
+                comms[tgid] = comm_text(comm)
             for klass in range(len(PROTOCOLS)):
                 _add(totals, (tgid, start, klass), flat[6 * klass: 6 * klass + 6])
         if ended:
@@ -435,11 +436,19 @@ class SocketsProbe(BpfProbe):
         latest: dict[int, int] = {}
         for tgid, start, _ in totals:
             latest[tgid] = max(start, latest.get(tgid, start))
-        m = self._monotonic
+        m, named = self._monotonic, self._named
+        self._named = {}
         for (tgid, start, klass), row in totals.items():
-            if latest[tgid] != start or not pt.alive(tgid):
+            if latest[tgid] != start:
                 continue
-            labels = (str(tgid), pt.name(tgid), PROTOCOLS[klass])
+            if pt.alive(tgid):
+                name = pt.name(tgid)
+            elif pt.belongs(tgid):
+                continue  # started after the table's listing: the next collect's
+            else:  # ended: named as it was, or as the kernel last knew it
+                name = named.get(tgid) or pt.ended_name(tgid) or comms.get(tgid, "")
+            self._named[tgid] = name
+            labels = (str(tgid), name, PROTOCOLS[klass])
             for c, value in zip(_COUNTS, row):
                 snap.add(PROCESS[c], labels, m((c, tgid, start, klass), value))
         m.next_collect()

@@ -5,7 +5,7 @@ QoS $DRUMS_TEST_DEADLINE_MS if set, producer (a 1 MB image-like message on /imag
 $DRUMS_TEST_IMAGE_BYTES sets another size), viewer
 (subscribes /image), processor (/image -> /processed), sink (subscribes /processed), idle (a node
 with no endpoints of its own), leaker (keeps $DRUMS_TEST_LEAK_BYTES more memory, default 100 kB,
-every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on
+every 0.1 s, as a leak does), flooder (logs a line every 10 ms: it floods /rosout), metronome (on each
 "go", publishes $DRUMS_TEST_BURST messages on /beat (with $DRUMS_TEST_DEADLINE_MS), the times between
 them cycling through $DRUMS_TEST_PERIODS_MS, default "20x9,40": 20 ms apart but every tenth 40 ms;
 on a line "beats" it prints its clock, CLOCK_MONOTONIC in ns, right before each publish (from a
@@ -183,18 +183,20 @@ def beat(pub) -> None:
     task run in between put milliseconds into one period of the two (p99 3 ms apart)."""
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # 0: this thread
     periods = schedule()
-    started.wait()
-    # With $DRUMS_TEST_BURST_SUBSCRIBERS, not before that many subscribers matched (DDS discovery
-    # over UDP can take seconds); without, whether or not anyone listens.
-    while pub.get_subscription_count() < int(os.environ.get("DRUMS_TEST_BURST_SUBSCRIBERS", "0")):
-        time.sleep(0.01)
-    due = time.monotonic_ns()
-    for i in range(burst):
-        time.sleep(max(0, due - time.monotonic_ns()) / 1e9)
-        beats.append(time.monotonic_ns())
-        pub.publish(String(data=str(time.time_ns())))
-        counted[0] += 1
-        due += periods[i % len(periods)]
+    while True:  # a burst at each "go"
+        started.wait()
+        started.clear()
+        # With $DRUMS_TEST_BURST_SUBSCRIBERS, not before that many subscribers matched (DDS discovery
+        # over UDP can take seconds); without, whether or not anyone listens.
+        while pub.get_subscription_count() < int(os.environ.get("DRUMS_TEST_BURST_SUBSCRIBERS", "0")):
+            time.sleep(0.01)
+        due = time.monotonic_ns()
+        for i in range(burst):
+            time.sleep(max(0, due - time.monotonic_ns()) / 1e9)
+            beats.append(time.monotonic_ns())
+            pub.publish(String(data=str(time.time_ns())))
+            counted[0] += 1
+            due += periods[i % len(periods)]
 
 
 def main() -> None:

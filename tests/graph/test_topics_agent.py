@@ -121,11 +121,13 @@ def test_two_nodes_of_one_process_on_one_topic_keep_their_own_counts(agent, scra
     # count of theirs is left without its node: on every topic, what the processes' rows count
     # (per pid and endpoint) is what their nodes' rows do. (The host's count of rows without a
     # node says nothing here: ROS 2 processes of other graphs come and go beside this test.)
+    # The processes' series count from where they began (what came before is in the budget's
+    # `other`), the nodes' from the start: what each grew by over a second burst is compared.
     a, b, listener = f"twin_a_{transport}", f"twin_b_{transport}", f"twin_listener_{transport}"
     sub, pub = burst(ros_nodes, TRANSPORTS[transport], (a, b), listener)
     expect(agent, {f"/{a}": N, f"/{b}": N}, {f"/{listener}": 2 * N})
-    text = scrape(agent)
-    for kind in ("published", "taken"):
+
+    def counts(text: str, kind: str) -> tuple[dict, dict]:
         by_process, by_node = {}, {}
         for labels, v in samples(text, f"drums_ros_messages_{kind}_total").items():
             row = dict(labels)
@@ -135,6 +137,16 @@ def test_two_nodes_of_one_process_on_one_topic_keep_their_own_counts(agent, scra
             row = dict(labels)
             if row["node"] in (f"/{a}", f"/{b}", f"/{listener}"):
                 by_node[row["topic"]] = by_node.get(row["topic"], 0) + v
+        return by_process, by_node
+    before = scrape(agent)
+    pub.go()
+    wait_until(lambda: (pub.count(), sub.count()) == (4 * N,) * 2, "the second burst sent and taken", timeout=30)
+    expect(agent, {f"/{a}": 2 * N, f"/{b}": 2 * N}, {f"/{listener}": 4 * N})
+    after = scrape(agent)
+    for kind in ("published", "taken"):
+        (process_was, node_was), (process_now, node_now) = counts(before, kind), counts(after, kind)
+        by_process = {t: v - process_was.get(t, 0) for t, v in process_now.items()}
+        by_node = {t: v - node_was.get(t, 0) for t, v in node_now.items()}
         assert by_process == by_node and by_process.get("/chatter") == 2 * N, (kind, by_process, by_node)
 
 

@@ -35,7 +35,7 @@ def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
             assert b.load_func(fn.encode(), BPF.KPROBE).fd >= 0, fn
         # The lifecycle's programs, and the one the agent runs itself to forget a socket.
         others = [fn for kind, _, fn in path.attachments if kind in ("raw_tracepoint", "run")]
-        assert others == ["on_tcp_state", "on_task_free", "forget_gone"]
+        assert others == ["on_tcp_state", "forget_gone"]
         for fn in others:
             assert b.load_func(fn.encode(), BPF.RAW_TRACEPOINT).fd >= 0, fn
     finally:

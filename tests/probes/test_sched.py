@@ -33,8 +33,8 @@ THREAD_RUNQ = "drums_thread_runqueue_wait_seconds_total"
 THREAD_RUNQ_WAITS = "drums_thread_runqueue_waits_total"
 THREAD_SWITCHES = "drums_thread_context_switches_total"
 
-# sched_process_free runs from an RCU callback, and this kernel (CONFIG_RCU_LAZY) may hold such
-# callbacks back for up to 10 s when the CPU is otherwise quiet: wait for a freed entry that long.
+# How long to wait for what a dead thread or process leaves in the maps to go: a thread's entry at
+# its last switch, an ended process's at the collect after it ended (under emulation, scaled).
 FREED_WITHIN = 12
 
 MS_BOUND = next(b for b in RUNQ_BUCKETS if b >= 1e-3)  # 1.024 ms
@@ -344,6 +344,13 @@ def hashed(probe) -> set[int]:
 def exited_entries(probe) -> dict[int, tuple]:
     keys, values, _ = probe.read("exited_sched")
     return {tgid: v for (tgid,), v in zip(struct.iter_unpack("<I", keys), _PROCESS_VALUE.iter_unpack(values))}
+
+
+def read_away(probe, collect, pid: int) -> None:
+    """Collect until the ended process's exited_sched entry is gone: the agent deletes it once it
+    has read its final totals (the kernel keeps it until then)."""
+    wait_until(lambda: collect(probe) is not None and pid not in exited_entries(probe), "exited_sched entry read",
+               timeout=FREED_WITHIN)
 
 
 def histogram_delta(after: Histogram, before: Histogram) -> Histogram:
@@ -725,12 +732,14 @@ def test_exited_process_series_go(sched_probe, collect, spawn):
     assert value(zombie, PROCESS_CPU, pid=pid) >= cpu  # folded: a zombie's counter does not go back
 
     child.end()
-    reaped = collect(sched_probe)  # the first collect after wait() already drops it
+    reaped = collect(sched_probe)  # the first collect after wait() shows its final totals once
+    assert value(reaped, PROCESS_CPU, pid=pid) == value(zombie, PROCESS_CPU, pid=pid)
+    assert series(reaped, THREAD_CPU, pid=pid) == {}
+    assert pid not in exited_entries(sched_probe)  # read, and deleted
+    gone = collect(sched_probe)  # the next drops it
     for metric in (PROCESS_CPU, PROCESS_RUNQ, PROCESS_SWITCHES, THREAD_CPU, THREAD_RUNQ, THREAD_RUNQ_WAITS,
                    THREAD_SWITCHES):
-        assert series(reaped, metric, pid=pid) == {}, metric
-    # sched_process_free comes an RCU grace period after the reaping.
-    wait_until(lambda: pid not in exited_entries(sched_probe), "exited_sched entry freed", timeout=FREED_WITHIN)
+        assert series(gone, metric, pid=pid) == {}, metric
 
 
 def test_fresh_process_starts_near_zero(sched_probe, collect, spawn):
@@ -863,7 +872,7 @@ def test_exec_from_a_thread_leaves_no_stale_thread(sched_probe, collect, spawn):
     stale_series = exported - set(tids_of(pid))
 
     child.end()
-    wait_until(lambda: pid not in exited_entries(sched_probe), "exited_sched entry freed", timeout=FREED_WITHIN)
+    read_away(sched_probe, collect, pid)
     left = {t: v[:2] for t, v in thread_entries(sched_probe).items() if t in (pid, tid) or v[0] == pid}
     # Expected: no series for the thread that became the leader, and nothing left once reaped.
     assert (stale_series, left) == (set(), {})
@@ -892,7 +901,7 @@ def test_reused_pid_starts_from_zero_between_two_scrapes(sched_probe, collect, s
     dead.read()
     dead_total = value(collect(sched_probe), PROCESS_CPU, pid=dead.pid)
     dead.end()
-    wait_until(lambda: dead.pid not in exited_entries(sched_probe), "exited_sched entry freed", timeout=FREED_WITHIN)
+    read_away(sched_probe, collect, dead.pid)
     fresh = reuse_pid(dead.pid, spawn, IDLE)
     own = fresh.read()["cpu"]
     settle(fresh.pid)
