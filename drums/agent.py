@@ -39,6 +39,10 @@ PROBE_MAP_MEMORY = Metric("drums_probe_map_memory_bytes", GAUGE,
                           "drums_agent_unique_memory_bytes)", ("probe",))
 PROBE_DROPPED = Metric("drums_probe_dropped_events_total", COUNTER,
                        "Events the probe could not count because a BPF map was full", ("probe",))
+PROBE_MISSED = Metric("drums_probe_missed_runs_total", COUNTER,
+                      "Runs of the probe's BPF programs the kernel skipped, one of them running on that CPU "
+                      "already (a preempted one, on PREEMPT_RT): events not counted (counted from Linux 5.12)",
+                      ("probe",))
 FOLDED_TOTAL = Metric("drums_budget_folded_entities_total", COUNTER,
                       "Entities that went over the cardinality budget into the series labelled other, "
                       "since the agent started", ("kind",))
@@ -66,7 +70,7 @@ GRAPH_ENTITIES = Metric("drums_graph_entities", GAUGE, "Entities in the graph, b
 LOSS_SAID_EVERY = 60.0  # seconds: at most one line per probe about lost events or full maps
 NEARLY_FULL = 0.9  # a map this full is said to be, before it loses anything
 SELF_METRICS = (GRAPH_STALE, GRAPH_TRUNCATED, GRAPH_ENTITIES, PROBE_ATTACHED, PROBE_DURATION, PROBE_SUCCESS, PROBE_MAP_FILL,
-                PROBE_MAP_MEMORY, PROBE_DROPPED, FOLDED, FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
+                PROBE_MAP_MEMORY, PROBE_DROPPED, PROBE_MISSED, FOLDED, FOLDED_TOTAL, AGENT_COLLECT, AGENT_CPU, AGENT_RSS, AGENT_USS)
 
 
 @dataclass
@@ -137,7 +141,7 @@ class Agent:
         self._success: dict[str, int] = {}
         self._tree = TreeCost()
         self._maps_read_at = float("-inf")
-        self._loss_said: dict[str, tuple[int, float]] = {}  # probe -> (its drops when last said, when)
+        self._loss_said: dict[str, tuple[tuple[int, int], float]] = {}  # probe -> ((drops, runs missed) last said, when)
         self.wanted_pids: Callable[[], set[int]] = set  # processes a client asked for (jobs): always read
 
     def start(self, strict: bool = False) -> None:
@@ -299,18 +303,21 @@ class Agent:
 
     def _say_losses(self, probe: Probe) -> None:
         """One line, at most every LOSS_SAID_EVERY seconds, when the probe lost events to a full
-        map since it last said so, or a map of it is nearly full: loss is counted and never silent."""
+        map or to runs the kernel skipped since it last said so, or a map of it is nearly full: loss
+        is counted and never silent."""
         st = probe.status
-        said, at = self._loss_said.get(probe.name, (0, -LOSS_SAID_EVERY))
+        (dropped, missed), at = self._loss_said.get(probe.name, ((0, 0), -LOSS_SAID_EVERY))
         now = time.monotonic()
         full = sorted((m, f) for m, f in st.map_fill.items() if f >= NEARLY_FULL)
-        if now - at < LOSS_SAID_EVERY or (st.dropped <= said and not full):
+        lost = (st.dropped, st.missed or 0)
+        if now - at < LOSS_SAID_EVERY or (lost[0] <= dropped and lost[1] <= missed and not full):
             return
-        parts = [f"{st.dropped - said} events lost to full BPF maps"] if st.dropped > said else []
+        parts = [f"{lost[0] - dropped} events lost to full BPF maps"] if lost[0] > dropped else []
+        parts += [f"{lost[1] - missed} runs skipped by the kernel"] if lost[1] > missed else []
         parts += [f"map {m} {f:.0%} full" for m, f in full]
-        log.warning("probe %s: %s (drums_probe_dropped_events_total, drums_probe_map_fill_ratio)",
-                    probe.name, "; ".join(parts))
-        self._loss_said[probe.name] = (st.dropped, now)
+        log.warning("probe %s: %s (drums_probe_dropped_events_total, drums_probe_missed_runs_total, "
+                    "drums_probe_map_fill_ratio)", probe.name, "; ".join(parts))
+        self._loss_said[probe.name] = (lost, now)
 
     def _chosen(self) -> set[int]:
         pt = self.proctable
@@ -385,6 +392,8 @@ class Agent:
                 snap.add(PROBE_MAP_FILL, (probe.name, name), fill)
             if "dropped" in getattr(probe, "maps", ()):
                 snap.add(PROBE_DROPPED, (probe.name,), st.dropped)
+            if st.missed is not None:
+                snap.add(PROBE_MISSED, (probe.name,), st.missed)
             if maps_due:
                 probe.read_map_memory()
             if st.map_memory:

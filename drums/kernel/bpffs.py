@@ -93,6 +93,16 @@ def _check(ret: int, what: str) -> int:
     return ret
 
 
+def prog_runs_missed(fd: int, offset: int) -> int:
+    """How many times the kernel skipped the program because it was running on that CPU already
+    (struct bpf_prog_info's recursion_misses, at `offset`: Linux >= 5.12). On a PREEMPT_RT kernel a
+    preempted program can be the one running, and its CPU's next event is then not counted."""
+    info = ctypes.create_string_buffer(offset + 8)
+    size = ctypes.c_uint32(offset + 8)
+    _check(libbpf().bpf_obj_get_info_by_fd(fd, info, ctypes.byref(size)), "program info")
+    return int.from_bytes(info.raw[offset:offset + 8], "little") if size.value >= offset + 8 else 0
+
+
 def obj_get(path: str) -> int:
     """An fd of the pinned program, link or map."""
     return _check(libbpf().bpf_obj_get(path.encode()), f"open {path}")

@@ -14,6 +14,7 @@ class ProbeStatus:
     reason: str = ""  # why it is not attached, or what a fallback lacks
     map_fill: dict[str, float] = field(default_factory=dict)  # map name -> used fraction
     dropped: int = 0  # events lost because a map was full
+    missed: int | None = None  # runs of its programs the kernel skipped (one already running on that CPU), if counted
     map_memory: int = 0  # bytes of kernel memory its BPF maps hold
 
 

@@ -178,6 +178,7 @@ class BpfProbe(Probe):
         self._marked: dict[str, Marked] = {}  # maps read as far as their programs marked them changed
         self._reader: int | None = None  # the pins' directory, locked while this process reads their marks
         self._held: list[int] = []  # perf events this process attached programs to (see hold)
+        self._misses_at: int | None = None  # where struct bpf_prog_info counts skipped runs, if it does
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         """-D definitions for the C code: kernel struct offsets and tracepoint shapes."""
@@ -214,8 +215,11 @@ class BpfProbe(Probe):
                 for kind, target, fn in path.attachments if target not in path.optional or btf.has_function(target)]
 
     def _start(self, path: AttachPath) -> None:
-        if self.features.btf is None:
+        btf = self.features.btf
+        if btf is None:
             raise KernelError(f"cannot parse the kernel's BTF ({self.features.btf_source})")
+        if btf.has_field("bpf_prog_info", "recursion_misses"):
+            self._misses_at = btf.field("bpf_prog_info", "recursion_misses").offset
         self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
         attachments = self._attachments(path)
         if path.name in loader.PINNABLE:
@@ -343,9 +347,12 @@ class BpfProbe(Probe):
         self.status.map_memory = sum(m.memory() for m in self.opened.values())
 
     def read_dropped(self) -> None:
-        """Events lost to full maps: every program counts them in its `dropped` array."""
+        """Events lost to full maps (every program counts them in its `dropped` array), and runs of
+        its programs the kernel skipped, where it counts them (Linux >= 5.12)."""
         _, values, _ = self.read("dropped")
         self.status.dropped = sum(v for (v,) in struct.iter_unpack("<Q", values))
+        if self._misses_at is not None:
+            self.status.missed = sum(bpffs.prog_runs_missed(fd, self._misses_at) for fd in self.programs.values())
 
     def stop(self) -> None:
         for m in self.opened.values():

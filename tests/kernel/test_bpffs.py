@@ -107,3 +107,35 @@ def test_a_read_entry_by_entry_under_churn_ends_and_repeats_no_key():
         thread.join()
         m.close()
     assert complete >= 15
+
+
+# A program on the bpf_trace_printk tracepoint that prints too: its print fires the tracepoint
+# again on the same CPU while it runs, which the kernel skips and counts. What prints first is a
+# program on getppid, for this process's calls.
+RECURSING = r"""
+RAW_TRACEPOINT_PROBE(bpf_trace_printk) { bpf_trace_printk("again\n"); return 0; }
+TRACEPOINT_PROBE(syscalls, sys_enter_getppid)
+{
+    if (bpf_get_current_pid_tgid() >> 32 == TGID)
+        bpf_trace_printk("first\n");
+    return 0;
+}
+"""
+
+
+def test_the_runs_the_kernel_skipped_are_read_from_the_program(features):
+    """Each of 500 getppid calls runs the printing program once and makes the kernel skip it once:
+    500 runs missed, as struct bpf_prog_info's recursion_misses (at the offset the BTF gives) says."""
+    from drums.kernel.bpffs import prog_runs_missed
+    os.environ["BCC_KERNEL_SOURCE"] = features.kernel_headers
+    from bcc import BPF
+    at = features.btf.field("bpf_prog_info", "recursion_misses").offset
+    b = BPF(text=RECURSING.encode(), cflags=[f"-DTGID={os.getpid()}"])
+    try:
+        fd = b.load_func(b"raw_tracepoint__bpf_trace_printk", BPF.RAW_TRACEPOINT).fd
+        assert prog_runs_missed(fd, at) == 0
+        for _ in range(500):
+            os.getppid()
+        assert prog_runs_missed(fd, at) == 500
+    finally:
+        b.cleanup()

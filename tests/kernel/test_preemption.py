@@ -8,7 +8,6 @@ getppid, which processes on one CPU call, and one on getrusage, which a SCHED_FI
 them calls: the atomic add loses nothing anywhere, and the plain one loses updates on an RT
 kernel's fentry path."""
 import ctypes
-import json
 import os
 import subprocess
 import sys
@@ -16,6 +15,7 @@ import time
 
 import pytest
 
+from drums.kernel.bpffs import prog_runs_missed
 from tests.conftest import TIME_SCALE
 
 # A plain add whose load and store are held apart by a loop (about a microsecond here), so that a
@@ -73,16 +73,13 @@ print(n, flush=True)
 """
 
 
-def recursion_misses(fd: int) -> int:
-    """Calls the kernel skipped because the program was already running on that CPU (bpftool says
-    so of a program from Linux 5.12, and only when there were some)."""
-    from drums.kernel.bpffs import libbpf
-    head = (ctypes.c_uint32 * 2)()  # struct bpf_prog_info begins: type, id
-    size = ctypes.c_uint32(ctypes.sizeof(head))
-    assert libbpf().bpf_obj_get_info_by_fd(fd, head, ctypes.byref(size)) == 0
-    shown = subprocess.run(["bpftool", "-j", "prog", "show", "id", str(head[1])], capture_output=True, text=True,
-                           check=True)
-    return json.loads(shown.stdout).get("recursion_misses", 0)
+def runs_missed(features, fds: list[int]) -> int:
+    """Calls the kernel skipped because the program was already running on that CPU: the agent's
+    reading (drums_probe_missed_runs_total), which Linux counts from 5.12."""
+    if not features.btf.has_field("bpf_prog_info", "recursion_misses"):
+        return 0
+    at = features.btf.field("bpf_prog_info", "recursion_misses").offset
+    return sum(prog_runs_missed(fd, at) for fd in fds)
 
 
 @pytest.mark.kernel
@@ -108,7 +105,7 @@ def test_a_plain_add_loses_updates_where_programs_are_preempted_and_an_atomic_on
             c.stdin.flush()
         calls = sum(int(c.stdout.readline()) for c in callers)
         plain, atomic = sum(b[b"plain"][0]), sum(b[b"atomic"][0])
-        missed = sum(recursion_misses(f.fd) for name, f in b.funcs.items() if name.startswith(b"kfunc"))
+        missed = runs_missed(features, [f.fd for name, f in b.funcs.items() if name.startswith(b"kfunc")])
     finally:
         for c in callers:
             c.kill()
