@@ -1,4 +1,4 @@
-"""The `drums` command: agent, graph, sd, top, doctor, unload. Errors become one line on stderr and exit code 2."""
+"""The `drums` command: agent, graph, sd, top, record, detect, report, doctor, unload. Errors become one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
@@ -226,6 +226,19 @@ def build_parser() -> argparse.ArgumentParser:
     top.add_argument("--detector", metavar="URL", default=f"http://127.0.0.1:{DETECT_PORT}",
                      help=f"the `drums detect` whose anomalies the Anomalies view (a) lists (default "
                           f"http://127.0.0.1:{DETECT_PORT}; '' for none)")
+
+    record = sub.add_parser("record", help="record what top shows of one or more agents to an MCAP file, for Foxglove",
+                            description="A channel per node, topic, edge and host (JSON whose fields plot in "
+                                        "Foxglove's Plot panel) and the detector's anomalies as log messages, stamped "
+                                        "with the agents' clocks, until SIGINT or SIGTERM.")
+    record.add_argument("--output", metavar="FILE.mcap", required=True, help="the file to write (must not exist)")
+    record.add_argument("--agent", metavar="URL", action="append", default=None,
+                        help=f"an agent to record (repeatable; default http://127.0.0.1:{DEFAULT_PORT})")
+    record.add_argument("--token-file", default="",
+                        help="file holding the agents' API token, for agents off loopback ($DRUMS_TOKEN also works)")
+    record.add_argument("--interval", type=_seconds, default=1.0, help="seconds between polls (0.1-3600, default 1)")
+    record.add_argument("--detector", metavar="URL", default="",
+                        help="a `drums detect` whose anomalies go on /drums/anomalies (default none)")
 
     detect = sub.add_parser("detect", help="watch every series of one or more agents and name the few that changed",
                             description="Judges each new point of every series (a counter's rate) against its "
@@ -483,6 +496,11 @@ def main(argv: list[str] | None = None) -> int:
                 raise UsageError("--once prints text and --json JSON: one of them")
             return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval,
                        args.view, args.once, args.json, color=not args.no_color, detector=args.detector)
+        if args.command == "record":
+            from drums.exporters.prometheus import DEFAULT_PORT
+            from drums.foxglove.record import run
+            return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval,
+                       args.output, args.detector)
         if args.command == "sd":
             return run_sd(args)
         if args.command == "detect":

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -165,6 +166,10 @@ class Client:
     def __init__(self, urls: list[str], token: str = ""):
         if not urls:
             raise UsageError("a client needs at least one agent URL")
+        for url in urls:
+            parts = urllib.parse.urlsplit(url)
+            if parts.scheme not in ("http", "https") or not parts.hostname:
+                raise UsageError(f"--agent {url}: an agent's URL is http://HOST:PORT")
         self.agents = [Agent(u, token) for u in urls]
         self.token = token  # which also opens the agents' streams off loopback
         self.view: dict[str, Sample] = {}  # key -> its latest sample

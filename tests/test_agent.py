@@ -213,6 +213,10 @@ def test_clients_that_hang_up_before_the_answer_cost_no_traceback(agent):
 
 @pytest.mark.parametrize("argv, message", [
     (["agent", "--port", "70000"], "--port: 70000 is not a port"),
+    (["record", "--output", "/etc/hostname"], "--output /etc/hostname: File exists"),
+    (["record", "--output", "/nonexistent/x.mcap"], "--output /nonexistent/x.mcap: No such file or directory"),
+    (["record", "--output", "/tmp/x.mcap", "--agent", "ftp://x"], "--agent ftp://x: an agent's URL is http://HOST:PORT"),
+    (["record"], "the following arguments are required: --output"),
     (["agent", "--port", "http"], "'http' is not a whole number"),
     (["agent", "--bogus"], "unrecognized arguments: --bogus"),
     (["agent", "--pid", "2147483646"], "--pid 2147483646: no such process"),

@@ -7,7 +7,6 @@ import signal
 import sys
 import time
 from functools import partial
-from urllib.parse import urlsplit
 
 from drums.client import AgentError
 from drums.errors import UsageError
@@ -45,10 +44,6 @@ def _print(collector: Collector, view: str, as_json: bool) -> int:
 
 def run(urls: list[str], token: str, interval: float, view: str = "nodes", once: bool = False,
         as_json: bool = False, color: bool = True, detector: str = "") -> int:
-    for url in urls:
-        parts = urlsplit(url)
-        if parts.scheme not in ("http", "https") or not parts.hostname:
-            raise UsageError(f"--agent {url}: an agent's URL is http://HOST:PORT")
     if not (once or as_json) and not (sys.stdin.isatty() and sys.stdout.isatty()):
         raise UsageError("the live view needs a terminal: --once or --json print one view for scripts")
     collector = Collector(urls, token, interval, detector)

@@ -87,7 +87,8 @@ def topic_counters(frame: Frame, counter: str) -> dict[str, dict[str, tuple[floa
     """topic -> node -> (now, before, seconds) of a per-topic counter, each from its node's agent
     (where no agent owns the node, the first that counted it). Only the topic's own publishers
     (or subscribers) of the graph: not the counts the agent could not name (node "unknown", as
-    from a process of another ROS domain)."""
+    from a process of another ROS domain). A count the agent's last poll did not have had not
+    begun: it was 0 then (a new publisher's first messages are in its first rate)."""
     mine = owners(frame)
     ends = {(e["topic"], e["node"]) for a in frame.live() for e in a.latest.endpoints
             if e["kind"] == COUNTED_AS[counter]}
@@ -98,7 +99,7 @@ def topic_counters(frame: Frame, counter: str) -> dict[str, dict[str, tuple[floa
             before = agent.before.topics.get(topic, {}) if agent.before else {}
             for node, now in (v.get(counter) or {}).items():
                 if (topic, node) in ends and mine.get(node, agent) is agent and node not in out[topic]:
-                    out[topic][node] = (now, (before.get(counter) or {}).get(node), dt)
+                    out[topic][node] = (now, (before.get(counter) or {}).get(node, 0 if agent.before else None), dt)
     return out
 
 
@@ -217,14 +218,15 @@ def edge_means(frame: Frame, histogram: str) -> dict[tuple[str, str, str], float
 
 
 def edge_rates(frame: Frame, counter: str) -> dict[tuple[str, str, str], float | None]:
-    """The rate of an edge counter, from the first agent (as edges_of orders them) that has it."""
+    """The rate of an edge counter, from the first agent (as edges_of orders them) that has it (one
+    its last poll did not have had not begun: 0 then)."""
     out = {}
     for key, found in edges_of(frame).items():
         out[key] = None
         for agent, e in found:
             if e.get(counter) is not None:
                 was = agent.before.edges.get(key, {}) if agent.before else {}
-                out[key] = rate(e[counter], was.get(counter), seconds(agent))
+                out[key] = rate(e[counter], was.get(counter, 0 if agent.before else None), seconds(agent))
                 break
     return out
 

@@ -1,0 +1,87 @@
+"""The channels: one per node (and process that holds none), topic, edge and host of the agents,
+named /drums/<view>/<host>/<name>, each message a row of `drums top`'s view of that name with
+its values in base units (cpu_percent, published_hz, age_p99_seconds, ...), under a JSON schema
+made from the view's columns; and /drums/anomalies, the anomalies of a `drums detect` as
+foxglove.Log messages, each once, when it starts.
+
+Stamped with the agent's clock (when it read the counters), so that a recording lines up with a
+rosbag2 MCAP of the same robot.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from drums.top.model import Frame
+from drums.top.screen import Views
+from drums.top.table import Table
+
+VIEWS = ("nodes", "topics", "edges", "hosts")
+ANOMALIES = "/drums/anomalies"
+
+
+def topic(view: str, key: str) -> str:
+    """A row's channel: its view and its key's parts (host, name, ...) as a path."""
+    parts = [p.strip("/") for p in key.split("|")[1:]]
+    return "/".join([f"/drums/{view}", *(p for p in parts if p)])
+
+
+def schema(table: Table) -> dict:
+    """A JSON schema of the view's rows: a name is a string, any other value a number; either may
+    be unknown (null) while a rate needs a second poll."""
+    return {"type": "object", "title": f"drums.{table.view}",
+            "properties": {c.key: {"type": ["string" if c.name else "number", "null"]} for c in table.columns}}
+
+
+@dataclass
+class Message:
+    topic: str
+    schema: dict
+    value: dict
+    at_ns: int
+
+
+@dataclass
+class Channels:
+    """Turns frames into messages: each row once per poll of its agent, each anomaly once."""
+
+    views: Views = field(default_factory=Views)
+    _polled: dict = field(default_factory=dict)  # agent's host -> the time of its poll last turned into messages
+    _said: set = field(default_factory=set)  # the anomalies logged
+
+    def messages(self, frame: Frame) -> list[Message]:
+        # When each agent read the graph's counters, of which most rates are made.
+        polled = {a.host: a.latest.graph_at for a in frame.live() if a.before is not None}
+        fresh = {host for host, at in polled.items() if self._polled.get(host) != at}
+        self._polled.update(polled)
+        latest = max((polled[h] for h in fresh), default=frame.at)  # for rows of no one host (topics, edges)
+        out = []
+        for view in VIEWS if fresh else ():
+            table = self.views.table(frame, view)
+            shape = schema(table)
+            keys = [c.key for c in table.columns]
+            for row in table.rows:
+                host = row.values.get("host")
+                if host not in fresh and not (host is None and fresh):
+                    continue  # a row of an agent that has not polled since, or of a host no agent watches
+                at = polled.get(host, latest)
+                out.append(Message(topic(view, row.key), shape, {k: row.values.get(k) for k in keys}, int(at * 1e9)))
+        out.extend(self._anomalies(frame))
+        return out
+
+    def _anomalies(self, frame: Frame) -> list[Message]:
+        from foxglove.messages import Log, LogLevel, Timestamp
+        out = []
+        for incident in (frame.anomalies or {}).get("incidents", []):
+            for e in incident["entities"]:
+                entity = e["entity"]
+                for a in e["anomalies"]:
+                    key = (entity["host"], a["series"], a["start"])
+                    if key in self._said:
+                        continue
+                    self._said.add(key)
+                    text = f"{entity['kind']} {entity['name']}: {a['what']} {a['change']} ({len(a['checks'])} checks)"
+                    at = int(a["start"] * 1e9)
+                    out.append(Message(ANOMALIES, {}, Log(timestamp=Timestamp.from_epoch_secs(a["start"]),
+                                                          level=LogLevel.Warning, message=text,
+                                                          name=entity["host"]), at))
+        return out

@@ -1,0 +1,54 @@
+"""`drums record --output FILE.mcap`: the channels of one or more agents (drums.foxglove.channels)
+written to an MCAP file as they come, until SIGINT or SIGTERM, which close it with its summary and
+index. Chunks are kept small and written whole, so that a recorder killed outright leaves a file
+whose every chunk but the last is read back (by a reader that does not need the summary, as mcap's
+NonSeekingReader in file order)."""
+from __future__ import annotations
+
+import signal
+import threading
+
+from drums.errors import DrumsError, UsageError
+from drums.foxglove.channels import Channels
+from drums.top.collector import Collector
+
+CHUNK = 16 * 1024  # bytes of messages a chunk holds: seconds of a robot's hundred channels
+
+
+class RecordError(DrumsError):
+    pass
+
+
+def run(urls: list[str], token: str, interval: float, output: str, detector: str = "") -> int:
+    import foxglove
+    from foxglove.mcap import MCAPWriteOptions
+    collector = Collector(urls, token, interval, detector)  # (which checks the URLs first)
+    context = foxglove.Context()
+    try:
+        # Each chunk written whole once it is full (not begun in the file and its length written last):
+        # a recorder killed outright leaves every chunk but the one it was filling.
+        writer = foxglove.open_mcap(output, context=context,
+                                    writer_options=MCAPWriteOptions(chunk_size=CHUNK, disable_seeking=True))
+    except Exception as e:  # the SDK raises its own errors for a path it cannot create
+        raise UsageError(f"--output {output}: {e}") from None
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    channels, made = Channels(), {}
+    collector.start()
+    try:
+        while not stop.wait(min(interval, 0.2)):
+            for m in channels.messages(collector.model.frame()):
+                channel = made.get(m.topic)
+                if channel is None:
+                    channel = made[m.topic] = (
+                        foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
+                        if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
+                channel.log(m.value, log_time=m.at_ns)
+    finally:
+        collector.close()
+        try:
+            writer.close()
+        except Exception as e:  # a full disk: the chunks written stay readable
+            raise RecordError(f"{output}: the recording could not be closed ({e}); what was written before is readable") from None
+    return 0
