@@ -1,4 +1,4 @@
-"""The `drums` command: agent, graph, sd, top, record, detect, report, doctor, unload. Errors become one line on stderr and exit code 2."""
+"""The `drums` command: agent, graph, sd, top, record, foxglove, detect, report, doctor, unload. Errors become one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
@@ -31,6 +31,18 @@ def _positive(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"{text} is negative")
     return value
+
+
+def _foxglove_sources(parser: argparse.ArgumentParser) -> None:
+    """The agents (and detector) whose channels `drums record` and `drums foxglove` carry."""
+    from drums.exporters.prometheus import DEFAULT_PORT
+    parser.add_argument("--agent", metavar="URL", action="append", default=None,
+                        help=f"an agent to follow (repeatable; default http://127.0.0.1:{DEFAULT_PORT})")
+    parser.add_argument("--token-file", default="",
+                        help="file holding the agents' API token, for agents off loopback ($DRUMS_TOKEN also works)")
+    parser.add_argument("--interval", type=_seconds, default=1.0, help="seconds between polls (0.1-3600, default 1)")
+    parser.add_argument("--detector", metavar="URL", default="",
+                        help="a `drums detect` whose anomalies go on /drums/anomalies (default none)")
 
 
 def _port(text: str) -> int:
@@ -232,13 +244,14 @@ def build_parser() -> argparse.ArgumentParser:
                                         "Foxglove's Plot panel) and the detector's anomalies as log messages, stamped "
                                         "with the agents' clocks, until SIGINT or SIGTERM.")
     record.add_argument("--output", metavar="FILE.mcap", required=True, help="the file to write (must not exist)")
-    record.add_argument("--agent", metavar="URL", action="append", default=None,
-                        help=f"an agent to record (repeatable; default http://127.0.0.1:{DEFAULT_PORT})")
-    record.add_argument("--token-file", default="",
-                        help="file holding the agents' API token, for agents off loopback ($DRUMS_TOKEN also works)")
-    record.add_argument("--interval", type=_seconds, default=1.0, help="seconds between polls (0.1-3600, default 1)")
-    record.add_argument("--detector", metavar="URL", default="",
-                        help="a `drums detect` whose anomalies go on /drums/anomalies (default none)")
+    _foxglove_sources(record)
+
+    fox = sub.add_parser("foxglove", help="serve what top shows of one or more agents to Foxglove, live (WebSocket)",
+                         description="The channels of drums record, and the ROS graph as the agents see it (Foxglove's "
+                                     "Topic Graph), over the Foxglove WebSocket protocol until SIGINT or SIGTERM.")
+    fox.add_argument("--address", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    fox.add_argument("--port", type=_port, default=8765, help="port to listen on (default 8765, Foxglove's)")
+    _foxglove_sources(fox)
 
     detect = sub.add_parser("detect", help="watch every series of one or more agents and name the few that changed",
                             description="Judges each new point of every series (a counter's rate) against its "
@@ -501,6 +514,11 @@ def main(argv: list[str] | None = None) -> int:
             from drums.foxglove.record import run
             return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval,
                        args.output, args.detector)
+        if args.command == "foxglove":
+            from drums.exporters.prometheus import DEFAULT_PORT
+            from drums.foxglove.serve import run
+            return run(args.agent or [f"http://127.0.0.1:{DEFAULT_PORT}"], _read_token(args.token_file), args.interval,
+                       args.address, args.port, args.detector)
         if args.command == "sd":
             return run_sd(args)
         if args.command == "detect":

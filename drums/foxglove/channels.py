@@ -9,7 +9,9 @@ rosbag2 MCAP of the same robot.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
+from typing import Callable
 
 from drums.top.model import Frame
 from drums.top.screen import Views
@@ -85,3 +87,21 @@ class Channels:
                                                           level=LogLevel.Warning, message=text,
                                                           name=entity["host"]), at))
         return out
+
+
+def follow(frames: Callable[[], Frame], context, stop: threading.Event, interval: float,
+           each: Callable[[Frame], None] = lambda frame: None) -> None:
+    """Log the channels of each frame of top's model (`frames`) into a Foxglove context (whose sinks
+    are an MCAP file, a WebSocket server) until `stop` is set; `each` also sees every frame."""
+    import foxglove
+    channels, made = Channels(), {}
+    while not stop.wait(min(interval, 0.2)):
+        frame = frames()
+        each(frame)
+        for m in channels.messages(frame):
+            channel = made.get(m.topic)
+            if channel is None:
+                channel = made[m.topic] = (
+                    foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
+                    if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
+            channel.log(m.value, log_time=m.at_ns)

@@ -9,7 +9,7 @@ import signal
 import threading
 
 from drums.errors import DrumsError, UsageError
-from drums.foxglove.channels import Channels
+from drums.foxglove.channels import follow
 from drums.top.collector import Collector
 
 CHUNK = 16 * 1024  # bytes of messages a chunk holds: seconds of a robot's hundred channels
@@ -34,17 +34,9 @@ def run(urls: list[str], token: str, interval: float, output: str, detector: str
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    channels, made = Channels(), {}
     collector.start()
     try:
-        while not stop.wait(min(interval, 0.2)):
-            for m in channels.messages(collector.model.frame()):
-                channel = made.get(m.topic)
-                if channel is None:
-                    channel = made[m.topic] = (
-                        foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
-                        if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
-                channel.log(m.value, log_time=m.at_ns)
+        follow(collector.model.frame, context, stop, interval)
     finally:
         collector.close()
         try:
