@@ -71,7 +71,8 @@ class Channels:
         return out
 
     def _anomalies(self, frame: Frame) -> list[Message]:
-        from foxglove.messages import Log, LogLevel, Timestamp
+        """The anomalies that started since the last frame, as the fields of foxglove.Log messages
+        (a Message without a schema is one)."""
         out = []
         for incident in (frame.anomalies or {}).get("incidents", []):
             for e in incident["entities"]:
@@ -81,13 +82,10 @@ class Channels:
                     if key in self._said:
                         continue
                     self._said.add(key)
-                    text = f"{entity['kind']} {entity['name']}: {a['what']} {a['change']} ({len(a['checks'])} checks)"
-                    at = int(a["start"] * 1e9)
-                    out.append(Message(ANOMALIES, {}, Log(timestamp=Timestamp.from_epoch_secs(a["start"]),
-                                                          level=LogLevel.Warning, message=text,
-                                                          name=entity["host"]), at))
+                    text = a.get("text") or f"{entity['kind']} {entity['name']}: {a['what']} {a['change']}"
+                    out.append(Message(ANOMALIES, {}, {"timestamp": a["start"], "level": "Warning", "message": text,
+                                                       "name": entity["host"]}, int(a["start"] * 1e9)))
         return out
-
 
 def follow(frames: Callable[[], Frame], context, stop: threading.Event, interval: float,
            each: Callable[[Frame], None] = lambda frame: None) -> None:
@@ -104,4 +102,10 @@ def follow(frames: Callable[[], Frame], context, stop: threading.Event, interval
                 channel = made[m.topic] = (
                     foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
                     if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
-            channel.log(m.value, log_time=m.at_ns)
+            channel.log(m.value if m.schema else log_message(m.value), log_time=m.at_ns)
+
+
+def log_message(fields: dict):
+    from foxglove.messages import Log, LogLevel, Timestamp
+    return Log(timestamp=Timestamp.from_epoch_secs(fields["timestamp"]), level=getattr(LogLevel, fields["level"]),
+               message=fields["message"], name=fields["name"])
