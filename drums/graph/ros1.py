@@ -127,7 +127,8 @@ class _Transport(xmlrpc.client.Transport):
         parser, unmarshaller = self.getparser()
         size = 0
         while not unmarshaller.cut:
-            self._sock.settimeout(self._left())  # a peer that trickles still ends on time
+            if not response.isclosed():  # (it closes its socket once it read all it was told: Python 3.13)
+                self._sock.settimeout(self._left())  # a peer that trickles still ends on time
             chunk = response.read1(1 << 16)
             if not chunk:
                 parser.close()

@@ -66,15 +66,19 @@ def _elf(cls: int, order: str) -> tuple[bytes, dict[str, int]]:
     ident = b"\x7fELF" + bytes([cls, 1 if o == "<" else 2, 1]) + b"\0" * 9
     addr = "I" if cls == 1 else "Q"
     body[:ehdr] = ident + struct.pack(o + f"HHI{addr}{addr}{addr}IHHHHHH", 3, 0x3E if cls == 2 else 3, 1, 0, phoff,
-                                      shoff, 0, ehdr, phdr, len(segments), shdr, 3, 0)
+                                      shoff, 0, ehdr, phdr, len(segments), shdr, 4, 3)
     for i, (off, vaddr, size) in enumerate(segments):
         fields = ((PT_LOAD, off, vaddr, vaddr, size, size, 5, 0x1000) if cls == 1 else
                   (PT_LOAD, 5, off, vaddr, vaddr, size, size, 0x1000))
         body[phoff + i * phdr: phoff + (i + 1) * phdr] = struct.pack(o + ("8I" if cls == 1 else "IIQQQQQQ"), *fields)
     body[symoff:symoff + len(symbols)] = symbols
     body[stroff:stroff + len(dynstr)] = dynstr
-    sections = [(0,) * 10, (0, SHT_DYNSYM, 2, 0, symoff, len(symbols), 2, 1, 8, sym),
-                (0, SHT_STRTAB, 2, 0, stroff, len(dynstr), 0, 0, 1, 0)]
+    # The sections' names (readelf 2.44 prints a symbol's section by name where it can)
+    shstrtab, shstroff = b"\0.dynsym\0.dynstr\0.shstrtab\0", stroff + len(dynstr)
+    body[shstroff:shstroff + len(shstrtab)] = shstrtab
+    sections = [(0,) * 10, (1, SHT_DYNSYM, 2, 0, symoff, len(symbols), 2, 1, 8, sym),
+                (9, SHT_STRTAB, 2, 0, stroff, len(dynstr), 0, 0, 1, 0),
+                (17, SHT_STRTAB, 0, 0, shstroff, len(shstrtab), 0, 0, 1, 0)]
     for i, fields in enumerate(sections):
         body[shoff + i * shdr: shoff + (i + 1) * shdr] = struct.pack(o + ("10I" if cls == 1 else "IIQQQQIIQQ"), *fields)
     return bytes(body), {"rcl_publish": 0x100, "rcl_take": 0x1010}
