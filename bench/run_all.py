@@ -32,6 +32,7 @@ BENCHMARKS = (
     ("agent_cost", ["--seconds", "5"]),
     ("topic_latency", ["--rounds", "1", "--seconds", "2"]),
     ("stream_bandwidth", ["--seconds", "3"]),
+    ("foxglove_cost", ["--seconds", "5"]),
     ("http_robustness", ["--seconds", "5"]),
     ("detect", ["--ticks", "5", "--series-quality", "50"]),
     ("nab", []),  # NAB from $NAB (make bench NAB=PATH)
