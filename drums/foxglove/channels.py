@@ -19,6 +19,7 @@ from drums.top.table import Table
 
 VIEWS = ("nodes", "topics", "edges", "hosts")
 ANOMALIES = "/drums/anomalies"
+IDLE = 60.0  # seconds without a message after which a channel is closed (its process ended, its edge went)
 
 
 def topic(view: str, key: str) -> str:
@@ -73,36 +74,42 @@ class Channels:
     def _anomalies(self, frame: Frame) -> list[Message]:
         """The anomalies that started since the last frame, as the fields of foxglove.Log messages
         (a Message without a schema is one)."""
-        out = []
+        out, now = [], set()
         for incident in (frame.anomalies or {}).get("incidents", []):
             for e in incident["entities"]:
                 entity = e["entity"]
                 for a in e["anomalies"]:
                     key = (entity["host"], a["series"], a["start"])
+                    now.add(key)
                     if key in self._said:
                         continue
-                    self._said.add(key)
                     text = a.get("text") or f"{entity['kind']} {entity['name']}: {a['what']} {a['change']}"
                     out.append(Message(ANOMALIES, {}, {"timestamp": a["start"], "level": "Warning", "message": text,
                                                        "name": entity["host"]}, int(a["start"] * 1e9)))
+        if frame.anomalies is not None:
+            self._said = now  # those the detector no longer lists are done: what is said is bounded
         return out
+
 
 def follow(frames: Callable[[], Frame], context, stop: threading.Event, interval: float,
            each: Callable[[Frame], None] = lambda frame: None) -> None:
     """Log the channels of each frame of top's model (`frames`) into a Foxglove context (whose sinks
     are an MCAP file, a WebSocket server) until `stop` is set; `each` also sees every frame."""
     import foxglove
-    channels, made = Channels(), {}
+    channels, made = Channels(), {}  # topic -> (its channel, when it last logged)
     while not stop.wait(min(interval, 0.2)):
         frame = frames()
         each(frame)
         for m in channels.messages(frame):
-            channel = made.get(m.topic)
-            if channel is None:
-                channel = made[m.topic] = (
-                    foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
-                    if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
+            channel = made[m.topic][0] if m.topic in made else (
+                foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
+                if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
             channel.log(m.value if m.schema else log_message(m.value), log_time=m.at_ns)
+            made[m.topic] = channel, frame.at
+        for topic_, (channel, at) in list(made.items()):
+            if frame.at - at > max(IDLE, 3 * interval):
+                channel.close()
+                del made[topic_]
 
 
 def log_message(fields: dict):
