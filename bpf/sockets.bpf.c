@@ -142,6 +142,23 @@ static __always_inline u64 socket_id(u64 sk)
 #endif
 }
 
+// socket_id() of a socket that a program without typed pointers meets as a number: the map
+// value's address becomes a number too, copied out by the helper (as root may).
+static __always_inline u64 socket_id_untyped(u64 sk)
+{
+#if DRUMS_ATTACH == ATTACH_TP_BTF
+    int zero = 0;
+    u64 *base = dropped.lookup(&zero);
+    if (!base)
+        return 0;
+    u64 where = (u64)base, at = 0;
+    bpf_probe_read_kernel(&at, sizeof(at), &where);
+    return sk - at;
+#else
+    return sk;
+#endif
+}
+
 #if SOCKET_SLOTS > 1
 // The slot a socket's entry goes in, whoever holds it. Fibonacci hashing: the product's upper
 // bits mix all of the id's, whose lowest are the same for every socket of a slab.
@@ -379,29 +396,20 @@ int on_recv(struct bpf_raw_tracepoint_args *ctx)
 }
 #endif
 
-#if DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT || DRUMS_ATTACH == ATTACH_TP_BTF
 // splice(2) from a TCP or unix stream socket hands its bytes to the pipe without sock_recvmsg, so
-// without sock_recv_length: the syscall's exit counts them, a call per splice. A socket of another
-// kind is read through sock_recvmsg, and a splice or sendfile into a socket sends through
-// sock_sendmsg (Linux >= 6.5): those the tracepoints count. io_uring's splice is no syscall.
-BPF_HASH(splicing, u32, u64, 4096);  // thread -> the socket it splices from, while it does
-
-// socket_id() of a socket that a program without typed pointers meets as a number: the map
-// value's address becomes a number too, copied out by the helper (as root may).
-static __always_inline u64 socket_id_untyped(u64 sk)
-{
-#if DRUMS_ATTACH == ATTACH_TP_BTF
-    int zero = 0;
-    u64 *base = dropped.lookup(&zero);
-    if (!base)
-        return 0;
-    u64 where = (u64)base, at = 0;
-    bpf_probe_read_kernel(&at, sizeof(at), &where);
-    return sk - at;
-#else
-    return sk;
+// without sock_recv_length: on the tracepoint paths SPLICE_READS says what counts them, a call per
+// splice. A socket of another kind is read through sock_recvmsg, and a splice or sendfile into a
+// socket sends through sock_sendmsg (Linux >= 6.5): those the tracepoints count. io_uring's splice
+// is no syscall.
+#define SPLICE_BY_KPROBES 1   // kprobes on tcp_splice_read and unix_stream_splice_read
+#define SPLICE_BY_SYSCALLS 2  // the syscall's tracepoints, which slow every system call on the host
+#ifndef SPLICE_READS
+#define SPLICE_READS 0  // not counted
 #endif
-}
+#define ON_TRACEPOINTS (DRUMS_ATTACH == ATTACH_RAW_TRACEPOINT || DRUMS_ATTACH == ATTACH_TP_BTF)
+
+#if ON_TRACEPOINTS && SPLICE_READS == SPLICE_BY_SYSCALLS
+BPF_HASH(splicing, u32, u64, 4096);  // thread -> the socket it splices from, while it does
 
 // The sock of the running task's file descriptor `fd` if it is a TCP or unix stream socket, else 0.
 static __always_inline u64 spliced_socket(u64 fd)
@@ -553,7 +561,7 @@ KRETFUNC_PROBE(unix_stream_sendpage, struct socket *sock, struct page *page, int
 
 #endif
 
-#if DRUMS_ATTACH == ATTACH_KPROBE
+#if DRUMS_ATTACH == ATTACH_KPROBE || (ON_TRACEPOINTS && SPLICE_READS == SPLICE_BY_KPROBES)
 #include <uapi/linux/ptrace.h>  // struct pt_regs for PT_REGS_RC
 
 // A kprobe sees the arguments, its kretprobe the result: the socket waits here in between. One
@@ -579,8 +587,36 @@ static __always_inline void finish(struct pt_regs *ctx, int is_send)
         return;
     struct call_t got = *c;
     calls.delete(&tid);
-    count(got.sk, (int)PT_REGS_RC(ctx), got.flags, is_send);
+    count_as(0, got.sk, socket_id_untyped(got.sk), (int)PT_REGS_RC(ctx), got.flags, is_send);
 }
+
+int enter_tcp_splice_read(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_tcp_splice_read(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
+int enter_unix_stream_splice_read(struct pt_regs *ctx)
+{
+    remember(PT_REGS_PARM1(ctx), 0);
+    return 0;
+}
+
+int exit_unix_stream_splice_read(struct pt_regs *ctx)
+{
+    finish(ctx, 0);
+    return 0;
+}
+
+#endif
+
+#if DRUMS_ATTACH == ATTACH_KPROBE
 
 int enter_inet_sendmsg(struct pt_regs *ctx)
 {
@@ -673,30 +709,6 @@ int enter_unix_dgram_recvmsg(struct pt_regs *ctx)
 }
 
 int exit_unix_dgram_recvmsg(struct pt_regs *ctx)
-{
-    finish(ctx, 0);
-    return 0;
-}
-
-int enter_tcp_splice_read(struct pt_regs *ctx)
-{
-    remember(PT_REGS_PARM1(ctx), 0);
-    return 0;
-}
-
-int exit_tcp_splice_read(struct pt_regs *ctx)
-{
-    finish(ctx, 0);
-    return 0;
-}
-
-int enter_unix_stream_splice_read(struct pt_regs *ctx)
-{
-    remember(PT_REGS_PARM1(ctx), 0);
-    return 0;
-}
-
-int exit_unix_stream_splice_read(struct pt_regs *ctx)
 {
     finish(ctx, 0);
     return 0;

@@ -166,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--no-ros-timing", dest="ros_timing", action="store_false",
                        help="count ROS 2 messages without timing them (no periods, deadlines, reactions or "
                             "delivery times): less work in the kernel for each message")
+    agent.add_argument("--splice-tracepoints", action="store_true",
+                       help="on a kernel without kprobes, count splice(2) reads from TCP and unix stream sockets "
+                            "through the syscall tracepoints, which slow every system call on the host")
     agent.add_argument("--strict", action="store_true",
                        help="refuse to start unless every probe attaches with eBPF and the graph adapter starts")
     agent.add_argument("--keep-loaded", action="store_true",

@@ -58,7 +58,8 @@ def run(args, token: str) -> int:
     names = [p for p in (args.probe or default) if p not in args.no_probe]
     proctable = ProcessTable()
     features = Features(args.btf or "")
-    probes = build(features, proctable, names, args.pin_dir, args.ros_timing, dict(args.attach))
+    probes = build(features, proctable, names, args.pin_dir, args.ros_timing, dict(args.attach),
+                   args.splice_tracepoints)
     pins = pinlock.hold(args.pin_dir)  # held while the agent runs
     budget = Budget({"process": args.max_processes, "thread": args.max_threads,
                      "socket": args.max_sockets, "connection": args.max_connections})

@@ -139,6 +139,24 @@ def series(snap: Snapshot, metric_name: str, **labels) -> dict[tuple, object]:
     return {}
 
 
+def spliced_from(tx: socket.socket, rx: socket.socket, size: int, pipe: tuple[int, int]) -> int:
+    """Send `size` bytes on `tx` and take them from `rx` by splice(2) into the pipe (emptied as it
+    goes); the splices it took."""
+    r, w = pipe
+    sender = threading.Thread(target=tx.sendall, args=(b"p" * size,), daemon=True)
+    sender.start()
+    got = splices = 0
+    while got < size:
+        n = os.splice(rx.fileno(), w, min(65536, size - got))
+        assert n > 0
+        got += n
+        splices += 1
+        while n:
+            n -= len(os.read(r, n))
+    sender.join(30)
+    return splices
+
+
 def eventually(check, timeout: float = 3.0):
     """Retry `check` (which asserts) until it passes or `timeout` runs out; return its result."""
     deadline = time.monotonic() + timeout * TIME_SCALE

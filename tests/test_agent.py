@@ -21,7 +21,7 @@ import pytest
 from drums.client import Agent
 from drums.selfcost import MEMORY_EVERY
 from tests.agentproc import free_port, running_agent, samples, scrape, series_begun, serving
-from tests.conftest import TEST_PIN_ROOT, eventually, offered_paths
+from tests.conftest import TEST_PIN_ROOT, connected_pairs, eventually, offered_paths, spliced_from
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +102,33 @@ def test_attach_holds_a_probe_to_the_path_it_names():
     with running_agent("--probe", "sockets", "--probe", "sched", "--attach", "sockets=fallback",
                        "--attach", f"sched={path}", "--strict") as url:
         assert attached(url) == {"sockets": ("sock_diag", 1), "sched": (path, 1)}
+
+
+@pytest.mark.kernel
+def test_with_splice_tracepoints_what_splice_takes_from_a_socket_is_counted():
+    """`--splice-tracepoints`, on this kernel's first path (a kernel without kprobes: the syscall
+    tracepoints): a socket's series grows by exactly what splice(2) took from it."""
+    r, w = os.pipe()
+    try:
+        with running_agent("--probe", "sockets", "--splice-tracepoints", "--pid", str(os.getpid())) as url, \
+                connected_pairs(1) as [(tx, rx)]:
+            ino = str(os.fstat(rx.fileno()).st_ino)
+
+            def received() -> float:
+                found = [v for labels, v in samples(scrape(url), "drums_socket_received_bytes_total").items()
+                         if dict(labels).get("inode") == ino]
+                assert len(found) == 1, f"series of socket {ino}: {found}"
+                return found[0]
+            spliced_from(tx, rx, 1000, (r, w))
+            begun = eventually(received, 10)  # a series counts from the scrape that first saw it
+            spliced_from(tx, rx, 1 << 20, (r, w))
+
+            def grown() -> None:
+                assert received() == begun + (1 << 20)
+            eventually(grown, 10)
+    finally:
+        os.close(r)
+        os.close(w)
 
 
 @pytest.mark.kernel

@@ -22,7 +22,8 @@ class Kernel(Features):
         return event in self._tracepoints
 
 
-# What every kernel of interest has (syscall tracepoints among them: splice's), and what 6.6 added.
+# What every kernel of interest has (splice's syscall tracepoints among them, for --splice-tracepoints), and
+# what 6.6 added.
 LIFECYCLE = {"inet_sock_set_state", "sched_process_exit", "sched_process_free", "sched_process_exec",
              "sys_enter_splice", "sys_exit_splice"}
 LINUX_6_6 = LIFECYCLE | {"sock_send_length", "sock_recv_length"}
@@ -37,6 +38,25 @@ def test_new_kernel_uses_socket_tracepoints_even_with_kprobes_and_fentry():
     assert chosen(Kernel(LINUX_6_6, kprobes=True, fentry=True)) == ("tp_btf", [])
     assert chosen(Kernel(LINUX_6_6, kprobes=True, fentry=True, tp_btf=False)) == (
         "raw_tracepoint", ["tp_btf: the kernel's BTF does not type its tracepoints (Linux >= 5.5)"])
+
+
+def test_splice_reads_on_the_tracepoint_paths_cost_every_system_call_only_when_asked():
+    """Kprobes count what splice takes from a socket where the kernel has them; without, nothing
+    does unless the agent is told to pay for the syscall tracepoints, and doctor says which."""
+    from drums.proctable import ProcessTable
+    from drums.probes import sockets
+    tp_btf = SocketsProbe.paths[0]
+    fentry = next(p for p in SocketsProbe.paths if p.name == "fentry")
+    for kprobes, asked, mode in ((True, False, sockets.SPLICE_BY_KPROBES), (True, True, sockets.SPLICE_BY_KPROBES),
+                                 (False, False, sockets.SPLICE_UNCOUNTED), (False, True, sockets.SPLICE_BY_SYSCALLS)):
+        probe = SocketsProbe(Kernel(LINUX_6_6, kprobes=kprobes), ProcessTable(), splice_tracepoints=asked)
+        assert probe.splice_reads == mode
+        assert probe.caveat(tp_btf) == (sockets.SPLICE_UNCOUNTED_WHY if mode == sockets.SPLICE_UNCOUNTED else "")
+        assert probe.caveat(fentry) == ""  # its fexit programs count splices
+        extra = [a for a in probe._attachments(tp_btf) if a not in tp_btf.attachments]
+        assert [kind for kind, _, _ in extra] == {
+            sockets.SPLICE_BY_KPROBES: ["kprobe_link", "kretprobe_link"] * 2,
+            sockets.SPLICE_BY_SYSCALLS: ["tracepoint"] * 2, sockets.SPLICE_UNCOUNTED: []}[mode]
 
 
 def test_ubuntu_22_04_uses_fentry_then_kprobes():

@@ -92,6 +92,8 @@ def attach(req: LoadRequest):
             elif kind == "raw_tracepoint":
                 b.attach_raw_tracepoint(tp=target.encode(), fn_name=fn.encode())
                 fds.append(b.raw_tracepoint_fds[target.encode()])
+            elif kind in ("kprobe_link", "kretprobe_link"):  # pinnable, unlike bcc's kprobes (see perflink)
+                fds.append(perflink.kprobe(b.load_func(fn.encode(), b.KPROBE).fd, target, kind == "kretprobe_link"))
             elif kind == "kprobe":
                 b.attach_kprobe(event=target.encode(), fn_name=fn.encode())
             elif kind == "kretprobe":

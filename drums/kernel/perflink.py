@@ -1,11 +1,12 @@
-"""Attach a loaded BPF program to a tracepoint or a uprobe: as a BPF link, which bpffs can pin, or
+"""Attach a loaded BPF program to a tracepoint, a uprobe or a kprobe: as a BPF link, which bpffs can pin, or
 where the kernel has no such links, through the perf event itself.
 
 bcc attaches tracepoints and uprobes through perf events with an ioctl, which ends with the
 process that made it. A link made with BPF_LINK_CREATE on the perf event (Linux >= 5.15) holds
 the event itself: pinned, it outlives the loader, and the agent attaches new uprobes (a librcl.so
 that appears later) to pinned programs without bcc or its compiler. Before 5.15 the agent holds
-the perf event (`link=False`): the program stays attached while the agent runs.
+the perf event (`link=False`): the program stays attached while the agent runs. Kprobes made so
+are pinned links alike (the tracepoint paths' few kprobes, on kernels that all have such links).
 """
 from __future__ import annotations
 
@@ -22,7 +23,6 @@ _SYS_PERF_EVENT_OPEN = {"x86_64": 298, "aarch64": 241, "armv7l": 364, "riscv64":
 _PERF_FLAG_FD_CLOEXEC = 8
 _PERF_EVENT_IOC_ENABLE = 0x2400  # _IO('$', 0)
 _PERF_EVENT_IOC_SET_BPF = 0x40042408  # _IOW('$', 8, __u32)
-_UPROBE_PMU = "/sys/bus/event_source/devices/uprobe"
 
 
 class _PerfEventAttr(ctypes.Structure):
@@ -37,8 +37,8 @@ class _PerfEventAttr(ctypes.Structure):
         ("flags", ctypes.c_uint64),
         ("wakeup_events", ctypes.c_uint32),
         ("bp_type", ctypes.c_uint32),
-        ("config1", ctypes.c_uint64),  # uprobe: the path
-        ("config2", ctypes.c_uint64),  # uprobe: the file offset
+        ("config1", ctypes.c_uint64),  # uprobe: the path; kprobe: the function
+        ("config2", ctypes.c_uint64),  # the offset in the file or function
     ]
 
 
@@ -92,15 +92,28 @@ def tracepoint(prog_fd: int, event: str, link: bool = True) -> int:
 def uprobe(prog_fd: int, path: str, offset: int, ret: bool = False, link: bool = True) -> int:
     """A link of the program to the instruction at file `offset` of `path` (a return probe on the
     function there if `ret`), or its perf event (see _attach); returns its fd."""
-    what = f"uprobe {path}+{offset:#x}"
+    return _probe_event(prog_fd, "uprobe", path, offset, ret, link, f"uprobe {path}+{offset:#x}")
+
+
+def kprobe(prog_fd: int, function: str, ret: bool = False) -> int:
+    """A link of the program to the kernel function's entry (its return if `ret`); returns its fd.
+    A return probe made so follows at most the kernel's default of calls at once (max(10, 2 x CPUs)):
+    a return past those goes uncounted."""
+    return _probe_event(prog_fd, "kprobe", function, 0, ret, True, f"{'kretprobe' if ret else 'kprobe'} {function}")
+
+
+def _probe_event(prog_fd: int, pmu_name: str, target: str, offset: int, ret: bool, link: bool, what: str) -> int:
+    """A uprobe on file `target` at `offset`, or a kprobe on kernel function `target`, through the
+    PMU of that name (as libbpf makes them)."""
+    pmu_dir = f"/sys/bus/event_source/devices/{pmu_name}"
     try:
-        with open(f"{_UPROBE_PMU}/type") as f:
+        with open(f"{pmu_dir}/type") as f:
             pmu = int(f.read())
-        with open(f"{_UPROBE_PMU}/format/retprobe") as f:
+        with open(f"{pmu_dir}/format/retprobe") as f:
             ret_bit = int(f.read().split(":")[1])  # "config:0"
     except (OSError, ValueError, IndexError):
-        raise ProbeError(f"{what}: the kernel has no uprobe PMU ({_UPROBE_PMU})") from None
-    name = ctypes.create_string_buffer(path.encode())
+        raise ProbeError(f"{what}: the kernel has no {pmu_name} PMU ({pmu_dir})") from None
+    name = ctypes.create_string_buffer(target.encode())
     attr = _PerfEventAttr(type=pmu, size=ctypes.sizeof(_PerfEventAttr), config=(1 << ret_bit) if ret else 0,
                           sample_period=1, wakeup_events=1, config1=ctypes.addressof(name), config2=offset)
     return _attach(prog_fd, _perf_event_open(attr, what), what, link)

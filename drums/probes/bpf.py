@@ -207,6 +207,10 @@ class BpfProbe(Probe):
             raise refused[1]
         raise KernelError("no attach path: " + "; ".join(choose_path(self.paths, self.features)[1]))
 
+    def caveat(self, path: AttachPath) -> str:
+        """What the path leaves uncounted on this kernel, said by `drums doctor` and when it attaches."""
+        return ""
+
     def _attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
         """The path's attachments on this kernel: its optional functions where the kernel has them,
         and its tracepoints held by the agent where they cannot be linked (see drums.kernel.perflink)."""
@@ -252,6 +256,8 @@ class BpfProbe(Probe):
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
+        if self.caveat(path):
+            log.warning("probe %s: %s", self.name, self.caveat(path))
 
     def _check_layouts(self) -> None:
         for name, layout in self.maps.items():

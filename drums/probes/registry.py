@@ -14,10 +14,12 @@ ROS2_PROBES = ("rtps", "rcl", "loads")
 
 
 def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: str = "",
-          ros_timing: bool = True, attach: dict[str, str] | None = None) -> list[Probe]:
+          ros_timing: bool = True, attach: dict[str, str] | None = None,
+          splice_tracepoints: bool = False) -> list[Probe]:
     """The probes called `names`; BPF probes pin under `pin_root` (default /sys/fs/bpf/drums);
     `ros_timing`: rcl times messages as well as counting them; `attach`: probe -> the one attach
-    path it may take, or "fallback" for its fallback alone."""
+    path it may take, or "fallback" for its fallback alone; `splice_tracepoints`: see
+    drums.probes.sockets.splice_reads."""
     from drums.probes.host import HostProbe
     from drums.probes.latency import LatencyProbe
     from drums.probes.loads import LINKERS, LoadsProbe
@@ -35,7 +37,7 @@ def build(features: Features, proctable: ProcessTable, names=PROBES, pin_root: s
     pin_root = pin_root or PIN_ROOT
     dds = MappedLibraries(proctable, DDS_LIBRARIES + LINKERS)  # each process's map read once for all three
     makers = {
-        "sockets": lambda: SocketsProbe(features, proctable, pin_root=pin_root),
+        "sockets": lambda: SocketsProbe(features, proctable, pin_root=pin_root, splice_tracepoints=splice_tracepoints),
         "sched": lambda: SchedProbe(features, proctable, pin_root=pin_root),
         "tcp": lambda: TcpProbe(features, pin_root=pin_root),
         "host": HostProbe,

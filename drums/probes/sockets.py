@@ -10,6 +10,7 @@ from __future__ import annotations
 import socket
 import struct
 import time
+from dataclasses import replace
 from sys import intern
 
 import numpy as np
@@ -78,18 +79,41 @@ FAMILY_CALLS = tuple(f"{family}_{call}msg" for call in ("send", "recv")
 # hand a socket: neither goes through sendmsg or recvmsg there.
 SPLICE_READS = ("tcp_splice_read", "unix_stream_splice_read")
 SENDPAGES = ("inet_sendpage", "unix_stream_sendpage")
-# On Linux >= 6.6 only splice's reads miss the tracepoints: the syscall's entry and exit count them.
-SPLICE_EVENTS = ("sys_enter_splice", "sys_exit_splice")
 LIFECYCLE = (("raw_tracepoint", "inet_sock_set_state", "on_tcp_state"),
              ("run", "", "forget_gone"))  # the agent's, for sockets freed without a tracepoint (see _forget)
 _NEEDS_LIFECYCLE = needs_all(needs_test_run, needs_tracepoints("inet_sock_set_state"))
 _RAW = AttachPath("raw_tracepoint",
-                  tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv")))
-                  + tuple(("tracepoint", f"syscalls:{e}", fn) for e, fn in zip(SPLICE_EVENTS, ("on_splice_enter",
-                                                                                              "on_splice_exit")))
-                  + LIFECYCLE,
-                  needs_all(needs_tracepoints(*SEND_RECV, *SPLICE_EVENTS), _NEEDS_LIFECYCLE),
+                  tuple(("raw_tracepoint", tp, fn) for tp, fn in zip(SEND_RECV, ("on_send", "on_recv"))) + LIFECYCLE,
+                  needs_all(needs_tracepoints(*SEND_RECV), _NEEDS_LIFECYCLE),
                   "Linux >= 6.6: every socket family, one event per send and receive call")
+TRACEPOINT_PATHS = ("tp_btf", "raw_tracepoint")
+
+# On the tracepoint paths only splice's reads miss the tracepoints; what counts them (SPLICE_READS in
+# bpf/sockets.bpf.c): kprobes on the two functions, pinned as links (they cost splices alone), or
+# where the kernel has no kprobes and the agent was asked to, the syscall's tracepoints, which slow
+# every system call of every process on the host (enabling one sets the kernel's syscall tracing
+# work on every task; bench/event_cost.py measures it); else nothing.
+SPLICE_UNCOUNTED, SPLICE_BY_KPROBES, SPLICE_BY_SYSCALLS = 0, 1, 2
+SPLICE_EVENTS = ("sys_enter_splice", "sys_exit_splice")
+_SPLICE_ATTACHMENTS = {
+    SPLICE_UNCOUNTED: (),
+    SPLICE_BY_KPROBES: tuple((kind, fn, f"{side}_{fn}") for fn in SPLICE_READS
+                             for kind, side in (("kprobe_link", "enter"), ("kretprobe_link", "exit"))),
+    SPLICE_BY_SYSCALLS: tuple(("tracepoint", f"syscalls:{e}", fn)
+                              for e, fn in zip(SPLICE_EVENTS, ("on_splice_enter", "on_splice_exit"))),
+}
+SPLICE_UNCOUNTED_WHY = ("splice(2) reads from TCP and unix stream sockets are not counted on the tracepoint "
+                        "paths of a kernel without kprobes; `drums agent --splice-tracepoints` counts them "
+                        "through the syscall tracepoints, which slow every system call on the host")
+
+
+def splice_reads(features, splice_tracepoints: bool) -> int:
+    """How the tracepoint paths count splice's reads on this kernel (SPLICE_*)."""
+    if features.kprobes:
+        return SPLICE_BY_KPROBES
+    if splice_tracepoints and all(features.tracepoint(e) for e in SPLICE_EVENTS):
+        return SPLICE_BY_SYSCALLS
+    return SPLICE_UNCOUNTED
 
 
 # The map value as 8-byte words (bpf/sockets.bpf.c): the identity (inode, process, addresses) in
@@ -256,9 +280,12 @@ class SocketsProbe(BpfProbe):
                    "loaded in the agent", optional=SENDPAGES),
     )
 
-    def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix", **kw):
+    def __init__(self, features, proctable: ProcessTable, proc_net_unix: str = "/proc/net/unix",
+                 splice_tracepoints: bool = False, **kw):
         super().__init__(features, **kw)
         self.proctable = proctable
+        self.splice_reads = splice_reads(features, splice_tracepoints)
+        self.options = {"SPLICE_READS": self.splice_reads}
         self.proc_net_unix = proc_net_unix
         self._monotonic = Monotonic()
         self._named: dict[int, str] = {}  # the name of each process the last collect gave totals of
@@ -272,6 +299,14 @@ class SocketsProbe(BpfProbe):
         self._waiting = np.empty(0, np.uint64)  # sockets whose slot was being taken or given up at the last look
         self._hashed: set[int] = set()  # sockets whose entry is in socket_traffic, for its fill
         self._identity: _Identity | None = None  # of the entries the last collect kept
+
+    def caveat(self, path: AttachPath) -> str:
+        return SPLICE_UNCOUNTED_WHY if path.name in TRACEPOINT_PATHS and self.splice_reads == SPLICE_UNCOUNTED else ""
+
+    def _attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
+        if path.name in TRACEPOINT_PATHS:
+            path = replace(path, attachments=path.attachments + _SPLICE_ATTACHMENTS[self.splice_reads])
+        return super()._attachments(path)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,

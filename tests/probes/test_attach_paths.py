@@ -12,6 +12,7 @@ import pytest
 from drums.kernel.loader import BPF_DIR, program_text
 from drums.probes.bpf import ATTACH_DEFINES, AttachPath
 from drums.probes.sched import SchedProbe
+from drums.probes import sockets
 from drums.probes.sockets import SocketsProbe
 from tests.conftest import TEST_PIN_ROOT, offered_paths
 
@@ -38,6 +39,30 @@ def test_kprobe_path_compiles_and_passes_the_verifier(features, proctable):
         assert others == ["on_tcp_state", "forget_gone"]
         for fn in others:
             assert b.load_func(fn.encode(), BPF.RAW_TRACEPOINT).fd >= 0, fn
+    finally:
+        b.cleanup()
+
+
+@pytest.mark.kernel
+@pytest.mark.parametrize("path", [p for p in offered_paths(SocketsProbe) if p in sockets.TRACEPOINT_PATHS])
+def test_tracepoint_paths_splice_kprobes_compile_and_pass_the_verifier(features, proctable, path):
+    """Where the kernel has kprobes the tracepoint paths count splice's reads with them (pinned as
+    links); on a kernel without, their programs are still compiled in those paths' text and verified."""
+    if features.kprobes:
+        pytest.skip("kprobes are offered here: the sockets probe's splice tests load and count with them")
+    os.environ["BCC_KERNEL_SOURCE"] = features.kernel_headers
+    from bcc import BPF
+
+    probe = SocketsProbe(features, proctable)
+    defines = dict(probe.offsets(features.btf), DRUMS_ATTACH=ATTACH_DEFINES[path],
+                   SPLICE_READS=sockets.SPLICE_BY_KPROBES)
+    b = BPF(text=program_text(probe.source).encode(),
+            cflags=[f"-D{k}={v}" for k, v in defines.items()] + [f"-I{BPF_DIR}"])
+    try:
+        kinds = sockets._SPLICE_ATTACHMENTS[sockets.SPLICE_BY_KPROBES]
+        assert sorted(kind for kind, _, _ in kinds) == ["kprobe_link", "kprobe_link", "kretprobe_link", "kretprobe_link"]
+        for _, _, fn in kinds:
+            assert b.load_func(fn.encode(), BPF.KPROBE).fd >= 0, fn
     finally:
         b.cleanup()
 
