@@ -278,7 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "totals, as the paper did; process for processes that run no node")
     detect.add_argument("--grace", type=float, default=GRACE, metavar="SECONDS",
                         help=f"how long the series of a node that started, restarted or gained an edge are left "
-                             f"alone while it settles (default {GRACE:g})")
+                             f"alone while it settles (default {GRACE:g}); a process's memory that grows steadily, "
+                             f"a leak from birth, is named even then, from its 16th second")
     detect.add_argument("--ros", action="store_true",
                         help="also publish the anomalies now on the ROS 2 topic /drums/anomalies "
                              "(diagnostic_msgs/DiagnosticArray, a WARN status per anomaly), every interval")

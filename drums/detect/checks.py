@@ -24,6 +24,8 @@ BINS = 15  # histogram: bins over the series' range
 RARE = 0.01  # histogram: a bin holding at most this share of the history (and at least 1 point) is rare
 SHIFT_P = 0.01  # shift: two-sample Kolmogorov-Smirnov p-value under which the recent points differ
 TREND_SIGMAS = 4.0  # trend: the fitted change over the window against the residuals' deviation
+GROWTH_POINTS = 16  # growth: the newest points of a memory series judged for a leak, from its 16th
+RISES = 3  # growth: rises of an eighth of the floor or more it must take (the agent reads a process's memory every 5 s)
 
 
 @dataclass
@@ -123,3 +125,17 @@ def _trend(window: np.ndarray, effect: np.ndarray) -> np.ndarray:
     deviation = np.sqrt((residual ** 2).sum(axis=1) / max(k - 2, 1))
     change = slope * (k - 1)
     return (np.abs(change) > TREND_SIGMAS * deviation) & (np.sign(change) == np.sign(effect))
+
+
+def growth(window: np.ndarray, floor: np.ndarray, relative: np.ndarray) -> np.ndarray:
+    """Rows of `window` (n, GROWTH_POINTS) that grew all along: by more than the floor and `relative`
+    times where they began, in RISES or more rises (of an eighth of the floor each), none more than
+    half of the growth (an allocation at start, in one or two steps, that then stays is no leak),
+    and no fall of a tenth of it. The checks above judge a series against its own history, which
+    for a process that leaks from its first second is all growth: this one needs no history, so a
+    new process is judged from its GROWTH_POINTS-th point."""
+    steps = np.diff(window.astype(np.float64), axis=1)
+    grown = steps.sum(axis=1)
+    return ((grown > np.maximum(floor, relative * np.abs(window[:, 0])))
+            & ((steps > floor[:, None] / 8).sum(axis=1) >= RISES)
+            & (steps.max(axis=1) < grown / 2) & (steps.min(axis=1) > -grown / 10))

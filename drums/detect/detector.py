@@ -34,10 +34,11 @@ UNKNOWN_NODE = "unknown"  # the node the agent sums topic counts under when it c
 REPEATS = 2
 MEMORY = 10_000.0
 # What the detector keeps per row besides its history: the change that matters, a counter's last raw
-# value and when it was read (0: never), whether it was ever called anomalous, and the anomalies it
-# started lately and the severity of the worst (both fading with MEMORY).
+# value and when it was read (0: never), whether it was ever called anomalous, the anomalies it
+# started lately and the severity of the worst (both fading with MEMORY), and whether it is judged
+# for steady growth too (checks.growth).
 ROW = np.dtype([("floor", "f8"), ("relative", "f8"), ("last", "f8"), ("last_at", "f8"), ("counter", "?"),
-                ("flagged", "?"), ("started", "f8"), ("worst", "f8")])
+                ("flagged", "?"), ("started", "f8"), ("worst", "f8"), ("grows", "?")])
 
 
 @dataclass
@@ -74,8 +75,9 @@ class Anomaly:
 
     def __str__(self) -> str:
         since = time.strftime("%H:%M:%S", time.localtime(self.start))
-        return (f"{self.entity}: {self.what} {self.change} since {since} "
-                f"({len(self.failed)} checks of {len(checks.CHECKS)})")
+        how = (f"steady growth over its last {checks.GROWTH_POINTS} points" if self.failed == ("growth",)
+               else f"{len(self.failed)} checks of {len(checks.CHECKS)}")
+        return f"{self.entity}: {self.what} {self.change} since {since} ({how})"
 
     def as_dict(self) -> dict:
         s = self.series
@@ -197,7 +199,7 @@ class Detector:
             grown = np.zeros(len(self.history.used), self._state.dtype)
             grown[:len(self._state)] = self._state
             self._state = grown
-        self._state[s.row] = (s.floor, s.relative, 0.0, 0.0, s.counter, False, 0.0, 0.0)
+        self._state[s.row] = (s.floor, s.relative, 0.0, 0.0, s.counter, False, 0.0, 0.0, s.grows)
         self.series[key] = s
         self.by_row[s.row] = s
         if s.name.startswith("drums_edge_"):
@@ -261,15 +263,9 @@ class Detector:
                     self.history.held[s.row] = 0
                     continue
                 names = tuple(c for c, f in zip(checks.CHECKS, verdict.failed[i]) if f)
-                value, severity = float(verdict.value[i]), float(verdict.severity[i])
-                a = self.active.get(s.key)
-                row = self._state[s.row]
-                if a is not None:
-                    a.value, a.failed, a.severity, a.last, a.entity = value, names, severity, now, entity
-                elif row["started"] < REPEATS - 0.5 or severity > row["worst"]:
-                    new.append(Anomaly(s, entity, now, float(verdict.baseline[i]), value, names, severity, now))
-                    row["started"] += 1
-                row["worst"] = max(row["worst"], severity)
+                self._flag(s, entity, names, float(verdict.baseline[i]), float(verdict.value[i]),
+                           float(verdict.severity[i]), now, new)
+        self._judge_growth(now, new)
         # Links before their ends, streams before their consumers: the first names the incident.
         new.sort(key=lambda a: (KINDS.index(a.entity.kind), -a.severity))
         for a in new:
@@ -283,6 +279,35 @@ class Detector:
             incident = self.incidents.place(a, near, now)
             a.incident, a.leads = incident.id, incident.root is a
         return [Event(now, "anomaly", a) for a in new]
+
+    def _flag(self, s: Series, entity: Entity, names: tuple[str, ...], baseline: float, value: float,
+              severity: float, now: float, new: list[Anomaly]) -> None:
+        """The series was flagged: its anomaly goes on, or one starts (into `new`) unless it cries wolf."""
+        a = self.active.get(s.key)
+        row = self._state[s.row]
+        if a is not None:
+            a.value, a.failed, a.severity, a.last, a.entity = value, names, severity, now, entity
+        elif row["started"] < REPEATS - 0.5 or severity > row["worst"]:
+            new.append(Anomaly(s, entity, now, baseline, value, names, severity, now))
+            row["started"] += 1
+        row["worst"] = max(row["worst"], severity)
+
+    def _judge_growth(self, now: float, new: list[Anomaly]) -> None:
+        """Memory that grew all along its newest points: judged from a process's first points, and while
+        its node settles (a leak from birth is news, not the start-up's effect: checks.growth)."""
+        h, k = self.history, checks.GROWTH_POINTS
+        n = len(h.used)
+        rows = np.flatnonzero(h.used & self._state["grows"][:n] & (h.held >= k) & (h.missed == 0))
+        if not len(rows):
+            return
+        window = h.points[np.ix_(rows, (h.column - k + 1 + np.arange(k)) % h.width)]
+        state = self._state[rows]
+        for i in np.flatnonzero(checks.growth(window, state["floor"], state["relative"])).tolist():
+            s = self.by_row[int(rows[i])]
+            entity = self._entity(s)
+            if not self._ignored(s, entity):
+                first, last = float(window[i, 0]), float(window[i, -1])
+                self._flag(s, entity, ("growth",), first, last, (last - first) / max(s.floor, 1e-12), now, new)
 
     def _expire(self, now: float) -> list[Event]:
         events = []

@@ -36,6 +36,10 @@ CHURN = re.compile(r"context_switches|runqueue_waits|runqueue_latency_seconds_co
 # histogram's sum and count: its rate times its mean), which swing with that load too.
 DETAIL = re.compile(r"^drums_(thread|socket)_|context_switches|runqueue|_publish_period_|_reaction_|_delivery_")
 
+# Judged for steady growth besides (drums.detect.checks.growth), from a process's first points: a
+# leak from birth, whose history is all growth, never differs from its history.
+GROWS = re.compile(r"^drums_(process|node)_resident_memory_bytes$")
+
 KIB, MIB = 1024.0, 1024.0 ** 2
 
 
@@ -91,6 +95,10 @@ class Series:
         floor, relative = floors(name, counter)
         category = next(c for c, pattern in CATEGORIES if pattern.search(name))
         return cls(source, text, name, counter, category, floor, relative)
+
+    @property
+    def grows(self) -> bool:
+        return not self.counter and bool(GROWS.match(self.name))
 
     @property
     def key(self) -> tuple[str, str]:

@@ -60,6 +60,27 @@ def test_a_leak_is_flagged_within_ten_points_of_its_start():
     assert 300 <= first <= 310
 
 
+def test_growth_names_a_leak_from_birth_and_no_allocation_that_then_stays():
+    """Resident memory of new processes, a point a second: each row GROWTH_POINTS points from where
+    its process began, with a page cache's worth of noise."""
+    mib, k = 1024.0 ** 2, checks.GROWTH_POINTS
+    rng = np.random.default_rng(4)
+    t = np.arange(k)
+    rows = {
+        "leaks 5 MiB/s from birth": 10 * mib + 5 * mib * t,
+        "leaks 5 MiB/s from birth, read every 5 s": 10 * mib + 5 * mib * (t // 5 * 5),
+        "allocates 200 MiB in its second second, then stays": np.where(t >= 1, 210 * mib, 10 * mib),
+        "allocates 200 MiB over its first two reads": 10 * mib + np.minimum(t // 5, 2) * 100 * mib,
+        "grows 200 KiB/s (under the floor)": 10 * mib + 0.2 * mib * t,
+        "fills a cache and empties it twice": 10 * mib + 5 * mib * t - 30 * mib * ((t >= 6) + (t >= 12)),
+        "flat": np.full(k, 50 * mib),
+    }
+    window = np.array(list(rows.values())) + rng.normal(0, 4096, (len(rows), k))
+    flagged = checks.growth(window.astype(np.float32), np.full(len(rows), 4 * mib), np.full(len(rows), 0.05))
+    assert [name for name, f in zip(rows, flagged) if f] == ["leaks 5 MiB/s from birth",
+                                                             "leaks 5 MiB/s from birth, read every 5 s"]
+
+
 def test_a_single_spike_is_diluted_but_a_large_one_is_not():
     window = noise(2)
     window[0, -1] += 30.0  # 6 deviations, one point: 2 when averaged over the tail of 3

@@ -121,6 +121,48 @@ def test_a_process_whose_sending_jumps_is_named_through_prometheus_within_ten_se
                and r["host"] == "robot1" and r["checks"] >= 3 for r in rows), rows
 
 
+# A process that leaks 5 MiB a second from its first, and one that takes 200 MiB at once and keeps it.
+LEAKER = r"""
+import sys, time
+kept = []
+print(f"{time.time():.3f}", flush=True)
+while True:
+    kept.append(b"\x01" * (5 << 20))
+    time.sleep(1)
+"""
+LOADER = r"""
+import sys, time
+kept = b"\x01" * (200 << 20)
+print(f"{time.time():.3f}", flush=True)
+time.sleep(3600)
+"""
+BIRTH = "drums-birth-test"  # on their command lines, for the agent's --process-name
+
+
+def test_a_process_that_leaks_from_birth_is_named_within_twenty_seconds_and_one_that_allocates_once_never(tmp_path):
+    log = tmp_path / "events.jsonl"
+    with running_agent("--process-name", BIRTH) as metrics_url, \
+            detector("--agent", metrics_url.removesuffix("/metrics"), "--log", str(log)) as (proc, _):
+        children = [subprocess.Popen([sys.executable, "-c", code, BIRTH], stdout=subprocess.PIPE, text=True)
+                    for code in (LEAKER, LOADER)]
+        try:
+            leaker, loader = children
+            born = float(leaker.stdout.readline())
+            loader.stdout.readline()
+            time.sleep(40)
+        finally:
+            for child in children:
+                child.kill()
+                child.wait()
+    events = [json.loads(line) for line in log.read_text().splitlines()]
+    named = {pid: [e for e in events if e["event"] == "anomaly" and e["entity"]["name"].endswith(f"({pid})")]
+             for pid in (leaker.pid, loader.pid)}
+    assert named[leaker.pid] and "resident memory" in named[leaker.pid][0]["what"], [e["text"] for e in events]
+    assert named[leaker.pid][0]["start"] - born <= 20, named[leaker.pid][0]["text"]
+    assert named[leaker.pid][0]["checks"] == ["growth"]
+    assert not named[loader.pid], [e["text"] for e in named[loader.pid]]
+
+
 def test_bad_flags_are_one_line_and_an_agent_that_is_down_is_said_once(tmp_path):
     for argv, message in ((["--interval", "0"], "--interval: 0 s is outside 0.1-3600 s"),
                           (["--log", str(tmp_path / "no" / "such.jsonl")], "--log"),

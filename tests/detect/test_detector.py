@@ -131,6 +131,26 @@ def test_graph_changes_are_reported_and_a_restarted_node_is_left_to_settle():
     assert len(anomalies) == 1 and anomalies[0][1] == "node /processor" and 150 <= anomalies[0][0] <= 155
 
 
+def test_a_node_that_leaks_from_birth_is_named_within_twenty_seconds_and_one_that_allocates_once_never():
+    """Two nodes start at tick 60 (so settle for the grace): /leaker grows 5 MiB a second from its
+    first point, /loader takes 200 MiB in its first seconds and stays. Within 20 s /leaker is named
+    for its memory, by steady growth; /loader never is, nor anything else, in three minutes."""
+    mib = 1024.0 ** 2
+    robot = Robot()
+
+    def start(i, r):
+        if i >= 60:
+            r.pids.setdefault("/leaker", "2000")
+            r.pids.setdefault("/loader", "2001")
+            r.memory["/leaker"] = 10 * mib + 5 * mib * (i - 60)
+            r.memory["/loader"] = 10 * mib + 100 * mib * min(i - 60, 2)
+    events = run(Detector(), robot, 240, start)
+    anomalies = [(i, e.anomaly) for i, e in events if e.kind == "anomaly"]
+    assert [(str(a.entity), a.failed) for _, a in anomalies] == [("node /leaker", ("growth",))], \
+        [(i, str(a)) for i, a in anomalies]
+    assert 60 < anomalies[0][0] <= 80 and "steady growth over its last 16 points" in str(anomalies[0][1])
+
+
 def test_ignored_kinds_are_watched_but_never_flagged():
     def busy(i, r):
         if i == 100:
