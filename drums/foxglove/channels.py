@@ -9,10 +9,12 @@ rosbag2 MCAP of the same robot.
 """
 from __future__ import annotations
 
+import signal
 import threading
 from dataclasses import dataclass, field
 from typing import Callable
 
+from drums.top.collector import Collector
 from drums.top.model import Frame
 from drums.top.screen import Views
 from drums.top.table import Table
@@ -91,25 +93,32 @@ class Channels:
         return out
 
 
-def follow(frames: Callable[[], Frame], context, stop: threading.Event, interval: float,
-           each: Callable[[Frame], None] = lambda frame: None) -> None:
-    """Log the channels of each frame of top's model (`frames`) into a Foxglove context (whose sinks
-    are an MCAP file, a WebSocket server) until `stop` is set; `each` also sees every frame."""
+def follow(collector: Collector, context, interval: float, each: Callable[[Frame], None] = lambda frame: None) -> None:
+    """Log the channels of each frame of top's model (the collector's, started here and closed at the
+    end) into a Foxglove context (whose sinks are an MCAP file, a WebSocket server) until SIGINT or
+    SIGTERM; `each` also sees every frame."""
     import foxglove
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     channels, made = Channels(), {}  # topic -> (its channel, when it last logged)
-    while not stop.wait(min(interval, 0.2)):
-        frame = frames()
-        each(frame)
-        for m in channels.messages(frame):
-            channel = made[m.topic][0] if m.topic in made else (
-                foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
-                if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
-            channel.log(m.value if m.schema else log_message(m.value), log_time=m.at_ns)
-            made[m.topic] = channel, frame.at
-        for topic_, (channel, at) in list(made.items()):
-            if frame.at - at > max(IDLE, 3 * interval):
-                channel.close()
-                del made[topic_]
+    collector.start()
+    try:
+        while not stop.wait(min(interval, 0.2)):
+            frame = collector.model.frame()
+            each(frame)
+            for m in channels.messages(frame):
+                channel = made[m.topic][0] if m.topic in made else (
+                    foxglove.Channel(m.topic, schema=m.schema, message_encoding="json", context=context)
+                    if m.schema else foxglove.channels.LogChannel(m.topic, context=context))
+                channel.log(m.value if m.schema else log_message(m.value), log_time=m.at_ns)
+                made[m.topic] = channel, frame.at
+            for topic_, (channel, at) in list(made.items()):
+                if frame.at - at > max(IDLE, 3 * interval):
+                    channel.close()
+                    del made[topic_]
+    finally:
+        collector.close()
 
 
 def log_message(fields: dict):

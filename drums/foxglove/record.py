@@ -5,9 +5,6 @@ whose every chunk but the last is read back (by a reader that does not need the 
 NonSeekingReader in file order)."""
 from __future__ import annotations
 
-import signal
-import threading
-
 from drums.errors import DrumsError, UsageError
 from drums.foxglove.channels import follow
 from drums.top.collector import Collector
@@ -31,14 +28,9 @@ def run(urls: list[str], token: str, interval: float, output: str, detector: str
                                     writer_options=MCAPWriteOptions(chunk_size=CHUNK, disable_seeking=True))
     except Exception as e:  # the SDK raises its own errors for a path it cannot create
         raise UsageError(f"--output {output}: {e}") from None
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    collector.start()
     try:
-        follow(collector.model.frame, context, stop, interval)
+        follow(collector, context, interval)
     finally:
-        collector.close()
         try:
             writer.close()
         except Exception as e:  # a full disk: the chunks written stay readable

@@ -6,9 +6,6 @@ looks. A client that does not read loses its oldest messages past a backlog, and
 when its control messages fill one too: its memory stays bounded."""
 from __future__ import annotations
 
-import signal
-import threading
-
 from drums.errors import UsageError
 from drums.foxglove.channels import follow
 from drums.top.collector import Collector
@@ -37,9 +34,6 @@ def run(urls: list[str], token: str, interval: float, address: str, port: int, d
                                        message_backlog_size=BACKLOG)
     except Exception as e:  # the SDK's own error for an address it cannot bind
         raise UsageError(f"--address {address} --port {port}: {e}") from None
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     shown: list = [None]
 
     def publish_graph(frame: Frame) -> None:
@@ -54,10 +48,8 @@ def run(urls: list[str], token: str, interval: float, address: str, port: int, d
         shown[0] = topics
     print(f"drums foxglove: serving ws://{address}:{server.port} (Foxglove: open a Foxglove WebSocket connection)",
           flush=True)
-    collector.start()
     try:
-        follow(collector.model.frame, context, stop, interval, publish_graph)
+        follow(collector, context, interval, publish_graph)
     finally:
-        collector.close()
         server.stop()
     return 0

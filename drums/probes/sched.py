@@ -160,6 +160,7 @@ class SchedProbe(BpfProbe):
         self._labelled = Remembered()  # the labels the last collect's threads were asked for
         self._collects = 0
         self._renames_lost = 0
+        self._exited_read: tuple[bytes, bytes, int] | None = None  # exited_sched as ended() read it
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {
@@ -285,7 +286,7 @@ class SchedProbe(BpfProbe):
 
     def ended(self) -> dict[int, str]:
         pt, out = self.proctable, {}
-        keys, values, _ = self.read("exited_sched")
+        keys, values, _ = self._exited_read = self.read("exited_sched")  # the collect that follows takes it
         for (tgid,), (*_, comm) in zip(_U32.iter_unpack(keys), _PROCESS_VALUE.iter_unpack(values)):
             if not pt.alive(tgid) and not pt.belongs(tgid):
                 out[tgid] = comm_text(comm)
@@ -296,7 +297,8 @@ class SchedProbe(BpfProbe):
         self._collects += 1  # first: a collect that fails is one the next cannot be told against
         exited: dict[int, bytes] = {}
         ended: list[tuple[bytes, bytes]] = []  # the entries of processes that ended: read once, then deleted
-        keys, values, _ = self.read("exited_sched")
+        keys, values, _ = self._exited_read or self.read("exited_sched")
+        self._exited_read = None
         size = _PROCESS_VALUE.size
         for i, (tgid,) in enumerate(_U32.iter_unpack(keys)):
             value = values[i * size:(i + 1) * size]
