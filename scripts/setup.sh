@@ -12,8 +12,9 @@ APT_PACKAGES=(python3-bpfcc python3-venv libbpf1 bpftool iproute2)
 # loads the agent's page, tmux runs `drums top` in a terminal, gcc builds a clock a process preloads.
 [ "${DRUMS_SETUP_TEST:-0}" = 1 ] && APT_PACKAGES+=(prometheus victoria-metrics iperf3 tcpdump graphviz chromium tmux gcc libc6-dev)
 # For make test-kernels: qemu boots the matrix's kernels (virtme-ng, pinned in the test lock, drives
-# it and wants a static busybox for the guest's first steps), kmod indexes their modules.
-[ "${DRUMS_SETUP_KERNELS:-0}" = 1 ] && APT_PACKAGES+=(qemu-system-x86 busybox-static kmod)
+# it and wants a static busybox for the guest's first steps), kmod indexes their modules; the arm64
+# kernel boots over an arm64 root made by debootstrap, whose programs qemu-user-static runs here.
+[ "${DRUMS_SETUP_KERNELS:-0}" = 1 ] && APT_PACKAGES+=(qemu-system-x86 busybox-static kmod qemu-system-arm qemu-user-static debootstrap)
 # For the benchmarks: node_exporter is a peer (its service is disabled again: the benchmark runs it).
 [ "${DRUMS_SETUP_BENCH:-0}" = 1 ] && APT_PACKAGES+=(prometheus-node-exporter)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import glob
+import importlib.util
 import os
 import re
 import shutil
@@ -23,6 +24,10 @@ TEST_PIN_ROOT = f"/sys/fs/bpf/drums_test_{os.getpid()}"
 # How much longer than here things take: under make test-kernels' software emulation, about ten
 # times (tests/kernels/guest.py sets it). Waits for a process or an answer are scaled by it.
 TIME_SCALE = float(os.environ.get("DRUMS_TEST_TIME_SCALE", "1"))
+# ROS 2 from PyPI (rclpy, Fast DDS) has wheels for x86_64 alone: an arm64 kernel's run
+# (tests/kernels/arm64.py) has none, and its agent runs no ROS 2 graph nor per-topic probes.
+ROS2 = importlib.util.find_spec("rclpy") is not None
+NO_ROS2 = "ROS 2's wheels on PyPI are x86_64 only: not installed on this machine"
 _domain_slot: tuple[int, object] | None = None  # (slot, the lock file held for the session)
 
 

@@ -21,7 +21,7 @@ import pytest
 from drums.client import Agent
 from drums.selfcost import MEMORY_EVERY
 from tests.agentproc import free_port, running_agent, samples, scrape, series_begun, serving
-from tests.conftest import TEST_PIN_ROOT, connected_pairs, eventually, offered_paths, spliced_from
+from tests.conftest import ROS2, TEST_PIN_ROOT, connected_pairs, eventually, offered_paths, spliced_from
 
 
 @pytest.fixture(scope="module")
@@ -87,12 +87,12 @@ def test_every_probe_attached_with_its_attach_type(agent, record_property):
                                                          rtps.RtpsProbe, rcl.RclProbe, loads.LoadsProbe)}
     seen = attached(agent)
     record_property("attached", json.dumps({probe: path for probe, (path, _) in seen.items()}))  # make test-kernels' row
-    # rclpy is importable here, so the graph is ros2 and the per-topic probes run too. Each BPF
-    # probe takes the best path this kernel offers (tp_btf for sockets and sched on Linux >= 6.6).
+    # Where rclpy is importable the graph is ros2 and the per-topic probes run too. Each BPF probe
+    # takes the best path this kernel offers (tp_btf for sockets and sched on Linux >= 6.6).
+    ros2 = {"rtps": (best["rtps"], 1), "rcl": (best["rcl"], 1), "loads": (best["loads"], 1)} if ROS2 else {}
     assert seen == {"sockets": (best["sockets"], 1), "sched": (best["sched"], 1),
                                "tcp": (best["tcp"], 1), "host": ("psutil", 1), "process": ("psutil", 1),
-                               "rtps": (best["rtps"], 1), "rcl": (best["rcl"], 1), "loads": (best["loads"], 1),
-                               "latency": ("icmp", 1)}
+                               "latency": ("icmp", 1), **ros2}
 
 
 @pytest.mark.kernel

@@ -7,6 +7,7 @@ writing what it saw to OUT/guest.json and the tests' outcomes to OUT/junit.xml.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import platform
@@ -47,7 +48,8 @@ def main(out: str, headers: str, time_scale: str, tests: list[str]) -> int:
     # The portable tests need no pytest plugin; importing those installed (hypothesis, schemathesis,
     # anyio) took 25 of the 70 s that collecting them took under emulation.
     os.environ["PYTEST_DISABLE_PLUGIN_AUTOLOAD"] = "1"
-    seen: dict = {"release": platform.release(), "python": platform.python_version()}
+    seen: dict = {"release": platform.release(), "python": platform.python_version(),
+                  "ros2": importlib.util.find_spec("rclpy") is not None}
     started = time.monotonic()
     seen["doctor"] = subprocess.run(DRUMS + ["doctor"], capture_output=True, text=True).stdout
     seen["paths"] = paths_offered()

@@ -15,6 +15,7 @@ class Package:
     name: str
     version: str
     sha256: str
+    arch: str = ""  # another architecture's package (arm64); "" this machine's or any
 
 
 @dataclass(frozen=True)
@@ -26,10 +27,11 @@ class Kernel:
     headers: tuple[Package, ...]  # the flavour's, then the common ones (bcc compiles against both)
     ci: bool  # run by .ci/run
     robots: str  # which robots run such a kernel
+    arch: str = ""  # "arm64": booted under qemu-system-aarch64 over a Debian arm64 root (tests/kernels/arm64.py)
 
 
-def _pkgs(version: str, *pairs: tuple[str, str]) -> tuple[Package, ...]:
-    return tuple(Package(name, version, sha) for name, sha in pairs)
+def _pkgs(version: str, *pairs: tuple[str, str], arch: str = "") -> tuple[Package, ...]:
+    return tuple(Package(name, version, sha, arch) for name, sha in pairs)
 
 
 _V510, _V61, _V612 = "5.10.262-1", "6.1.192-3", "6.12.118-1~deb12u1"
@@ -65,4 +67,11 @@ MATRIX = (
            _pkgs(_V612, ("linux-headers-6.12.118+deb12-rt-amd64", "42722837e56b81b2949a857ce3d69c8b92ff5d407fc1ce0af162e964614dcac8"),
                  ("linux-headers-6.12.118+deb12-common-rt", "0246c6e2a07f377a9633c733a855ac6fba2e3c931201d6d2256d8d7b41cbad84")),
            ci=False, robots="Debian 13 PREEMPT_RT"),
+    Kernel("6.1-arm64", "bookworm", "6.1.0-57-arm64",
+           *_pkgs(_V61, ("linux-image-6.1.0-57-arm64-unsigned",
+                         "b19fb23a7313b6e345c7ef7aa8d2ce44381d32111403b86040bdada12da8c379"), arch="arm64"),
+           _pkgs(_V61, ("linux-headers-6.1.0-57-arm64", "c35a734c09d05cb1bcce0bb7f98c4177c030d2da4f23fa076d352f627116854c"),
+                 arch="arm64")
+           + _pkgs(_V61, ("linux-headers-6.1.0-57-common", "5d248d9fff260d3750cf1a4223d9477c789e7fe6c8739f4b03f9b31431c2e5da")),
+           ci=False, robots="arm64 boards (Jetson, Raspberry Pi): no fentry before 6.0 there", arch="arm64"),
 )

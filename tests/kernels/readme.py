@@ -42,6 +42,11 @@ def table(results: dict) -> str:
         passed_over = [f"{path} ({why})" for path, why in row["paths"].get("sockets", []) if why]
         if passed_over:
             notes.append(f"- {row['kernel']}: the sockets probe passes over {'; '.join(passed_over)}.")
+        skipped = [f"{probe} {n['skipped']}" for probe, paths in row.get("tests", {}).items()
+                   for n in paths.values() if n.get("skipped") and not n["passed"] + n["failed"]]
+        if skipped and row.get("ros2") is False:
+            notes.append(f"- {row['kernel']}: no ROS 2 there (its wheels on PyPI are x86_64 only): the agent runs "
+                         f"no ROS 2 graph, and the tests that need ROS 2 were skipped ({', '.join(skipped)}).")
         if row.get("failed_tests"):
             notes.append(f"- {row['kernel']}: failed {', '.join(f'`{t}`' for t in row['failed_tests'])}.")
     legend = ("Each probe's cell: the path `drums agent` took (bold), and each path the probe's tests held it "

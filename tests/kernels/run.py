@@ -26,16 +26,19 @@ import tempfile
 import time
 import xml.etree.ElementTree as ET
 
+from tests.kernels import arm64
 from tests.kernels.matrix import MATRIX, Kernel, Package
 
 CHECKOUT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CACHE = "/var/cache/drums/kernels"
+ARCHES = ("amd64", "arm64")  # of the matrix's packages: apt's lists are fetched for both
 RESULTS = os.path.join(CHECKOUT, "tests", "kernels", "results.json")
 VENV_BIN = os.path.join(CHECKOUT, ".venv", "bin")
 # Where the portable part lies (the tests marked `kernel`): every exact count the probes make
 # against ground truth the test makes, the agent as the README starts it, the fallbacks, and
 # per-topic counts of rclpy nodes.
 TESTS = ("tests/probes", "tests/kernel/test_preemption.py", "tests/graph/test_topics.py", "tests/test_agent.py")
+ROS2_TESTS = ("tests/graph/test_topics.py",)  # ROS 2's wheels are x86_64 only: not on arm64
 PROBE_OF_FILE = {"test_sockets": "sockets", "test_sched": "sched", "test_tcp": "tcp", "test_topics": "rcl",
                  "test_fallbacks": "fallback", "test_attach_paths": "sockets", "test_rtps": "rtps"}
 BOOT_TIMEOUT = 45 * 60  # seconds a kernel may take to boot and run the tests under emulation
@@ -71,7 +74,8 @@ def _apt(*args: str, cwd: str | None = None) -> subprocess.CompletedProcess:
     d = os.path.join(CACHE, "apt")
     return subprocess.run(["apt-get", "-q", "-o", f"Dir::Etc::SourceList={d}/sources.list",
                            "-o", "Dir::Etc::SourceParts=/nonexistent", "-o", f"Dir::State::Lists={d}/lists",
-                           "-o", f"Dir::Cache={d}/cache", "-o", "APT::Sandbox::User=root", *args],
+                           "-o", f"Dir::Cache={d}/cache", "-o", "APT::Sandbox::User=root",
+                           *(o for a in ARCHES for o in ("-o", f"APT::Architectures::={a}")), *args],
                           capture_output=True, text=True, cwd=cwd)
 
 
@@ -82,7 +86,7 @@ def fetch(pkg: Package) -> str:
     """The package's .deb in the cache, downloaded if missing; its hash checked either way."""
     global _updated
     debs = os.path.join(CACHE, "debs")
-    path = os.path.join(debs, f"{pkg.name}_{pkg.version.replace(':', '%3a')}.deb")
+    path = os.path.join(debs, f"{pkg.name}_{pkg.version.replace(':', '%3a')}{'_' + pkg.arch if pkg.arch else ''}.deb")
     if not os.path.exists(path):
         if not _updated:
             d = os.path.join(CACHE, "apt")
@@ -91,14 +95,15 @@ def fetch(pkg: Package) -> str:
             uri = _debian_uri()
             with open(os.path.join(d, "sources.list"), "w") as f:
                 for suite in sorted({k.suite for k in MATRIX}):
-                    f.write(f"deb {uri} {suite} main\ndeb {uri}-security {suite}-security main\n")
+                    f.write(f"deb [arch={','.join(ARCHES)}] {uri} {suite} main\n"
+                            f"deb [arch={','.join(ARCHES)}] {uri}-security {suite}-security main\n")
             got = _apt("update")
             if got.returncode:
                 raise RuntimeError(f"apt-get update: {(got.stderr.strip().splitlines() or ['failed'])[-1]}")
             _updated = True
         os.makedirs(debs, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=debs) as tmp:
-            got = _apt("download", f"{pkg.name}={pkg.version}", cwd=tmp)
+            got = _apt("download", f"{pkg.name}{':' + pkg.arch if pkg.arch else ''}={pkg.version}", cwd=tmp)
             files = glob.glob(os.path.join(tmp, "*.deb"))
             if got.returncode or len(files) != 1:
                 raise RuntimeError(f"cannot fetch {pkg.name}={pkg.version}: "
@@ -140,10 +145,14 @@ def unpack(k: Kernel) -> tuple[str, str]:
 
 # ---- booting ------------------------------------------------------------------------------------
 
-def _vng(vmlinuz: str, kvm: bool, command: str, out: str, timeout: float) -> tuple[int | None, str]:
-    """Boot the kernel and run `command` in it; (its exit status or None if it timed out, console tail)."""
-    argv = [os.path.join(VENV_BIN, "vng"), "-r", vmlinuz, "--cpus", "2", "--memory", "4G", "--rwdir", out,
-            "--rodir", CACHE, "--cwd", CHECKOUT, "-e", command] + ([] if kvm else ["--disable-kvm"])
+def _vng(vmlinuz: str, kvm: bool, command: str, out: str, timeout: float, arch: str = "",
+         root: str = "/") -> tuple[int | None, str]:
+    """Boot the kernel and run `command` in it; (its exit status or None if it timed out, console tail).
+    `arch` and `root`: a kernel of another architecture, over a root of its own (tests/kernels/arm64.py),
+    where this machine's `out` and CACHE are mounted at their own paths."""
+    argv = [os.path.join(VENV_BIN, "vng"), "-r", vmlinuz, "--cpus", "2", "--memory", "4G", "--rwdir", f"{out}={out}",
+            "--rodir", f"{CACHE}={CACHE}", "--cwd", os.path.join(root, CHECKOUT.lstrip("/")), "-e", command]
+    argv += (["--arch", arch, "--root", root] if arch else []) + ([] if kvm else ["--disable-kvm"])
     env = dict(os.environ, PATH=f"{VENV_BIN}:{os.environ.get('PATH', '')}")
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                             text=True, env=env, start_new_session=True)
@@ -228,10 +237,15 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
                 console = ""
             else:
                 vmlinuz, headers = unpack(k)
-                row["mode"] = "KVM" if kvm else "software emulation"
+                tests, root = TESTS, "/"
+                if k.arch:  # no KVM for another architecture; its own root (tests/kernels/arm64.py)
+                    kvm, tests = False, tuple(t for t in TESTS if t not in ROS2_TESTS)
+                    root = arm64.root(CHECKOUT, _debian_uri(), (out, CACHE),
+                                      os.path.join(os.path.dirname(os.path.dirname(vmlinuz)), "lib", "modules", k.release))
+                row["mode"] = "KVM" if kvm else "software emulation" + (f" ({k.arch})" if k.arch else "")
                 command = (f"{paths}{VENV_BIN}/python -m tests.kernels.guest {out} {headers} {1 if kvm else TIME_SCALE} "
-                           f"{' '.join(TESTS)} >{out}/log 2>&1")
-                status, console = _vng(vmlinuz, bool(kvm), command, out, timeout)
+                           f"{' '.join(tests)} >{out}/log 2>&1")
+                status, console = _vng(vmlinuz, bool(kvm), command, out, timeout, k.arch, root)
             seen_path = os.path.join(out, "guest.json")
             if not os.path.exists(seen_path):
                 log = _tail(os.path.join(out, "log")) or console
@@ -239,7 +253,7 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
                                    f"the guest wrote no results (exit status {status}): {log[-400:]!r}")
             with open(seen_path) as f:
                 seen = json.load(f)
-            row.update(release=seen["release"], python=seen["python"], doctor=seen["doctor"],
+            row.update(release=seen["release"], python=seen["python"], ros2=seen.get("ros2"), doctor=seen["doctor"],
                        paths={p: [[n, why] for n, why in ps] for p, ps in seen["paths"].items()})
             table, failed, row["agent"] = outcomes(os.path.join(out, "junit.xml"), seen["paths"])
             shutil.copy(os.path.join(out, "pytest.log"), os.path.join(CACHE, f"{name}-pytest.log"))
@@ -288,16 +302,18 @@ def main(argv=None) -> int:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=CHECKOUT).stdout.strip() or "unknown"
     kvm, why = None, ""
-    if any(k is not None for k in chosen):
+    native = [k for k in chosen if k is not None and not k.arch]  # KVM serves this machine's architecture alone
+    if native:
         try:
-            kvm, why = kvm_works(unpack(next(k for k in chosen if k is not None))[0])
+            kvm, why = kvm_works(unpack(native[0])[0])
         except (RuntimeError, OSError, subprocess.CalledProcessError) as e:
             kvm, why = False, f"no test boot ({e})"
     rows: list[dict] = []
 
     def run(k: Kernel | None) -> None:
         name = "host" if k is None else k.name
-        mode = "directly" if k is None else "under KVM" if kvm else f"under software emulation ({why})"
+        mode = ("directly" if k is None else f"under software emulation ({k.arch})" if k.arch
+                else "under KVM" if kvm else f"under software emulation ({why})")
         last = before.get(name, {}).get("seconds")
         left = deadline - time.monotonic()
         if last and left < last * 1.2 or left < 60:

@@ -12,6 +12,9 @@ import sys
 import pytest
 
 from drums.probes import rtps
+from tests.conftest import NO_ROS2, ROS2
+
+pytestmark = pytest.mark.skipif(not ROS2, reason=NO_ROS2)  # the receiver loads Fast DDS's library
 from tests.conftest import series
 
 PREFIX = bytes(range(1, 13))  # the writers' participant

@@ -411,7 +411,10 @@ def test_thread_cpu_waits_and_switches_match_kernel(sched_probe, collect, spawn)
     # The kernel's own runtime of each slice: the same to the nanosecond (1 us for float rounding).
     assert abs(cpu - k_cpu) <= 1e-6, (cpu, k_cpu, switches)
     process_cpu = value(after, PROCESS_CPU, pid=pid) - value(before, PROCESS_CPU, pid=pid)
-    assert abs(process_cpu - (proc_after - proc_before) / 1e9) <= 1e-6, (process_cpu, proc_after - proc_before)
+    assert abs(process_cpu - (proc_after - proc_before) / 1e9) <= 1e-6, (
+        process_cpu, proc_after - proc_before, "threads by the probe, before and after:",
+        series(before, THREAD_CPU, pid=pid), series(after, THREAD_CPU, pid=pid), "and by the kernel now:",
+        {t: schedstat(pid, t)[0] for t in tids_of(pid)})
     runq, k_runq = delta(THREAD_RUNQ), (k_after[1] - k_before[1]) / 1e9
     waits, k_waits = delta(THREAD_RUNQ_WAITS), k_after[2] - k_before[2]
     if sched_probe.status.attach_type == "tp_btf":

@@ -492,36 +492,36 @@ def counts_splice_reads(probe) -> bool:
 
 
 @pytest.mark.kernel
-def test_splice_reads_are_counted_where_asked_for_at_the_cost_said(features, proctable, collect):
-    """`drums agent --splice-tracepoints` on the path the agent takes: splice(2) from a TCP and a unix
-    stream socket counted exactly, by kprobes where the kernel has them, else by the syscall
-    tracepoints (which doctor and the agent's log say slow every system call)."""
+def test_splice_reads_are_counted_where_asked_for_at_the_cost_said(sockets_probe, features, proctable, collect):
+    """splice(2) from a TCP and a unix stream socket counted exactly: by each path's own programs
+    (kprobes on the tracepoint paths where the kernel has them), and on the tracepoint paths of a
+    kernel without kprobes, where it is not counted (doctor and the agent's log say so), by the
+    syscall tracepoints of `drums agent --splice-tracepoints`."""
     from drums.probes.registry import held_to
-    path = offered_paths(sockets.SocketsProbe)[0]
-    probe = held_to(sockets.SocketsProbe(features, proctable, splice_tracepoints=True,
-                                         pin_root=f"{TEST_PIN_ROOT}_splice"), path)
-    assert probe.splice_reads == (sockets.SPLICE_BY_KPROBES if features.kprobes else sockets.SPLICE_BY_SYSCALLS)
-    said = sockets.SocketsProbe(features, proctable).caveat(probe.paths[0])  # without the flag
-    assert bool(said) == (path in sockets.TRACEPOINT_PATHS and not features.kprobes)
-    probe.start()
+    path, probe = sockets_probe.status.attach_type, sockets_probe
+    uncounted = path in sockets.TRACEPOINT_PATHS and not features.kprobes
+    assert bool(probe.caveat(probe.paths[0])) == uncounted == (not counts_splice_reads(probe))
+    if uncounted:
+        probe = held_to(sockets.SocketsProbe(features, proctable, splice_tracepoints=True,
+                                             pin_root=f"{TEST_PIN_ROOT}_splice_{path}"), path)
+        assert probe.splice_reads == sockets.SPLICE_BY_SYSCALLS and not probe.caveat(probe.paths[0])
+        probe.start()
+    r, w = os.pipe()
     try:
-        assert probe.status.attach_type == path and counts_splice_reads(probe)
-        r, w = os.pipe()
-        try:
-            with connected_pairs(1) as [(tcp_tx, tcp_rx)]:
-                unix_tx, unix_rx = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-                with unix_tx, unix_rx:
-                    splices = {tcp_rx: spliced_from(tcp_tx, tcp_rx, 3 << 20, (r, w)),
-                               unix_rx: spliced_from(unix_tx, unix_rx, 1 << 20, (r, w))}
-                    snap = collect(probe)
-                    for rx, size in ((tcp_rx, 3 << 20), (unix_rx, 1 << 20)):
-                        (row,) = socket_rows(snap, pid=os.getpid(), inode=inode(rx)).values()
-                        assert row == dict(ZERO, received_bytes=size, receive_calls=splices[rx])
-        finally:
-            os.close(r)
-            os.close(w)
+        with connected_pairs(1) as [(tcp_tx, tcp_rx)]:
+            unix_tx, unix_rx = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+            with unix_tx, unix_rx:
+                splices = {tcp_rx: spliced_from(tcp_tx, tcp_rx, 3 << 20, (r, w)),
+                           unix_rx: spliced_from(unix_tx, unix_rx, 1 << 20, (r, w))}
+                snap = collect(probe)
+                for rx, size in ((tcp_rx, 3 << 20), (unix_rx, 1 << 20)):
+                    (row,) = socket_rows(snap, pid=os.getpid(), inode=inode(rx)).values()
+                    assert row == dict(ZERO, received_bytes=size, receive_calls=splices[rx])
     finally:
-        probe.unload()
+        os.close(r)
+        os.close(w)
+        if probe is not sockets_probe:
+            probe.unload()
 
 
 # ---- closed sockets fold into the process totals ----------------------------------------------
