@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# `make demo [FAULT=leak|flood|throttle|all]` and `make demo-stop`: a small robot on this machine,
+# `make demo [FAULT=leak|flood|throttle|leak,flood,...|all]` and `make demo-stop`: a small robot on this machine,
 # watched by Drums as an operator would watch it.
 #
 # Two "computers": the camera's (a network namespace, reached over a veth link) and the main one
@@ -8,8 +8,9 @@
 # rules and alerts (http://127.0.0.1:19090/alerts), and `drums top` in front when there is a
 # terminal. Ports of their own, so that a Drums or Prometheus already running is left alone.
 #
-# FAULT injects one of the three faults of the paper that started Drums, 20 s after the start
-# (throttle after 60 s, once the camera's link has carried a minute of images to compare with):
+# FAULT injects one of the three faults of the paper that started Drums, or several at once
+# (comma-separated), 20 s after the start (throttle after 60 s, once the camera's link has carried a
+# minute of images to compare with):
 #   leak      the processor keeps one image in ten: its memory grows by about 3 MB/s, to 1 GiB
 #             (DrumsNodeMemoryLeak on /processor fires within a minute)
 #   flood     the logger logs to /rosout in a tight loop (DrumsTopicFlooding on /logger, /rosout;
@@ -88,8 +89,13 @@ wait_for() {  # NAME URL: until the URL answers 200 while NAME runs, 60 s at mos
 }
 
 start() {
-  local fault=${1:-}
-  case "$fault" in ""|leak|flood|throttle|all) ;; *) say "FAULT=$fault: one of leak, flood, throttle, all"; exit 2 ;; esac
+  local fault=${1:-} f
+  if [ "$fault" != all ]; then
+    for f in ${fault//,/ }; do
+      case "$f" in leak|flood|throttle) ;; *) say "FAULT=$fault: leak, flood or throttle (or several, comma-separated), or all"; exit 2 ;; esac
+    done
+  fi
+  has() { [[ ",$fault," == *",$1,"* ]]; }
   stop
   for port in "$AGENT_PORT" "$STREAM_PORT" "$PROMETHEUS_PORT" "$DETECT_PORT"; do
     if ! "$PY" -c 'import socket, sys; socket.create_server(("127.0.0.1", int(sys.argv[1]))).close()' "$port" 2>/dev/null; then
@@ -137,10 +143,10 @@ yaml.safe_dump(config, open(sys.argv[1], "w"))' "$STATE/mixin.yaml"
     spawn processor "${env[@]}" DRUMS_DEMO_FAULT=leak DRUMS_DEMO_FAULT_AFTER="$FAULT_AFTER" "$PY" demo/robot.py processor
     spawn logger "${env[@]}" DRUMS_DEMO_FAULT=flood DRUMS_DEMO_FAULT_AFTER=$((FAULT_AFTER + 40)) "$PY" demo/robot.py logger
   else
-    spawn processor "${env[@]}" "$PY" demo/robot.py processor
-    spawn logger "${env[@]}" "$PY" demo/robot.py logger
+    spawn processor "${env[@]}" DRUMS_DEMO_FAULT="$(has leak && echo leak)" "$PY" demo/robot.py processor
+    spawn logger "${env[@]}" DRUMS_DEMO_FAULT="$(has flood && echo flood)" "$PY" demo/robot.py logger
   fi
-  if [ "$fault" = throttle ] || [ "$fault" = all ]; then
+  if has throttle || [ "$fault" = all ]; then
     local qdisc="ip netns exec $NS tc qdisc"
     spawn throttle sh -c "sleep $throttle_after && $qdisc add dev ${LINK}1 root tbf rate 4mbit burst 32kbit latency 400ms \
       && echo fault throttle started at \$(date +%s.%N) && sleep $throttle_for && $qdisc del dev ${LINK}1 root \

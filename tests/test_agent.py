@@ -76,6 +76,14 @@ def test_a_page_says_when_its_counters_were_read_so_a_rate_over_two_is_true(agen
         burner.wait()
 
 
+def asleep(pid: int) -> None:
+    """Wait until the process sleeps (state S): off its CPU, its switch-out counted."""
+    def sleeping():
+        with open(f"/proc/{pid}/stat") as f:
+            assert f.read().rsplit(")", 1)[1].split()[0] == "S"
+    eventually(sleeping, timeout=5)
+
+
 def attached(url: str) -> dict[str, tuple[str, float]]:
     return {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in samples(scrape(url), "drums_probe_attached").items()}
 
@@ -166,9 +174,13 @@ print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subpr
             child.stdout.readline()
             clock = ((~child.pid) << 3) | 2  # its process CPU clock
             try:
-                # The child sleeps: its CPU time is the kernel's own runtime at its last switch-out.
                 series_begun(url, "drums_process_socket_sent_bytes_total", child.pid)
                 series_begun(url, "drums_process_cpu_seconds_total", child.pid)
+                # Once the child sleeps its CPU time is the kernel's own runtime at its last switch-out:
+                # the agent's value then and the clock's are the same moment (read sooner, the series
+                # might have begun while the child still ran to its read).
+                asleep(child.pid)
+                cpu_before = series_begun(url, "drums_process_cpu_seconds_total", child.pid)
                 began = time.clock_gettime(clock)
                 child.stdin.write("go\n")
                 child.stdin.flush()
@@ -184,7 +196,7 @@ print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subpr
                     pid = str(child.pid)
                     assert sent.get(pid) == size and cpu.get(pid, 0) > 0, (sent.get(pid), cpu.get(pid))
                     return cpu[pid]
-                cpu = eventually(counted, timeout=10)
+                cpu = eventually(counted, timeout=10) - cpu_before
                 kernel = time.clock_gettime(clock) - began
                 assert abs(cpu - kernel) <= 1e-6, (cpu, kernel)
             finally:

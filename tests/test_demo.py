@@ -7,6 +7,7 @@ import json
 import os
 import socket
 import subprocess
+import time
 import urllib.parse
 import urllib.request
 
@@ -96,17 +97,21 @@ FAULTS = {
 }
 
 
-@pytest.mark.parametrize("fault", FAULTS)
-def test_each_fault_of_make_demo_fires_its_alert_on_the_entity_at_fault(fault):
-    after, name, where = FAULTS[fault]
+# The leak and the flood in one demo (its minutes once); the throttle in one of its own: beside the
+# two, whose load slows the processor, its retransmits stayed under the alert's ratio.
+@pytest.mark.parametrize("faults", ["leak,flood", "throttle"])
+def test_each_fault_of_make_demo_fires_its_alert_on_the_entity_at_fault(faults):
     ports, env = demo_env()
     try:
-        done = make("demo", {**env, "FAULT": fault})
+        done = make("demo", {**env, "FAULT": faults})
         assert done.returncode == 0, done.stderr[-2000:]
+        begun = time.monotonic()
+        for fault in faults.split(","):
+            after, name, where = FAULTS[fault]
 
-        def fired():
-            alerts = query(ports["PROMETHEUS"], f'ALERTS{{alertstate="firing", alertname="{name}"}}')
-            assert [{k: a["metric"].get(k) for k in where} for a in alerts] == [where], alerts
-        eventually(fired, timeout=after + 120)
+            def fired():
+                alerts = query(ports["PROMETHEUS"], f'ALERTS{{alertstate="firing", alertname="{name}"}}')
+                assert [{k: a["metric"].get(k) for k in where} for a in alerts] == [where], (fault, alerts)
+            eventually(fired, timeout=max(1.0, begun + after + 120 - time.monotonic()))
     finally:
         assert make("demo-stop", env).returncode == 0

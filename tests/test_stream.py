@@ -11,7 +11,7 @@ import pytest
 from drums.client import AgentError, Client
 from drums.exporters.stream import KEYFRAME
 from tests.agentproc import free_port, running_agent
-from tests.conftest import TIME_SCALE, peer_namespace
+from tests.conftest import eventually, peer_namespace
 
 CHEAP = ("--probe", "host", "--probe", "process", "--probe", "latency", "--graph", "auto")
 
@@ -170,8 +170,15 @@ def test_a_target_that_ignores_icmp_echoes_is_probed_by_tcp_and_every_probe_is_c
             with running_agent(*CHEAP, "--latency-target", remote, bpf=False) as url, \
                     Client([url.rsplit("/", 1)[0]]) as c:
                 c.start("latency", remote, interval=0.5, count=3, method="auto", port=port)
-                time.sleep(6 * TIME_SCALE)  # the first round waits a second for each echo
-                series = c.agents[0].job("latency", remote)["sample"]["series"]
+
+                def probed_by_tcp() -> list:  # the first round waits a second for each echo
+                    sample = c.agents[0].job("latency", remote)["sample"]
+                    assert sample, "no sample yet"
+                    series = sample["series"]
+                    sent = {(r["name"], r["labels"].get("method")): r["value"] for r in series}
+                    assert sent.get(("drums_latency_probes_sent_total", "tcp"), 0) >= 4, sent
+                    return series
+                series = eventually(probed_by_tcp, timeout=20)
                 target.stdin.write("\n")
                 target.stdin.flush()
                 connects = int(target.stdout.readline())
@@ -181,7 +188,7 @@ def test_a_target_that_ignores_icmp_echoes_is_probed_by_tcp_and_every_probe_is_c
             target.wait()
     values = {(r["name"], r["labels"].get("method")): r["value"] for r in series}
     # The first round: three echoes, all lost, and one connect, answered. Then rounds of three connects.
-    assert values["drums_latency_probes_sent_total", "icmp"] == values["drums_latency_probes_lost_total", "icmp"] \
+    assert values.get(("drums_latency_probes_sent_total", "icmp")) == values.get(("drums_latency_probes_lost_total", "icmp")) \
         == echoes == 3, (values, echoes)
     sent = values["drums_latency_probes_sent_total", "tcp"]
     assert values["drums_latency_probes_lost_total", "tcp"] == 0 and sent >= 4 and (sent - 1) % 3 == 0, values
