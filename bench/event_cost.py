@@ -265,16 +265,14 @@ def run(args) -> None:
             # Paired by round: a slow drift of the host (another session's programs coming and
             # going, a busy neighbour) cancels out within a round.
             fl = median(f - n for f, n in zip(added[w, "floor"], added[w, "none"]))
-            dr = median(d - n for d, n in zip(added[w, "drums"], added[w, "none"]))
             events = sum(median(events_per_op.get((w, tp), [0])) for tp, _ in pairs)
-            per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
-            rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
-                         ratio(dr, fl), fmt(events, 2), per_event])
-            if (w, SPLICE_TRACEPOINTS) in added:
-                sp = median(d - n for d, n in zip(added[w, SPLICE_TRACEPOINTS], added[w, "none"]))
-                rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name}, --splice-tracepoints)", fmt(none, 0), fmt(fl, 1),
-                             fmt(sp, 1), ratio(sp, fl), fmt(events, 2),
-                             f"{fmt(fl / events, 1)} / {fmt(sp / events, 1)}" if events else "n/a"])
+            for condition, also in (("drums", ""), (SPLICE_TRACEPOINTS, ", --splice-tracepoints")):
+                if (w, condition) not in added:
+                    continue
+                dr = median(d - n for d, n in zip(added[w, condition], added[w, "none"]))
+                per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
+                rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name}{also})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
+                             ratio(dr, fl), fmt(events, 2), per_event])
     notes = watch.notes() + [
         f"ns per operation: the fastest of {args.batches} batches of a run (other work on the host only "
         f"ever adds time); added ns: median over {args.rounds} rounds of the difference to the same round's "

@@ -97,8 +97,9 @@ def report(f: Features) -> tuple[list[str], bool]:
         chosen, reasons = choose_path(probe.paths, f) if not problems else (None, problems)
         if chosen:
             lines.append(f"    probe {probe.name:<8} will use {chosen.name} ({chosen.serves})")
-            if probe.caveat(chosen):
-                lines.append(f"      note: {probe.caveat(chosen)}")
+            caveat = probe.caveat(chosen)
+            if caveat:
+                lines.append(f"      note: {caveat}")
         else:
             lines.append(f"NO  probe {probe.name:<8} cannot attach: {'; '.join(reasons)}")
         for path in probe.paths:

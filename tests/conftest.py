@@ -162,6 +162,28 @@ def spliced_from(tx: socket.socket, rx: socket.socket, size: int, pipe: tuple[in
     return splices
 
 
+def tids_of(pid: int) -> list[int]:
+    return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+
+
+def settle(pid: int, timeout: float = 5.0) -> None:
+    """Wait until every thread of `pid` sleeps: a running slice is counted by neither the probe nor
+    schedstat until the thread leaves the CPU."""
+    deadline = time.monotonic() + timeout
+    while True:
+        states = []
+        for tid in tids_of(pid):
+            try:
+                with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                    states.append(f.read().rsplit(")", 1)[1].split()[0])
+            except FileNotFoundError:
+                pass  # the thread has just exited
+        if all(s == "S" for s in states):
+            return
+        assert time.monotonic() < deadline, f"threads of {pid} still in states {states}"
+        time.sleep(0.005)
+
+
 def eventually(check, timeout: float = 3.0):
     """Retry `check` (which asserts) until it passes or `timeout` runs out; return its result."""
     deadline = time.monotonic() + timeout * TIME_SCALE

@@ -21,7 +21,7 @@ import pytest
 from drums.client import Agent
 from drums.selfcost import MEMORY_EVERY
 from tests.agentproc import free_port, running_agent, samples, scrape, series_begun, serving
-from tests.conftest import ROS2, TEST_PIN_ROOT, connected_pairs, eventually, offered_paths, spliced_from
+from tests.conftest import TEST_PIN_ROOT, connected_pairs, eventually, offered_paths, settle, spliced_from
 
 
 @pytest.fixture(scope="module")
@@ -76,14 +76,6 @@ def test_a_page_says_when_its_counters_were_read_so_a_rate_over_two_is_true(agen
         burner.wait()
 
 
-def asleep(pid: int) -> None:
-    """Wait until the process sleeps (state S): off its CPU, its switch-out counted."""
-    def sleeping():
-        with open(f"/proc/{pid}/stat") as f:
-            assert f.read().rsplit(")", 1)[1].split()[0] == "S"
-    eventually(sleeping, timeout=5)
-
-
 def attached(url: str) -> dict[str, tuple[str, float]]:
     return {dict(k)["probe"]: (dict(k)["attach_type"], v) for k, v in samples(scrape(url), "drums_probe_attached").items()}
 
@@ -95,9 +87,11 @@ def test_every_probe_attached_with_its_attach_type(agent, record_property):
                                                          rtps.RtpsProbe, rcl.RclProbe, loads.LoadsProbe)}
     seen = attached(agent)
     record_property("attached", json.dumps({probe: path for probe, (path, _) in seen.items()}))  # make test-kernels' row
-    # Where rclpy is importable the graph is ros2 and the per-topic probes run too. Each BPF probe
-    # takes the best path this kernel offers (tp_btf for sockets and sched on Linux >= 6.6).
-    ros2 = {"rtps": (best["rtps"], 1), "rcl": (best["rcl"], 1), "loads": (best["loads"], 1)} if ROS2 else {}
+    # Where the graph is ros2 (rclpy importable) the per-topic probes run too. Each BPF probe takes
+    # the best path this kernel offers (tp_btf for sockets and sched on Linux >= 6.6).
+    from drums.graph.registry import default
+    ros2 = {"rtps": (best["rtps"], 1), "rcl": (best["rcl"], 1), "loads": (best["loads"], 1)} \
+        if default() == "ros2" else {}
     assert seen == {"sockets": (best["sockets"], 1), "sched": (best["sched"], 1),
                                "tcp": (best["tcp"], 1), "host": ("psutil", 1), "process": ("psutil", 1),
                                "latency": ("icmp", 1), **ros2}
@@ -179,7 +173,7 @@ print(flush=True); sys.stdin.readline()"""], stdin=subprocess.PIPE, stdout=subpr
                 # Once the child sleeps its CPU time is the kernel's own runtime at its last switch-out:
                 # the agent's value then and the clock's are the same moment (read sooner, the series
                 # might have begun while the child still ran to its read).
-                asleep(child.pid)
+                settle(child.pid)
                 cpu_before = series_begun(url, "drums_process_cpu_seconds_total", child.pid)
                 began = time.clock_gettime(clock)
                 child.stdin.write("go\n")

@@ -256,8 +256,9 @@ class BpfProbe(Probe):
         self.status.attached = True
         self.status.attach_type = path.name
         self.status.reason = ""
-        if self.caveat(path):
-            log.warning("probe %s: %s", self.name, self.caveat(path))
+        caveat = self.caveat(path)
+        if caveat:
+            log.warning("probe %s: %s", self.name, caveat)
 
     def _check_layouts(self) -> None:
         for name, layout in self.maps.items():

@@ -17,7 +17,7 @@ import pytest
 from drums.metrics import Histogram
 from drums.probes import sched
 from drums.probes.sched import _PROCESS_VALUE, _THREAD_VALUE, RUNQ_BUCKETS
-from tests.conftest import offered_paths, series, started_on_path, wait_until
+from tests.conftest import offered_paths, series, settle, started_on_path, tids_of, wait_until
 
 
 @pytest.fixture(scope="module", params=offered_paths(sched.SchedProbe))
@@ -256,10 +256,6 @@ def spawn():
         child.end()
 
 
-def tids_of(pid: int) -> list[int]:
-    return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-
-
 def schedstat(pid: int, tid: int) -> tuple[int, int, int]:
     """The kernel's (ns on a CPU, ns waiting on a run queue, times it ran after waiting) for one thread."""
     with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
@@ -289,24 +285,6 @@ def busy_ticks(cpu: int) -> int:
 
 def pids_alive() -> set[int]:
     return {int(d) for d in os.listdir("/proc") if d.isdigit()}
-
-
-def settle(pid: int, timeout: float = 5.0) -> None:
-    """Wait until every thread of `pid` sleeps: a running slice is counted by neither the probe nor
-    schedstat until the thread leaves the CPU."""
-    deadline = time.monotonic() + timeout
-    while True:
-        states = []
-        for tid in tids_of(pid):
-            try:
-                with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                    states.append(f.read().rsplit(")", 1)[1].split()[0])
-            except FileNotFoundError:
-                pass  # the thread has just exited
-        if all(s == "S" for s in states):
-            return
-        assert time.monotonic() < deadline, f"threads of {pid} still in states {states}"
-        time.sleep(0.005)
 
 
 def quiet(pid: int, take, read) -> tuple:

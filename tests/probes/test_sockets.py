@@ -471,7 +471,7 @@ def test_each_way_of_sending_and_receiving_counts_its_bytes_once_and_its_calls_a
 
         named = {"plain": plain, "plain_rx": plain_rx, "sendfile": sf, "sendfile_rx": sf_rx, "splice_tx": sp,
                  "splice_rx": sp_rx, "splice_into": into, "splice_into_rx": into_rx, "udp_tx": udp_tx, "udp_rx": udp_rx}
-        if not counts_splice_reads(sockets_probe):  # the socket has no other calls: no row
+        if sockets_probe.caveat(sockets_probe.paths[0]):  # uncounted here: the socket has no other calls, no row
             assert not socket_rows(snap, pid=os.getpid(), inode=inode(sp_rx))
             del named["splice_rx"]
         found = {n: socket_rows(snap, pid=os.getpid(), inode=inode(s)) for n, s in named.items()}
@@ -487,10 +487,6 @@ def test_each_way_of_sending_and_receiving_counts_its_bytes_once_and_its_calls_a
         assert rows[udp_rx] == dict(ZERO, received_bytes=3200, receive_calls=32)
 
 
-def counts_splice_reads(probe) -> bool:
-    return probe.status.attach_type not in sockets.TRACEPOINT_PATHS or probe.splice_reads != sockets.SPLICE_UNCOUNTED
-
-
 @pytest.mark.kernel
 def test_splice_reads_are_counted_where_asked_for_at_the_cost_said(sockets_probe, features, proctable, collect):
     """splice(2) from a TCP and a unix stream socket counted exactly: by each path's own programs
@@ -500,7 +496,7 @@ def test_splice_reads_are_counted_where_asked_for_at_the_cost_said(sockets_probe
     from drums.probes.registry import held_to
     path, probe = sockets_probe.status.attach_type, sockets_probe
     uncounted = path in sockets.TRACEPOINT_PATHS and not features.kprobes
-    assert bool(probe.caveat(probe.paths[0])) == uncounted == (not counts_splice_reads(probe))
+    assert bool(probe.caveat(probe.paths[0])) == uncounted
     if uncounted:
         probe = held_to(sockets.SocketsProbe(features, proctable, splice_tracepoints=True,
                                              pin_root=f"{TEST_PIN_ROOT}_splice_{path}"), path)
