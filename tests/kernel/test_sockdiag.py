@@ -217,7 +217,8 @@ def test_a_dump_as_a_table_holds_what_a_dump_of_connections_does():
         for srv in servers:
             held += [socket.create_connection(srv.getsockname()[:2]) for _ in range(3)]
             held += [srv.accept()[0] for _ in range(3)]
-        ports = {srv.getsockname()[1] for srv in servers}
+        # By inode: a port of ours may be another process's ephemeral port on another address.
+        inodes = {os.fstat(s.fileno()).st_ino for s in held + servers}
         states = (1 << ESTABLISHED) | (1 << LISTEN)
         table = dump_tcp_table(states)
         parsed = {(c.family, c.state, c.local_port, c.remote_port, c.local_address, c.remote_address, c.inode)
@@ -225,8 +226,8 @@ def test_a_dump_as_a_table_holds_what_a_dump_of_connections_does():
         def text(family, raw) -> str:
             return socket.inet_ntop(family, bytes(raw)[:4 if family == socket.AF_INET else 16])
         read = {(f, st, sp, dp, text(f, src), text(f, dst), ino) for f, st, sp, dp, src, dst, ino in table.tolist()}
-        ours = {row for row in parsed if {row[2], row[3]} & ports}
-        assert len(ours) == 14 and ours == {row for row in read if {row[2], row[3]} & ports}
+        ours = {row for row in parsed if row[6] in inodes}
+        assert len(ours) == 14 and ours == {row for row in read if row[6] in inodes}
     finally:
         for s in held + servers:
             s.close()
