@@ -12,7 +12,11 @@ socketpair and on a loopback TCP connection (two sock_send_length/sock_recv_leng
 operation), and a pipe ping-pong between two processes on one CPU (per round trip two
 sched_switch and two sched_wakeup events). Goal: the probes cost at most 1.3x the floor.
 
-    .venv/bin/python bench/event_cost.py [--rounds 15] [--ops 50000] [--pingpongs 25000]
+With --paths all, each probe on every attach path this kernel offers, beside empty programs on that
+path (on kprobes, on fexit); with --kernel 6.1, then so in a VM of Debian 12's kernel, which offers
+the fentry and kprobe paths that this machine's does not (`make bench` does both).
+
+    .venv/bin/python bench/event_cost.py [--rounds 15] [--ops 50000] [--pingpongs 25000] [--paths all] [--kernel 6.1]
 """
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 
 from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, percentile,
@@ -33,8 +38,9 @@ from floor import Floor
 PIN_ROOT = "/sys/fs/bpf/drums_bench"
 # The sockets probe as `drums agent --splice-tracepoints` loads it, measured too where that differs
 # (a kernel without kprobes: the syscall tracepoints then slow every system call).
-SPLICE_TRACEPOINTS = "drums --splice-tracepoints"
+SPLICE_TRACEPOINTS = "--splice-tracepoints"
 STATS_SYSCTL = "/proc/sys/kernel/bpf_stats_enabled"
+VM_TIMEOUT = 45 * 60  # seconds for --kernel's VM to boot and measure under emulation
 
 # probe -> its workloads, and the (tracepoint, Drums program) pairs those workloads exercise.
 PROBES = {
@@ -111,16 +117,49 @@ def run_workload(kind: str, ops: int, batches: int, cpu: int) -> tuple[float, di
     return min(data["ns_per_op"]), data["events_per_op"]
 
 
-def make_probe(name: str, condition: str = "drums"):
-    from drums.kernel.features import Features
+def probe_class(name: str):
     from drums.probes.sched import SchedProbe
     from drums.probes.sockets import SocketsProbe
+    return SchedProbe if name == "sched" else SocketsProbe
+
+
+def make_probe(name: str, path: str, splice_tracepoints: bool = False):
+    """The probe held to the attach path `path`, as `drums agent --attach NAME=PATH` holds it."""
+    from drums.kernel.features import Features
+    from drums.probes.registry import held_to
     from drums.proctable import ProcessTable
 
-    if name == "sched":
-        return SchedProbe(Features(), ProcessTable(), pin_root=PIN_ROOT)
-    return SocketsProbe(Features(), ProcessTable(), pin_root=PIN_ROOT,
-                        splice_tracepoints=condition == SPLICE_TRACEPOINTS)
+    extra = {"splice_tracepoints": splice_tracepoints} if name == "sockets" else {}
+    return held_to(probe_class(name)(Features(), ProcessTable(), pin_root=PIN_ROOT, **extra), path)
+
+
+def measured_paths(every: bool) -> dict[str, list[str]]:
+    """probe -> the attach paths measured: every one this kernel offers, or the agent's alone."""
+    from drums.kernel.features import Features
+    from drums.probes.bpf import usable_paths
+
+    features = Features()
+    out = {}
+    for name in PROBES:
+        offered = [p.name for p in usable_paths(probe_class(name).paths, features)]
+        if not offered:
+            raise BenchError(f"this kernel offers probe {name} no attach path")
+        out[name] = offered if every else offered[:1]
+    return out
+
+
+def floor_attachments(name: str, path: str) -> list[tuple[str, str, str]]:
+    """Where the probe's path attaches on this kernel, for the empty programs to attach alike."""
+    probe = make_probe(name, path)
+    return probe.attachments(probe.paths[0])
+
+
+def fexit_targets(paths: dict[str, list[str]]) -> tuple[str, ...]:
+    """The kernel functions the sockets probe's fentry path exits from: those its kprobe path
+    returns from (each family's sendmsg and recvmsg, and what splice and sendfile call)."""
+    if "fentry" not in paths["sockets"]:
+        return ()
+    return tuple(t for kind, t, _ in floor_attachments("sockets", "kprobe") if kind == "kretprobe")
 
 
 def drums_prog_ids(probe_name: str) -> dict[str, int]:
@@ -158,7 +197,8 @@ def run(args) -> None:
         raise BenchError("the benchmark's pin root must differ from the agent's")
     tracepoints = [tp for _, pairs in PROBES.values() for tp, _ in pairs]
     watch = ForeignWatch(tracepoints)
-    floor = Floor(Features().kernel_headers)
+    paths = measured_paths(args.paths == "all")
+    floor = Floor(Features().kernel_headers, fexit_targets(paths))
     added: dict[tuple[str, str], list[float]] = {}  # (workload, condition) -> ns/op per round
     events_per_op: dict[tuple[str, str], list[float]] = {}  # (workload, tracepoint) -> per run
     self_ns: dict[tuple[str, str], float] = {}  # (tracepoint, floor|drums) -> ns per program run
@@ -178,22 +218,24 @@ def run(args) -> None:
 
     logging.getLogger("drums").setLevel(logging.ERROR)  # the probe's caveat, said once below instead
     splice_differs = not Features().kprobes
+    # probe -> its conditions: none, then the empty programs and Drums on each path measured.
+    orders = {name: ["none"] + [f"{kind} {path}" for path in ps for kind in ("floor", "drums")]
+              + ([f"drums {ps[0]} {SPLICE_TRACEPOINTS}"] if splice_differs and name == "sockets" else [])
+              for name, ps in paths.items()}
     try:
         # Pass 1, statistics off: time per operation, conditions rotated round by round.
-        order = ["none", "floor", "drums"] + ([SPLICE_TRACEPOINTS] if splice_differs else [])
         for rnd in range(args.rounds):
-            for probe_name, (workloads, pairs) in PROBES.items():
-                tps = [tp for tp, _ in pairs]
-                for condition in order:
-                    if condition == SPLICE_TRACEPOINTS and probe_name != "sockets":
-                        continue
+            for probe_name, (workloads, _) in PROBES.items():
+                order = orders[probe_name]
+                for condition in order[rnd % len(order):] + order[:rnd % len(order)]:
                     progress(f"round {rnd + 1}/{args.rounds}: {probe_name} workloads, {condition}")
-                    if condition == "none":
+                    kind, path, *splice = condition.split(" ", 2) + [""]
+                    if kind == "none":
                         watch.look()
-                    if condition == "floor":
-                        floor.attach(tps)
-                    elif condition != "none":
-                        probe = make_probe(probe_name, condition)
+                    elif kind == "floor":
+                        floor.attach_path(floor_attachments(probe_name, path))
+                    else:
+                        probe = make_probe(probe_name, path, splice_tracepoints=bool(splice[0]))
                         probe.start()
                     try:
                         for w in workloads:
@@ -203,11 +245,11 @@ def run(args) -> None:
                         if probe is not None:
                             probe.unload()
                             probe = None
-            order = order[1:] + order[:1]
 
-        # Pass 2, statistics on: each program's own time per run, and events per operation.
+        # Pass 2, statistics on: each program's own time per run, on the agent's path (a
+        # tracepoint's: the programs of the other paths are not one per tracepoint).
         set_stats(1)
-        for probe_name, (workloads, pairs) in PROBES.items():
+        for probe_name, (workloads, pairs) in PROBES.items() if args.paths == "agent" else ():
             tps = [tp for tp, _ in pairs]
             for condition in ("floor", "drums"):
                 progress(f"bpf_stats: {probe_name} workloads, {condition}")
@@ -215,7 +257,7 @@ def run(args) -> None:
                     floor.attach(tps)
                     ids = floor.prog_ids(tps)
                 else:
-                    probe = make_probe(probe_name)
+                    probe = make_probe(probe_name, paths[probe_name][0])
                     probe.start()
                     ids = drums_prog_ids(probe_name)
                     listed = {(p.get("name"), p["id"]) for p in bpftool_json("prog", "show") or []}
@@ -245,48 +287,90 @@ def run(args) -> None:
         floor.close()
         shutil.rmtree(PIN_ROOT, ignore_errors=True)  # the probes remove their own dirs, not the root
 
-    rows = []
-    for probe_name, (_, pairs) in PROBES.items():
-        for tp, fn in pairs:
-            f, d = self_ns.get((tp, "floor"), float("nan")), self_ns.get((tp, "drums"), float("nan"))
-            program = fn if found_by_name.get(fn) != "not attached" else "no program on this path"
-            rows.append([f"{tp} ({probe_name}: {program})", fmt(f, 1), fmt(d, 1), ratio(d, f)])
-    print_table("Per-event cost: the program's own run time (kernel bpf_stats)",
-                ["event (probe: program)", "empty program ns/run", "Drums ns/run", "Drums / empty"], rows,
-                ["run_time_ns / run_cnt over the workloads below; the statistics themselves add a clock "
-                 "read per run to both columns.",
-                 "Drums programs found by name with `bpftool prog show -j`: "
-                 + ", ".join(f"{fn} {found}" for fn, found in found_by_name.items())])
+    kernel = f"Linux {os.uname().release}"
+    if self_ns:
+        rows = []
+        for probe_name, (_, pairs) in PROBES.items():
+            for tp, fn in pairs:
+                f, d = self_ns.get((tp, "floor"), float("nan")), self_ns.get((tp, "drums"), float("nan"))
+                program = fn if found_by_name.get(fn) != "not attached" else "no program on this path"
+                rows.append([f"{tp} ({probe_name}: {program})", paths[probe_name][0], fmt(f, 1), fmt(d, 1),
+                             ratio(d, f)])
+        print_table(f"Per-event cost: the program's own run time (kernel bpf_stats), {kernel}",
+                    ["event (probe: program)", "path", "empty program ns/run", "Drums ns/run", "Drums / empty"],
+                    rows,
+                    ["run_time_ns / run_cnt over the workloads below; the statistics themselves add a clock "
+                     "read per run to both columns.",
+                     "Drums programs found by name with `bpftool prog show -j`: "
+                     + ", ".join(f"{fn} {found}" for fn, found in found_by_name.items())])
 
     rows = []
     for probe_name, (workloads, pairs) in PROBES.items():
         for w in workloads:
             none = median(added[w, "none"])
-            # Paired by round: a slow drift of the host (another session's programs coming and
-            # going, a busy neighbour) cancels out within a round.
-            fl = median(f - n for f, n in zip(added[w, "floor"], added[w, "none"]))
             events = sum(median(events_per_op.get((w, tp), [0])) for tp, _ in pairs)
-            for condition, also in (("drums", ""), (SPLICE_TRACEPOINTS, ", --splice-tracepoints")):
-                if (w, condition) not in added:
-                    continue
+            for condition in (c for c in orders[probe_name] if c.startswith("drums ")):
+                path, _, splice = condition.partition(" ")[2].partition(" ")
+                # Paired by round: a slow drift of the host (another session's programs coming and
+                # going, a busy neighbour) cancels out within a round.
+                fl = median(f - n for f, n in zip(added[w, f"floor {path}"], added[w, "none"]))
                 dr = median(d - n for d, n in zip(added[w, condition], added[w, "none"]))
                 per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
-                rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name}{also})", fmt(none, 0), fmt(fl, 1), fmt(dr, 1),
-                             ratio(dr, fl), fmt(events, 2), per_event])
+                rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name}{', ' + splice if splice else ''})", path,
+                             fmt(none, 0), fmt(fl, 1), fmt(dr, 1), ratio(dr, fl), fmt(events, 2), per_event])
     notes = watch.notes() + [
         f"ns per operation: the fastest of {args.batches} batches of a run (other work on the host only "
         f"ever adds time); added ns: median over {args.rounds} rounds of the difference to the same round's "
         "run without programs; "
         f"{args.ops:,} socket operations or {args.pingpongs:,} round trips per run, on CPU {args.cpu}; "
-        "added = with programs attached minus with none. Goal: Drums at most 1.3x the floor.",
+        "added = with programs attached minus with none; the empty programs attach where Drums's do on "
+        "that path (kprobes: on entry and return of each family's sendmsg and recvmsg; fentry: fexit on "
+        "them). Goal: Drums at most 1.3x the floor.",
         "spread of the added ns/op over the rounds (25th to 75th percentile): " + "; ".join(
             f"{w} {c} {_spread(added[w, c], added[w, 'none'])}"
-            for w in WORKLOAD_LABEL for c in ("floor", "drums", SPLICE_TRACEPOINTS) if (w, c) in added),
+            for w in WORKLOAD_LABEL for c in sorted({c for ww, c in added if ww == w} - {"none"})),
     ] + ([f"this kernel has no kprobes: {SPLICE_UNCOUNTED_WHY} (the --splice-tracepoints rows: two per "
           "socket operation, each taking the kernel's syscall tracing path)"] if splice_differs else [])
-    print_table("Per-event cost: time added to a workload",
-                ["workload (probe)", "no program ns/op", "empty added ns/op", "Drums added ns/op",
+    print_table(f"Per-event cost: time added to a workload, {kernel}",
+                ["workload (probe)", "path", "no program ns/op", "empty added ns/op", "Drums added ns/op",
                  "Drums / empty", "events/op", "added ns/event empty / Drums"], rows, notes)
+
+
+def in_vm(name: str, args) -> None:
+    """The paths of another kernel of tests/kernels/matrix.py, measured in a VM of it, as
+    `make test-kernels` boots one (under KVM where it works, else emulation: there the ns are
+    emulated time, ten to fifty times this host's, and only the ratios carry over)."""
+    from tests.kernels import run as kernels
+    from tests.kernels.matrix import MATRIX
+
+    k = next((k for k in MATRIX if k.name == name and not k.arch), None)
+    if k is None:
+        raise BenchError(f"--kernel {name}: no such kernel of this machine's architecture in tests/kernels/matrix.py")
+    try:
+        vmlinuz, headers = kernels.unpack(k)
+        kvm, why = kernels.kvm_works(vmlinuz)
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as e:
+        raise BenchError(f"--kernel {name}: {e}") from None
+    mode = "KVM" if kvm else "software emulation"
+    sizes = ["--rounds", str(max(1, args.rounds // 3)), "--ops", str(args.ops), "--pingpongs", str(args.pingpongs),
+             "--batches", str(args.batches), "--cpu", str(args.cpu)]
+    progress(f"Linux {k.release}: booting under {mode}{'' if kvm else f' ({why})'}; every path, {sizes[1]} rounds")
+    with tempfile.TemporaryDirectory(prefix="drums-bench-") as out:
+        command = (f"{kernels.VENV_BIN}/python -m tests.kernels.guest bench {out} {headers} "
+                   f"bench/event_cost.py --paths all {' '.join(sizes)} >{out}/log 2>&1")
+        status, console = kernels.vng(vmlinuz, bool(kvm), command, out, VM_TIMEOUT)
+        try:
+            with open(os.path.join(out, "tables.jsonl")) as f:
+                tables = [json.loads(line) for line in f]
+        except OSError:
+            tables = []
+        if status != 0 or not tables:
+            log = kernels.tail(os.path.join(out, "log")) or console
+            raise BenchError(f"--kernel {name}: " + (f"the VM did not finish in {VM_TIMEOUT // 60} min" if status is None
+                                                     else f"no tables (exit status {status}): {log[-400:]!r}"))
+    for t in tables:
+        print_table(f"{t['title']} ({k.robots.split(';')[0]}, in a VM under {mode})", t["headers"], t["rows"],
+                    t["notes"] + ([] if kvm else ["under emulation the ns are emulated time; compare the ratios"]))
 
 
 def _spread(with_programs: list[float], without: list[float]) -> str:
@@ -301,8 +385,14 @@ def main() -> None:
     parser.add_argument("--pingpongs", type=int, default=25_000, help="round trips per run (default 25000)")
     parser.add_argument("--batches", type=int, default=5, help="timed batches per run (default 5)")
     parser.add_argument("--cpu", type=int, default=1, help="CPU the workload runs on (default 1)")
+    parser.add_argument("--kernel", metavar="NAME", default="",
+                        help="then every path of this kernel of tests/kernels/matrix.py (6.1: fentry and kprobes), "
+                             "in a VM of it, a third of the rounds (make bench: 6.1)")
+    parser.add_argument("--paths", choices=("agent", "all"), default="agent",
+                        help="each probe on the path the agent takes (default), or on every path this kernel "
+                             "offers, each beside empty programs on that path (no per-program statistics)")
     args = parser.parse_args()
-    main_wrapper(lambda: run(args))
+    main_wrapper(lambda: (run(args), args.kernel and in_vm(args.kernel, args)))
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ def test_splice_reads_on_the_tracepoint_paths_cost_every_system_call_only_when_a
         assert probe.splice_reads == mode
         assert probe.caveat(tp_btf) == (sockets.SPLICE_UNCOUNTED_WHY if mode == sockets.SPLICE_UNCOUNTED else "")
         assert probe.caveat(fentry) == ""  # its fexit programs count splices
-        extra = [a for a in probe._attachments(tp_btf) if a not in tp_btf.attachments]
+        extra = [a for a in probe.attachments(tp_btf) if a not in tp_btf.attachments]
         assert [kind for kind, _, _ in extra] == {
             sockets.SPLICE_BY_KPROBES: ["kprobe_link", "kretprobe_link"] * 2,
             sockets.SPLICE_BY_SYSCALLS: ["tracepoint"] * 2, sockets.SPLICE_UNCOUNTED: []}[mode]

@@ -211,7 +211,7 @@ class BpfProbe(Probe):
         """What the path leaves uncounted on this kernel, said by `drums doctor` and when it attaches."""
         return ""
 
-    def _attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
+    def attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
         """The path's attachments on this kernel: its optional functions where the kernel has them,
         and its tracepoints held by the agent where they cannot be linked (see drums.kernel.perflink)."""
         btf = self.features.btf
@@ -225,7 +225,7 @@ class BpfProbe(Probe):
         if btf.has_field("bpf_prog_info", "recursion_misses"):
             self._misses_at = btf.field("bpf_prog_info", "recursion_misses").offset
         self.pin_dir = pin_dir = os.path.join(self.pin_root, f"{self.name}-{self._stamp(path)}")
-        attachments = self._attachments(path)
+        attachments = self.attachments(path)
         if path.name in loader.PINNABLE:
             if not all(os.path.exists(os.path.join(pin_dir, m)) for m in self.maps):
                 self._remove_pins()

@@ -303,10 +303,10 @@ class SocketsProbe(BpfProbe):
     def caveat(self, path: AttachPath) -> str:
         return SPLICE_UNCOUNTED_WHY if path.name in TRACEPOINT_PATHS and self.splice_reads == SPLICE_UNCOUNTED else ""
 
-    def _attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
+    def attachments(self, path: AttachPath) -> list[tuple[str, str, str]]:
         if path.name in TRACEPOINT_PATHS:
             path = replace(path, attachments=path.attachments + _SPLICE_ATTACHMENTS[self.splice_reads])
-        return super()._attachments(path)
+        return super().attachments(path)
 
     def offsets(self, btf: Btf) -> dict[str, int]:
         d = offset_defines(btf, {**SOCK_ENDPOINT_FIELDS,

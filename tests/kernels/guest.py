@@ -1,9 +1,11 @@
 """Runs inside a kernel of the matrix (booted by tests/kernels/run.py over this machine's root): makes
 the guest what scripts/setup.sh makes a host (bpffs, tracefs, that kernel's headers for bcc), then
 runs `drums doctor` and the portable tests (`drums agent` as the README starts it among them),
-writing what it saw to OUT/guest.json and the tests' outcomes to OUT/junit.xml.
+writing what it saw to OUT/guest.json and the tests' outcomes to OUT/junit.xml. Or a benchmark
+(bench/event_cost.py --kernel), its tables to OUT/tables.jsonl.
 
     python -m tests.kernels.guest OUT HEADERS TIME_SCALE TEST...
+    python -m tests.kernels.guest bench OUT HEADERS SCRIPT ARG...
 """
 from __future__ import annotations
 
@@ -36,11 +38,23 @@ def paths_offered() -> dict[str, list[tuple[str, str]]]:
             for p in build(f, ProcessTable()) if isinstance(p, BpfProbe)}
 
 
-def main(out: str, headers: str, time_scale: str, tests: list[str]) -> int:
+def prepare(headers: str) -> None:
+    """What scripts/setup.sh makes of a host: bpffs, tracefs, and the kernel's headers for bcc."""
     os.chdir(CHECKOUT)
     _mount("bpf", "/sys/fs/bpf")
     _mount("tracefs", "/sys/kernel/tracing")
     os.environ["BCC_KERNEL_SOURCE"] = headers
+
+
+def bench(out: str, headers: str, argv: list[str]) -> int:
+    prepare(headers)
+    with open(os.path.join(out, "bench.out"), "w") as stdout:
+        return subprocess.run([sys.executable, *argv], stdout=stdout,
+                              env=dict(os.environ, DRUMS_BENCH_TABLES=os.path.join(out, "tables.jsonl"))).returncode
+
+
+def main(out: str, headers: str, time_scale: str, tests: list[str]) -> int:
+    prepare(headers)
     # The guest's root is this machine's, read-only but for /tmp and a few overlays: ROS 2 logs
     # there. Under emulation everything takes about ten times as long.
     os.environ["ROS_LOG_DIR"] = "/tmp/ros-log"
@@ -68,4 +82,6 @@ def main(out: str, headers: str, time_scale: str, tests: list[str]) -> int:
 
 
 if __name__ == "__main__":
+    if sys.argv[1] == "bench":
+        sys.exit(bench(sys.argv[2], sys.argv[3], sys.argv[4:]))
     sys.exit(main(sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]))

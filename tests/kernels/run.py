@@ -145,7 +145,7 @@ def unpack(k: Kernel) -> tuple[str, str]:
 
 # ---- booting ------------------------------------------------------------------------------------
 
-def _vng(vmlinuz: str, kvm: bool, command: str, out: str, timeout: float, arch: str = "",
+def vng(vmlinuz: str, kvm: bool, command: str, out: str, timeout: float, arch: str = "",
          root: str = "/") -> tuple[int | None, str]:
     """Boot the kernel and run `command` in it; (its exit status or None if it timed out, console tail).
     `arch` and `root`: a kernel of another architecture, over a root of its own (tests/kernels/arm64.py),
@@ -172,7 +172,7 @@ def kvm_works(vmlinuz: str) -> tuple[bool, str]:
         verdict = os.path.join(CACHE, f"kvm-{f.read().strip()}")
     if not os.path.exists(verdict):
         with tempfile.TemporaryDirectory() as out:
-            status, _ = _vng(vmlinuz, True, f"touch {out}/booted", out, KVM_TRIAL)
+            status, _ = vng(vmlinuz, True, f"touch {out}/booted", out, KVM_TRIAL)
             ok = status == 0 and os.path.exists(os.path.join(out, "booted"))
         with open(verdict, "w") as f:
             f.write("yes" if ok else f"a test boot under KVM gave no answer in {KVM_TRIAL} s" if status is None
@@ -245,10 +245,10 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
                 row["mode"] = "KVM" if kvm else "software emulation" + (f" ({k.arch})" if k.arch else "")
                 command = (f"{paths}{VENV_BIN}/python -m tests.kernels.guest {out} {headers} {1 if kvm else TIME_SCALE} "
                            f"{' '.join(tests)} >{out}/log 2>&1")
-                status, console = _vng(vmlinuz, bool(kvm), command, out, timeout, k.arch, root)
+                status, console = vng(vmlinuz, bool(kvm), command, out, timeout, k.arch, root)
             seen_path = os.path.join(out, "guest.json")
             if not os.path.exists(seen_path):
-                log = _tail(os.path.join(out, "log")) or console
+                log = tail(os.path.join(out, "log")) or console
                 raise RuntimeError(f"the VM did not finish in {timeout / 60:.0f} min" if status is None else
                                    f"the guest wrote no results (exit status {status}): {log[-400:]!r}")
             with open(seen_path) as f:
@@ -267,7 +267,7 @@ def run_kernel(k: Kernel | None, kvm: bool | None, commit: str, timeout: float =
     return row
 
 
-def _tail(path: str) -> str:
+def tail(path: str) -> str:
     try:
         with open(path, errors="replace") as f:
             return f.read()[-2000:]
