@@ -364,7 +364,7 @@ def in_vm(name: str, args) -> None:
                 tables = [json.loads(line) for line in f]
         except OSError:
             tables = []
-        if status != 0 or not tables:
+        if not tables:  # (virtme-ng's own exit status says nothing of the guest's)
             log = kernels.tail(os.path.join(out, "log")) or console
             raise BenchError(f"--kernel {name}: " + (f"the VM did not finish in {VM_TIMEOUT // 60} min" if status is None
                                                      else f"no tables (exit status {status}): {log[-400:]!r}"))
