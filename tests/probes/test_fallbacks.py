@@ -27,7 +27,7 @@ from drums.probes.sockdiag_sockets import SockDiagSocketsProbe, application_byte
 from drums.probes import tcp
 from drums.probes.sockets import SOCKET
 from drums.proctable import ProcessTable
-from tests.conftest import wait_until
+from tests.conftest import TIME_SCALE, wait_until
 
 STATE = {name: number for number, name in TCP_STATES.items()}
 NETNS = str(os.stat("/proc/self/ns/net").st_ino)
@@ -131,10 +131,10 @@ def test_sockets_fallback_counts_exact_bytes_of_a_child_connection(proctable, co
         child = subprocess.Popen([sys.executable, "-c", SOCKET_CHILD, host, str(lport), str(SENT), str(REPLIED)],
                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         try:
-            listener.settimeout(10)
+            listener.settimeout(10 * TIME_SCALE)  # a child python starting under emulation on 5.10 took longer
             server, _ = listener.accept()
             with server:
-                server.settimeout(10)
+                server.settimeout(10 * TIME_SCALE)
                 assert _recv_exactly(server, SENT) == SENT
                 server.sendall(b"r" * REPLIED)
                 cport, child_inode = map(int, child.stdout.readline().split())
