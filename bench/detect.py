@@ -1,7 +1,8 @@
 """`drums detect`'s own cost and its detection quality: CPU and memory watching 1,000 and 10,000
 series at 1 s (the agent's page parsed and judged, as the detector does each tick) beside the same
 checks run series by series in a Python loop (Skyline's way), and precision, recall and delay on
-labelled synthetic series beside a plain 3-sigma threshold. Needs neither root nor BPF.
+labelled synthetic series beside plain detectors counted alike (bench/baselines.py). Needs
+neither root nor BPF.
 
 The Numenta Anomaly Benchmark's labelled data ships in no package here, so the labelled series are
 made by this script: noise with a step, a ramp, a spike or a change of variance at a random point.
@@ -17,6 +18,9 @@ import subprocess
 import sys
 import time
 
+import numpy as np
+
+from baselines import DETECTORS, GAUSSIAN_AT_SIGMAS, episodes
 from common import PYTHON, fmt, main_wrapper, median, print_table, progress, ratio
 
 SIZES = (1000, 10000)
@@ -29,7 +33,6 @@ DETECTED_WITHIN = 30  # points after the anomaly's start that count as detecting
 
 def exposition(n: int, t: int) -> str:
     """An agent's page of `n` watched series at tick t: per-process counters and gauges with noise."""
-    import numpy as np
     rng = np.random.default_rng(t)
     lines = ["# TYPE drums_process_cpu_seconds_total counter", "# TYPE drums_process_socket_sent_bytes_total counter"]
     per = 4
@@ -86,13 +89,12 @@ def cost(n: int, ticks: int, loop: bool) -> dict:
 
 def labelled(count: int, seed: int = 11):
     """(series, kind, start) of `count` labelled series: a fifth without an anomaly (start -1)."""
-    import numpy as np
     rng = np.random.default_rng(seed)
     out = []
     for i in range(count):
         kind = "none" if i % 5 == 4 else KINDS[i % 5]
         sd = rng.uniform(1, 10)
-        x = rng.normal(100.0, sd, POINTS)
+        x = rng.normal(0.0, sd, POINTS)
         start = -1 if kind == "none" else int(rng.integers(320, POINTS - 60))
         size = rng.uniform(5, 10) * sd
         if kind == "step":
@@ -102,63 +104,29 @@ def labelled(count: int, seed: int = 11):
         elif kind == "spike":
             x[start] += 3 * size
         elif kind == "variance":
-            x[start:] = 100.0 + (x[start:] - 100.0) * 5
+            x[start:] *= 5
         out.append((x, kind, start))
     return out
 
 
-def score(flags_of, data) -> dict:
-    """Per kind: recall (flagged within DETECTED_WITHIN points of the start) and median delay; over
-    all: precision of flag episodes (runs of flagged points). An episode that starts before the
-    anomaly, or on a series without one, is false; one that starts after it, while the judged
-    window still holds the change, is the anomaly's own and not counted either way."""
+def score(detections: list, data) -> dict:
+    """Per kind: recall (a detection within DETECTED_WITHIN points of the start) and median delay;
+    over all: precision of detections. One before the anomaly, or on a series without one, is
+    false; one after the first DETECTED_WITHIN points, while the judged window still holds the
+    change, is the anomaly's own and counted neither way."""
     from collections import defaultdict
-    found, delays, true_flags, false_flags = defaultdict(int), defaultdict(list), 0, 0
-    for (_, kind, start), flags in zip(data, flags_of(data)):
-        hit = [t for t in flags if start >= 0 and start <= t < start + DETECTED_WITHIN]
-        true_flags += bool(hit)
-        episodes = [t for t in flags if t - 1 not in flags]
-        false_flags += sum(1 for t in episodes if start < 0 or t < start)
+    found, delays, true, false = defaultdict(int), defaultdict(list), 0, 0
+    for (_, kind, start), flags in zip(data, detections):
+        at = np.flatnonzero(flags).tolist()
+        hit = [t for t in at if start >= 0 and start <= t < start + DETECTED_WITHIN]
+        true += len(hit)
+        false += sum(1 for t in at if start < 0 or t < start)
         if hit:
             found[kind] += 1
             delays[kind].append(hit[0] - start)
     total = {k: sum(1 for _, kind, _ in data if kind == k) for k in KINDS}
     return {"recall": {k: found[k] / total[k] for k in KINDS}, "delay": {k: median(delays[k]) for k in KINDS},
-            "precision": true_flags / max(1, true_flags + false_flags), "false": false_flags}
-
-
-def ours(data) -> list[set[int]]:
-    """The detector's checks over each series as it would see them point by point (floors at zero:
-    synthetic series have no unit)."""
-    import numpy as np
-
-    from drums.detect import checks
-    from drums.detect.detector import WIDTH
-    window = np.stack([x for x, _, _ in data]).astype(np.float32)
-    flags = [set() for _ in data]
-    zero = np.zeros(len(data))
-    for t in range(checks.MIN_POINTS, POINTS):
-        verdict = checks.judge(window[:, max(0, t + 1 - WIDTH):t + 1], zero, zero)
-        for i in verdict.anomalous.tolist():
-            flags[i].add(t)
-    return flags
-
-
-def three_sigma(data) -> list[set[int]]:
-    """A plain threshold: the newest point farther than 3 standard deviations from the mean of the
-    points before it, over the same window."""
-    import numpy as np
-
-    from drums.detect import checks
-    from drums.detect.detector import WIDTH
-    window = np.stack([x for x, _, _ in data])
-    flags = [set() for _ in data]
-    for t in range(checks.MIN_POINTS, POINTS):
-        history = window[:, max(0, t + 1 - WIDTH):t]
-        out = np.abs(window[:, t] - history.mean(axis=1)) > 3 * history.std(axis=1)
-        for i in np.flatnonzero(out).tolist():
-            flags[i].add(t)
-    return flags
+            "precision": true / max(1, true + false), "false": false}
 
 
 def run(args) -> None:
@@ -184,21 +152,27 @@ def run(args) -> None:
 
     progress(f"quality over {args.series_quality} labelled series")
     data = labelled(args.series_quality)
-    a, b = score(ours, data), score(three_sigma, data)
-    quality = [["precision: flag episodes that found an anomaly / all but an anomaly's after-effects", fmt(a["precision"], 2),
-                fmt(b["precision"], 2), ratio(a["precision"], b["precision"])],
-               ["false flag episodes", str(a["false"]), str(b["false"]), ratio(a["false"], b["false"])]]
+    names, results = [], []
+    for name, detect in DETECTORS:
+        if name.startswith("windowed"):  # a score: flagged where it passes 3 sd, as the others
+            detect = lambda v, f=detect: episodes(f(v) >= GAUSSIAN_AT_SIGMAS)  # noqa: E731
+        names.append(name)
+        results.append(score([detect(x) for x, _, _ in data], data))
+    quality = [["precision: detections that found an anomaly / all but an anomaly's after-effects",
+                *(fmt(r["precision"], 2) for r in results)],
+               ["false detections", *(str(r["false"]) for r in results)]]
     for kind in KINDS:
-        quality.append([f"recall, {kind}", fmt(a["recall"][kind], 2), fmt(b["recall"][kind], 2),
-                        ratio(a["recall"][kind], b["recall"][kind])])
-        quality.append([f"median delay, {kind} (points)", fmt(a["delay"][kind], 0), fmt(b["delay"][kind], 0), ""])
-    print_table("Detection quality on labelled synthetic series", ["measure", "drums detect (5 checks, 3 agree)",
-                "3-sigma threshold", "ratio"], quality,
-                [f"{args.series_quality} series of {POINTS} points, Gaussian noise (sd 1-10 around 100); a fifth have "
+        quality.append([f"recall, {kind}", *(fmt(r["recall"][kind], 2) for r in results)])
+        quality.append([f"median delay, {kind} (points)", *(fmt(r["delay"][kind], 0) for r in results)])
+    print_table("Detection quality on labelled synthetic series", ["measure", *names], quality,
+                [f"{args.series_quality} series of {POINTS} points, Gaussian noise (sd 1-10 around 0); a fifth have "
                  "no anomaly, the rest one from point 320-540: a step of 5-10 sd, a ramp reaching that within 30 "
                  "points, a single spike of 15-30 sd, or the deviation times 5",
-                 "both judge each point against the 240 before it; drums detect's floors are set to 0 here "
-                 "(synthetic series have no unit), its warm-up is 30 points"])
+                 "each series fed point by point, as one gauge to drums detect (its floors for a unitless gauge: a "
+                 "change of 2, or of a tenth of the baseline, which the noise's mean of 0 leaves at 2); the others "
+                 "judge the mean of the newest 3 points against the 240 before them, NAB's windowed Gaussian each "
+                 "point against all before it, flagged at 3 sd; all are counted alike (bench/baselines.py): a "
+                 "detection is the start of an episode, which goes on while flagged again within 30 points"])
 
 
 def checks_width() -> int:

@@ -4,10 +4,11 @@ scoreboard and baselines run here on the same terms.
 
 Each series is fed point by point, one tick a point, through the detector as `drums detect` runs it
 (drums.detect.detector.Detector with its defaults: its checks, floors, hold and grace), as one gauge;
-a detection is the start of an anomaly (a flagged episode counts once, where it starts). The
-baselines judge the same newest-3-point mean against the same 240 points before it and are counted
-alike: 3-sigma, a robust z-score (median and MAD) and an EWMA band; and NAB's windowed Gaussian
-as NAB runs it (its anomaly score thresholded where it scores best, as NAB's optimizer does). The
+a detection is the start of an anomaly. The baselines (bench/baselines.py) judge the same
+newest-3-point mean against the same 240 points before it and are counted alike (a detection where
+an episode starts, which goes on while flagged again within 30 points): 3-sigma, a robust z-score
+(median and MAD) and an EWMA band; and NAB's windowed Gaussian as NAB runs it (its anomaly score
+thresholded where it scores best, as NAB's optimizer does). The
 scoring (bench/nabscore.py) is checked against NAB's own: the detections of published detectors
 that NAB's checkout keeps (results/) score here what NAB published. NAB comes from a checkout given
 by path (`make bench NAB=PATH`; nothing is downloaded).
@@ -17,12 +18,12 @@ by path (`make bench NAB=PATH`; nothing is downloaded).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 
 import numpy as np
 
 from common import BenchError, fmt, main_wrapper, print_table, progress
+from baselines import DETECTORS, drums_detect
 from nabscore import PROFILES, load, score
 
 # NAB's scoreboard (its README, NAB v1.0 and later): standard, reward low FP, reward low FN.
@@ -35,102 +36,6 @@ PUBLISHED = (
     ("Etsy Skyline (the paper's detector)", "skyline", (35.7, 27.1, 44.5)),
     ("Random", "", (11.0, 1.2, 19.5)),
 )
-SMOOTH = 3  # the detector judges the mean of the newest points
-WINDOW = 240  # and the points before them (drums.detect.detector.WIDTH)
-T0 = 1.7e9
-
-
-def starts(flags: np.ndarray) -> np.ndarray:
-    """1 where a run of flagged points starts."""
-    out = np.zeros(len(flags))
-    out[1:] = flags[1:] & ~flags[:-1]
-    out[0] = flags[0]
-    return out
-
-
-def drums_detect(values: np.ndarray) -> np.ndarray:
-    from drums.detect.detector import Detector
-    from drums.detect.sources import Reading
-    d = Detector()
-    out = np.zeros(len(values))
-    for i, v in enumerate(values.tolist()):
-        for event in d.tick([Reading("nab", T0 + i, {"nab_value": v})], now=T0 + i):
-            if event.kind == "anomaly":
-                out[i] = 1.0
-    return out
-
-
-def _judged(values: np.ndarray):
-    """(newest-3 mean, the WINDOW points before them) for every point with a full enough history."""
-    from numpy.lib.stride_tricks import sliding_window_view
-    smooth = np.convolve(values, np.ones(SMOOTH) / SMOOTH, "full")[:len(values)]
-    return smooth, sliding_window_view(np.concatenate([np.full(WINDOW, np.nan), values]), WINDOW)[:len(values)]
-
-
-def three_sigma(values: np.ndarray) -> np.ndarray:
-    smooth, before = _judged(values)
-    with np.errstate(invalid="ignore"):
-        mean, sd = np.nanmean(before, axis=1), np.nanstd(before, axis=1)
-        flags = np.abs(smooth - mean) > 3 * sd
-    return starts(_warm(flags))
-
-
-def robust_z(values: np.ndarray) -> np.ndarray:
-    smooth, before = _judged(values)
-    with np.errstate(invalid="ignore"):
-        median = np.nanmedian(before, axis=1)
-        mad = 1.4826 * np.nanmedian(np.abs(before - median[:, None]), axis=1)
-        flags = np.abs(smooth - median) > 3.5 * mad
-    return starts(_warm(flags))
-
-
-def ewma(values: np.ndarray, alpha: float = 2 / (WINDOW + 1)) -> np.ndarray:
-    """An exponentially weighted mean and variance (span WINDOW), the smoothed point outside 3 sd."""
-    smooth = np.convolve(values, np.ones(SMOOTH) / SMOOTH, "full")[:len(values)]
-    flags = np.zeros(len(values), bool)
-    mean, var = values[0], 0.0
-    for i in range(1, len(values)):
-        flags[i] = abs(smooth[i] - mean) > 3 * math.sqrt(var)
-        delta = values[i] - mean
-        mean += alpha * delta
-        var = (1 - alpha) * (var + alpha * delta * delta)
-    return starts(_warm(flags))
-
-
-def _warm(flags: np.ndarray) -> np.ndarray:
-    flags = flags.copy()
-    flags[:30] = False  # as the detector, nothing is judged before 30 points
-    return flags
-
-
-def windowed_gaussian(values: np.ndarray, size: int = 6400, step: int = 100) -> np.ndarray:
-    """NAB's windowed Gaussian: each point's anomaly score is how improbable it is under a normal
-    distribution fitted to the window of points before it (grown to `size`, then moved on every
-    `step` points)."""
-    out = np.zeros(len(values))
-    mean, sd, count = 0.0, 1.0, 0
-    for i, v in enumerate(values.tolist()):
-        if count:
-            out[i] = 1.0 - 0.5 * math.erfc(abs(v - mean) / sd / math.sqrt(2))
-        if i < size:
-            count = i + 1
-            window = values[:count]
-        elif (i - size + 1) % step == 0:
-            window = values[i + 1 - size:i + 1]
-        else:
-            continue
-        mean, sd = float(window.mean()), float(window.std()) or 1e-6
-    return out
-
-
-DETECTORS = (
-    ("drums detect (defaults; anomaly starts)", drums_detect),
-    ("3-sigma, newest-3 mean vs 240 before (starts)", three_sigma),
-    ("robust z (median, MAD) > 3.5, same (starts)", robust_z),
-    ("EWMA band, 3 sd, span 240 (starts)", ewma),
-    ("Windowed Gaussian (NAB's, run here)", windowed_gaussian),
-)
-
 
 def stored(nab: str, files, detector: str) -> list[np.ndarray] | None:
     """A published detector's anomaly scores as NAB's checkout keeps them (results/), if it does."""
@@ -155,9 +60,10 @@ def run(args) -> None:
     rows = []
     for name, detect in DETECTORS:
         progress(f"{name}: {len(files)} files, {points:,} points")
+        detect = (lambda v: drums_detect(v, "nab_value")) if detect is drums_detect else detect
         scores = [detect(f.values) for f in files]
         results = [score(files, scores, p) for p in PROFILES]
-        continuous = name.startswith("Windowed")
+        continuous = name.startswith("windowed")
         detections = "-" if continuous else f"{sum(int((s > 0).sum()) for s in scores):,}"
         rows.append([name + (f" (threshold {results[0][1]:.4g})" if continuous else ""),
                      *(fmt(r[0], 1) for r in results), detections])
@@ -167,8 +73,8 @@ def run(args) -> None:
                 ["detector", "standard", "reward low FP", "reward low FN", "detections"], rows,
                 [f"{len(files)} files, {points:,} points, {sum(len(f.windows) for f in files)} labelled windows; "
                  "scores normalized as NAB does: no detection 0, every window found at its start 100",
-                 "each series fed one point a tick; a detection is the start of a flagged run (counted once), "
-                 "scored at the point it starts; NAB's first 15% of each file (at most 750 points) is not scored",
+                 "each series fed one point a tick; a detection is the start of an episode (one that goes on while "
+                 "flagged again within 30 points), scored at the point it starts; NAB's first 15% of each file (at most 750 points) is not scored",
                  "NAB's windowed Gaussian run here differs from its published figure where its scores round to 1.0 "
                  "differently (they agree to 5e-13; its best threshold is exactly 1.0)"])
     check = []
