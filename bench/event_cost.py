@@ -30,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+from typing import NamedTuple
 
 from common import (BenchError, ForeignWatch, bpftool_json, fmt, main_wrapper, median, percentile,
                     print_table, progress, ratio, require_root, require_tool)
@@ -41,6 +42,18 @@ PIN_ROOT = "/sys/fs/bpf/drums_bench"
 SPLICE_TRACEPOINTS = "--splice-tracepoints"
 STATS_SYSCTL = "/proc/sys/kernel/bpf_stats_enabled"
 VM_TIMEOUT = 45 * 60  # seconds for --kernel's VM to boot and measure under emulation
+
+class Condition(NamedTuple):
+    """What a workload runs beside: nothing, empty programs or Drums's, on an attach path."""
+    kind: str  # none, floor or drums
+    path: str = ""
+    splice: bool = False  # the sockets probe as `drums agent --splice-tracepoints` loads it
+
+    def __str__(self) -> str:
+        return " ".join([self.kind, self.path] + [SPLICE_TRACEPOINTS] * self.splice).strip()
+
+
+NONE = Condition("none")
 
 # probe -> its workloads, and the (tracepoint, Drums program) pairs those workloads exercise.
 PROBES = {
@@ -199,7 +212,7 @@ def run(args) -> None:
     watch = ForeignWatch(tracepoints)
     paths = measured_paths(args.paths == "all")
     floor = Floor(Features().kernel_headers, fexit_targets(paths))
-    added: dict[tuple[str, str], list[float]] = {}  # (workload, condition) -> ns/op per round
+    added: dict[tuple[str, Condition], list[float]] = {}  # (workload, condition) -> ns/op per round
     events_per_op: dict[tuple[str, str], list[float]] = {}  # (workload, tracepoint) -> per run
     self_ns: dict[tuple[str, str], float] = {}  # (tracepoint, floor|drums) -> ns per program run
     found_by_name: dict[str, bool] = {}
@@ -212,15 +225,16 @@ def run(args) -> None:
     def measure(workload, condition):
         ns, events = run_workload(workload, ops_of(workload), args.batches, args.cpu)
         added.setdefault((workload, condition), []).append(ns)
-        if condition == "none":
+        if condition == NONE:
             for tp, count in events.items():
                 events_per_op.setdefault((workload, tp), []).append(count)
 
     logging.getLogger("drums").setLevel(logging.ERROR)  # the probe's caveat, said once below instead
     splice_differs = not Features().kprobes
-    # probe -> its conditions: none, then the empty programs and Drums on each path measured.
-    orders = {name: ["none"] + [f"{kind} {path}" for path in ps for kind in ("floor", "drums")]
-              + ([f"drums {ps[0]} {SPLICE_TRACEPOINTS}"] if splice_differs and name == "sockets" else [])
+    # probe -> its conditions (what runs, on which path, with --splice-tracepoints): none, then the
+    # empty programs and Drums on each path measured.
+    orders = {name: [NONE] + [Condition(kind, path) for path in ps for kind in ("floor", "drums")]
+              + ([Condition("drums", ps[0], True)] if splice_differs and name == "sockets" else [])
               for name, ps in paths.items()}
     try:
         # Pass 1, statistics off: time per operation, conditions rotated round by round.
@@ -229,13 +243,12 @@ def run(args) -> None:
                 order = orders[probe_name]
                 for condition in order[rnd % len(order):] + order[:rnd % len(order)]:
                     progress(f"round {rnd + 1}/{args.rounds}: {probe_name} workloads, {condition}")
-                    kind, path, *splice = condition.split(" ", 2) + [""]
-                    if kind == "none":
+                    if condition == NONE:
                         watch.look()
-                    elif kind == "floor":
-                        floor.attach_path(floor_attachments(probe_name, path))
+                    elif condition.kind == "floor":
+                        floor.attach_path(floor_attachments(probe_name, condition.path))
                     else:
-                        probe = make_probe(probe_name, path, splice_tracepoints=bool(splice[0]))
+                        probe = make_probe(probe_name, condition.path, condition.splice)
                         probe.start()
                     try:
                         for w in workloads:
@@ -307,16 +320,16 @@ def run(args) -> None:
     rows = []
     for probe_name, (workloads, pairs) in PROBES.items():
         for w in workloads:
-            none = median(added[w, "none"])
+            none = median(added[w, NONE])
             events = sum(median(events_per_op.get((w, tp), [0])) for tp, _ in pairs)
-            for condition in (c for c in orders[probe_name] if c.startswith("drums ")):
-                path, _, splice = condition.partition(" ")[2].partition(" ")
+            for condition in (c for c in orders[probe_name] if c.kind == "drums"):
                 # Paired by round: a slow drift of the host (another session's programs coming and
                 # going, a busy neighbour) cancels out within a round.
-                fl = median(f - n for f, n in zip(added[w, f"floor {path}"], added[w, "none"]))
-                dr = median(d - n for d, n in zip(added[w, condition], added[w, "none"]))
+                fl = median(f - n for f, n in zip(added[w, Condition("floor", condition.path)], added[w, NONE]))
+                dr = median(d - n for d, n in zip(added[w, condition], added[w, NONE]))
                 per_event = (f"{fmt(fl / events, 1)} / {fmt(dr / events, 1)}" if events else "n/a")
-                rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name}{', ' + splice if splice else ''})", path,
+                also = f", {SPLICE_TRACEPOINTS}" if condition.splice else ""
+                rows.append([f"{WORKLOAD_LABEL[w]} ({probe_name}{also})", condition.path,
                              fmt(none, 0), fmt(fl, 1), fmt(dr, 1), ratio(dr, fl), fmt(events, 2), per_event])
     notes = watch.notes() + [
         f"ns per operation: the fastest of {args.batches} batches of a run (other work on the host only "
@@ -327,8 +340,8 @@ def run(args) -> None:
         "that path (kprobes: on entry and return of each family's sendmsg and recvmsg; fentry: fexit on "
         "them). Goal: Drums at most 1.3x the floor.",
         "spread of the added ns/op over the rounds (25th to 75th percentile): " + "; ".join(
-            f"{w} {c} {_spread(added[w, c], added[w, 'none'])}"
-            for w in WORKLOAD_LABEL for c in sorted({c for ww, c in added if ww == w} - {"none"})),
+            f"{w} {c} {_spread(added[w, c], added[w, NONE])}"
+            for w in WORKLOAD_LABEL for c in sorted({c for ww, c in added if ww == w} - {NONE})),
     ] + ([f"this kernel has no kprobes: {SPLICE_UNCOUNTED_WHY} (the --splice-tracepoints rows: two per "
           "socket operation, each taking the kernel's syscall tracing path)"] if splice_differs else [])
     print_table(f"Per-event cost: time added to a workload, {kernel}",
@@ -392,7 +405,11 @@ def main() -> None:
                         help="each probe on the path the agent takes (default), or on every path this kernel "
                              "offers, each beside empty programs on that path (no per-program statistics)")
     args = parser.parse_args()
-    main_wrapper(lambda: (run(args), args.kernel and in_vm(args.kernel, args)))
+    def both() -> None:
+        run(args)
+        if args.kernel:
+            in_vm(args.kernel, args)
+    main_wrapper(both)
 
 
 if __name__ == "__main__":
