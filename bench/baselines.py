@@ -30,26 +30,30 @@ def episodes(flags: np.ndarray) -> np.ndarray:
     return out
 
 
-def drums_detect(values: np.ndarray, name: str = "value") -> np.ndarray:
+def drums_detect(values: np.ndarray) -> np.ndarray:
     """1 where `drums detect`'s Detector, with its defaults, starts an anomaly of the series, fed to
-    it as the gauge `name` (whose unit sets its floors), a point a tick."""
+    it a point a tick as a gauge of no unit it knows (whose floors: a change of 2, or of a tenth)."""
     from drums.detect.detector import Detector
     from drums.detect.sources import Reading
     d = Detector()
     out = np.zeros(len(values))
     for i, v in enumerate(values.tolist()):
-        for event in d.tick([Reading("bench", T0 + i, {name: v})], now=T0 + i):
+        for event in d.tick([Reading("bench", T0 + i, {"value": v})], now=T0 + i):
             if event.kind == "anomaly":
                 out[i] = 1.0
     return out
 
 
+def _smooth(values: np.ndarray) -> np.ndarray:
+    """The mean of the newest SMOOTH points at every point."""
+    return np.convolve(values, np.ones(SMOOTH) / SMOOTH, "full")[:len(values)]
+
+
 def _judged(values: np.ndarray):
     """(newest-3 mean, the WINDOW points before them) for every point."""
     from numpy.lib.stride_tricks import sliding_window_view
-    smooth = np.convolve(values, np.ones(SMOOTH) / SMOOTH, "full")[:len(values)]
     before = np.concatenate([np.full(WINDOW + SMOOTH - 1, np.nan), values])
-    return smooth, sliding_window_view(before, WINDOW)[:len(values)]
+    return _smooth(values), sliding_window_view(before, WINDOW)[:len(values)]
 
 
 def _warm(flags: np.ndarray) -> np.ndarray:
@@ -77,7 +81,7 @@ def robust_z(values: np.ndarray, z: float = 3.5) -> np.ndarray:
 def ewma(values: np.ndarray, alpha: float = 2 / (WINDOW + 1)) -> np.ndarray:
     """An exponentially weighted mean and variance (span WINDOW) of the points before; the smoothed
     point outside 3 of its standard deviations."""
-    smooth = np.convolve(values, np.ones(SMOOTH) / SMOOTH, "full")[:len(values)]
+    smooth = _smooth(values)
     flags = np.zeros(len(values), bool)
     mean, var = values[0], 0.0
     for i in range(1, len(values)):

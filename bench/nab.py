@@ -23,7 +23,7 @@ import os
 import numpy as np
 
 from common import BenchError, fmt, main_wrapper, print_table, progress
-from baselines import DETECTORS, drums_detect
+from baselines import DETECTORS
 from nabscore import PROFILES, load, score
 
 # NAB's scoreboard (its README, NAB v1.0 and later): standard, reward low FP, reward low FN.
@@ -60,7 +60,6 @@ def run(args) -> None:
     rows = []
     for name, detect in DETECTORS:
         progress(f"{name}: {len(files)} files, {points:,} points")
-        detect = (lambda v: drums_detect(v, "nab_value")) if detect is drums_detect else detect
         scores = [detect(f.values) for f in files]
         results = [score(files, scores, p) for p in PROFILES]
         continuous = name.startswith("windowed")
